@@ -1,0 +1,350 @@
+"""Pipeline configuration: pydantic v2 models, TOML files, ``--set`` overrides and ablation files.
+
+A pipeline config is a TOML file whose tables are the pipeline's components and sections::
+
+    [dataset]                 # every component is {plugin = "name", ...the plugin's own parameters}
+    plugin = "synthetic"
+    scenario = "driving_loop"
+
+    [loop]
+    plugin = "none"           # optional components (segmenter, loop, vps) can be switched off
+
+Component parameters are validated by the selected plugin's own config model (``extra="forbid"``).  Every error
+names the file, the key path and the allowed values.  ``resolve()`` fills in every default and returns a
+:class:`ResolvedConfig`; its ``to_json()`` is what each run directory stores, and loading that JSON back through
+these models gives an identical resolved config.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+from pydantic import BaseModel, Field, ValidationError, model_serializer, model_validator
+
+from .config_base import PluginConfig
+
+COMPONENTS = ("dataset", "segmenter", "frontend", "loop", "optimizer", "vps")
+OPTIONAL_COMPONENTS = ("segmenter", "loop", "vps")
+DISABLED = "none"
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message names the source, the key path and what is allowed."""
+
+
+class Component(BaseModel):
+    """``{plugin = "name", **params}``; params are validated later by the plugin's own model."""
+
+    model_config = {"extra": "forbid"}
+    plugin: str
+    params: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _split(cls, data: Any) -> Any:
+        if isinstance(data, str):
+            return {"plugin": data, "params": {}}
+        if isinstance(data, dict) and "params" not in data:
+            if "plugin" not in data:
+                raise ValueError("missing key 'plugin' (the name of the plugin to use)")
+            rest = {k: v for k, v in data.items() if k != "plugin"}
+            return {"plugin": data["plugin"], "params": rest}
+        return data
+
+    @model_serializer(mode="plain")
+    def _flat(self) -> dict[str, Any]:
+        return {"plugin": self.plugin, **self.params}
+
+    @property
+    def enabled(self) -> bool:
+        return self.plugin != DISABLED
+
+
+class RunSection(PluginConfig):
+    name: str = Field("run", description="run name; the run directory is <output_dir>/<name>-<timestamp>")
+    output_dir: str = Field("runs", description="folder that holds run directories (relative to the current directory)")
+    device: str = Field("cpu", description="torch device for the pipeline's tensors: cpu, cuda, cuda:0, ...")
+    seed: int = Field(0, description="random seed")
+    progress: bool = Field(True, description="show progress bars (only on a terminal)")
+    max_frames: Optional[int] = Field(None, ge=1, description="stop after this many input frames")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level of log.txt")
+    checkpoint_every: int = Field(20, ge=1, description="rewrite the trajectory files every N keyframes")
+
+
+class GraphSection(PluginConfig):
+    """Keyframe and edge policy of the frame graph (DROID-SLAM style; anchors 1.5)."""
+
+    ba_downsample: int = Field(8, ge=1, description="BA resolution = image size / ba_downsample")
+    warmup: int = Field(5, ge=2, description="keyframes collected before the map is initialised")
+    neighbours: int = Field(3, ge=1, description="edges to the previous `neighbours` keyframes of each new keyframe")
+    proximity_window: int = Field(25, ge=0, description="look back this many keyframes for proximity edges")
+    proximity_thresh: float = Field(16.0, gt=0, description="max frame distance (BA px) for a proximity edge")
+    proximity_nms: int = Field(1, ge=0, description="suppress proximity edges within this index distance of another")
+    max_proximity_edges: int = Field(4, ge=0, description="proximity edges added per new keyframe")
+    active_window: int = Field(16, ge=2, description="edges touching the last N keyframes are observed in each update")
+    remove_redundant: bool = Field(True, description="drop a keyframe that is too close to its predecessor")
+    redundant_thresh: float = Field(1.5, ge=0, description="frame distance (BA px) under which a keyframe is redundant")
+    reinit_after: int = Field(4, ge=1, description="consecutive failed frames before the map is re-initialised")
+    bidirectional: bool = Field(True, description="add edges in both directions")
+
+
+class OutputsSection(PluginConfig):
+    trajectory_kitti: bool = Field(False, description="also write trajectory_kitti.txt")
+    ply: bool = Field(True, description="write cloud_rgb.ply and cloud_panoptic.ply")
+    ply_max_depth: float = Field(50.0, gt=0, description="drop points farther than this (in map units) from their keyframe")
+    panoptic_png: bool = Field(True, description="write per-frame panoptic PNGs (COCO id encoding)")
+    panoptic_vis: bool = Field(False, description="also write colour visualisations of the panoptic ids")
+    plots: bool = Field(True, description="write plots of the trajectory and its error")
+
+
+class EvaluationSection(PluginConfig):
+    enabled: bool = Field(True, description="evaluate against ground truth at the end of the run when it exists")
+    align: Literal["sim3", "se3", "none"] = Field("sim3", description="trajectory alignment for ATE (sim3 for monocular)")
+    rpe_delta: int = Field(1, ge=1, description="RPE frame offset")
+    vpq_ks: list[int] = Field(default_factory=lambda: [0, 5, 10, 15], description="VPQ window sizes k")
+    loop_tolerance: int = Field(5, ge=0, description="frames of tolerance when matching detected loops to GT revisits")
+    max_panoptic_frames: int = Field(300, ge=1, description="evaluate PQ/VPQ on at most this many frames (memory)")
+
+
+class PipelineConfig(PluginConfig):
+    run: RunSection = Field(default_factory=RunSection)
+    dataset: Component = Field(default_factory=lambda: Component(plugin="synthetic"))
+    segmenter: Component = Field(default_factory=lambda: Component(plugin="labels"))
+    frontend: Component = Field(default_factory=lambda: Component(plugin="flow"))
+    loop: Component = Field(default_factory=lambda: Component(plugin="classical"))
+    optimizer: Component = Field(default_factory=lambda: Component(plugin="online_ba"))
+    vps: Component = Field(default_factory=lambda: Component(plugin="warp_iou"))
+    graph: GraphSection = Field(default_factory=GraphSection)
+    outputs: OutputsSection = Field(default_factory=OutputsSection)
+    evaluation: EvaluationSection = Field(default_factory=EvaluationSection)
+
+
+# --------------------------------------------------------------------------------------------- raw dicts ----
+def read_toml(path: str | Path) -> dict[str, Any]:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: config file not found")
+    try:
+        with open(p, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
+
+
+def parse_value(text: str) -> Any:
+    """A ``--set`` value: TOML syntax when it parses (numbers, booleans, arrays, quoted strings), else a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_override(item: str) -> tuple[str, Any]:
+    if "=" not in item:
+        raise ConfigError(f"--set {item!r}: expected KEY.PATH=VALUE, e.g. --set loop.plugin=none")
+    key, value = item.split("=", 1)
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise ConfigError(f"--set {item!r}: empty key path")
+    return key, parse_value(value.strip())
+
+
+def apply_overrides(raw: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """Apply dotted-key overrides (``{"frontend.preset": "fast"}``) to a copy of ``raw``."""
+    out = copy.deepcopy(raw)
+    for key, value in overrides.items():
+        parts = key.split(".")
+        node = out
+        for part in parts[:-1]:
+            nxt = node.get(part)
+            if isinstance(nxt, str) and part in COMPONENTS:  # `dataset = "kitti"` shorthand
+                nxt = {"plugin": nxt}
+            if nxt is None:
+                nxt = {}
+            if not isinstance(nxt, dict):
+                raise ConfigError(f"override {key}: {part!r} is a value, not a table")
+            node[part] = nxt
+            node = nxt
+        node[parts[-1]] = value
+    return out
+
+
+# ------------------------------------------------------------------------------------------ validation ----
+def _allowed_at(model: type[BaseModel], loc: tuple) -> Optional[list[str]]:
+    """Field names of the (sub)model that ``loc`` points into, for 'allowed values' in error messages."""
+    cur: Any = model
+    for part in loc:
+        if isinstance(cur, type) and issubclass(cur, BaseModel) and isinstance(part, str) and part in cur.model_fields:
+            ann = cur.model_fields[part].annotation
+            cur = ann
+        else:
+            break
+    if isinstance(cur, type) and issubclass(cur, BaseModel):
+        return list(cur.model_fields)
+    return None
+
+
+def format_validation_error(exc: ValidationError, source: str, model: type[BaseModel], prefix: str = "") -> str:
+    lines = [f"{source}: invalid configuration"]
+    for err in exc.errors():
+        loc = tuple(p for p in err["loc"] if p not in ("params",))
+        path = ".".join(str(p) for p in ((prefix,) if prefix else ()) + loc) or "(top level)"
+        if err["type"] == "extra_forbidden":
+            allowed = _allowed_at(model, loc[:-1])
+            msg = f"unknown key {path!r}"
+            if allowed is not None:
+                msg += "; allowed keys here: " + ", ".join(allowed)
+        else:
+            msg = f"{path}: {err['msg']}"
+            if "input" in err and err["type"] not in ("missing",):
+                msg += f" (got {err['input']!r})"
+        lines.append("  " + msg)
+    return "\n".join(lines)
+
+
+def validate_pipeline(raw: dict[str, Any], source: str = "<config>") -> PipelineConfig:
+    try:
+        return PipelineConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, source, PipelineConfig)) from None
+
+
+@dataclass
+class ResolvedConfig:
+    """A validated pipeline config with every plugin's parameters parsed by that plugin's model."""
+
+    pipeline: PipelineConfig
+    models: dict[str, Optional[BaseModel]] = field(default_factory=dict)  # interface -> plugin config (None = off)
+    source: str = "<config>"
+
+    def to_dict(self) -> dict[str, Any]:
+        data = self.pipeline.model_dump(mode="json")
+        for name in COMPONENTS:
+            model = self.models.get(name)
+            data[name] = {"plugin": getattr(self.pipeline, name).plugin}
+            if model is not None:
+                data[name].update(model.model_dump(mode="json"))
+        return data
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=False)
+
+
+def resolve(pipeline: PipelineConfig, registry=None, source: str = "<config>") -> ResolvedConfig:
+    """Validate each component's params with its plugin's config model (filling defaults)."""
+    from .registry import PluginError, get_registry
+
+    registry = registry or get_registry()
+    models: dict[str, Optional[BaseModel]] = {}
+    for name in COMPONENTS:
+        comp: Component = getattr(pipeline, name)
+        if not comp.enabled:
+            if name not in OPTIONAL_COMPONENTS:
+                raise ConfigError(
+                    f"{source}: {name}.plugin cannot be 'none' (only {', '.join(OPTIONAL_COMPONENTS)} can be switched off)"
+                )
+            if comp.params:
+                raise ConfigError(f"{source}: {name} is switched off (plugin = 'none') but has parameters: "
+                                  + ", ".join(comp.params))
+            models[name] = None
+            continue
+        try:
+            spec = registry.get(name, comp.plugin)
+        except PluginError as exc:
+            raise ConfigError(f"{source}: {name}.plugin: {exc}") from None
+        try:
+            models[name] = spec.config_model.model_validate(comp.params)
+        except ValidationError as exc:
+            raise ConfigError(
+                format_validation_error(exc, source, spec.config_model, prefix=name)
+                + f"\n  ({name} plugin {comp.plugin!r} from {spec.distribution or spec.entry_point})"
+            ) from None
+    full = pipeline.model_copy(deep=True)
+    for name in COMPONENTS:
+        model = models[name]
+        if model is not None:
+            getattr(full, name).params = model.model_dump(mode="json")
+    return ResolvedConfig(full, models, source)
+
+
+def load_config(
+    path: str | Path | None = None,
+    overrides: Optional[list[str] | dict[str, Any]] = None,
+    registry=None,
+) -> ResolvedConfig:
+    """Load a pipeline TOML (or a resolved ``config.json`` from a run directory), apply overrides, resolve."""
+    raw: dict[str, Any] = {}
+    source = "<defaults>"
+    if path is not None:
+        source = str(path)
+        if str(path).endswith(".json"):
+            try:
+                raw = json.loads(Path(path).read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                raise ConfigError(f"{path}: cannot read JSON config: {exc}") from exc
+        else:
+            raw = read_toml(path)
+        if "variant" in raw:
+            raise ConfigError(f"{path}: this is an ablation file ([[variant]] tables); use load_ablation()")
+    ov = _normalise_overrides(overrides)
+    if ov:
+        raw = apply_overrides(raw, ov)
+        source += " (with --set " + ", ".join(f"{k}={v!r}" for k, v in ov.items()) + ")"
+    return resolve(validate_pipeline(raw, source), registry, source)
+
+
+def _normalise_overrides(overrides) -> dict[str, Any]:
+    if not overrides:
+        return {}
+    if isinstance(overrides, dict):
+        return dict(overrides)
+    return dict(parse_override(o) for o in overrides)
+
+
+# ---------------------------------------------------------------------------------------------- ablation ----
+@dataclass
+class Variant:
+    name: str
+    deltas: dict[str, Any]
+    config: ResolvedConfig
+
+
+def is_ablation_file(path: str | Path) -> bool:
+    return str(path).endswith(".toml") and "variant" in read_toml(path)
+
+
+def load_ablation(path: str | Path, overrides=None, registry=None) -> list[Variant]:
+    """An ablation file: a base pipeline plus ``[[variant]]`` tables of one-level dotted deltas.
+
+    ``[[variant]]`` tables hold ``name = "..."`` and quoted dotted keys, e.g. ``"loop.plugin" = "none"``.
+    ``overrides`` (``--set``) apply to the base before each variant's deltas.
+    """
+    raw = read_toml(path)
+    variants_raw = raw.pop("variant", None)
+    if not isinstance(variants_raw, list) or not variants_raw:
+        raise ConfigError(f"{path}: an ablation file needs at least one [[variant]] table")
+    base = apply_overrides(raw, _normalise_overrides(overrides))
+    out: list[Variant] = []
+    names: set[str] = set()
+    for n, var in enumerate(variants_raw):
+        if not isinstance(var, dict):
+            raise ConfigError(f"{path}: variant {n} must be a table")
+        name = str(var.get("name", f"variant{n}"))
+        if name in names:
+            raise ConfigError(f"{path}: duplicate variant name {name!r}")
+        names.add(name)
+        deltas = {k: v for k, v in var.items() if k != "name"}
+        for k, v in deltas.items():
+            if isinstance(v, dict):
+                raise ConfigError(
+                    f"{path}: variant {name!r}: key {k!r} is a table; write one-level dotted keys "
+                    f'such as "{k}.{next(iter(v), "key")}" = ...'
+                )
+        source = f"{path} [variant {name!r}]"
+        cfg = resolve(validate_pipeline(apply_overrides(base, deltas), source), registry, source)
+        out.append(Variant(name, deltas, cfg))
+    return out

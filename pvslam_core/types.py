@@ -1,0 +1,243 @@
+"""Data passed between pvslam components.
+
+Conventions (stated once, used everywhere)
+------------------------------------------
+* **Pose**: a rigid transform is a float tensor ``[..., 7]`` laid out ``[tx, ty, tz, qx, qy, qz, qw]``
+  (Hamilton quaternion, scalar last, unit norm).  Every pose that crosses a module boundary in pvslam is
+  **camera-to-world** ``T_wc``: it maps a point from the camera frame into the world frame
+  (``X_w = R X_c + t``), so ``t`` is the camera centre in world coordinates.  TUM trajectory files use the
+  same layout.  Code that prefers world-to-camera (the dense BA, as DROID-SLAM writes it) inverts on entry and
+  exit of that function; evo's wxyz quaternion order is produced in exactly one place
+  (``pvslam_core.evaluation.trajectory.to_evo``).
+* **Camera frame**: x right, y down, z forward (OpenCV).
+* **Images**: ``torch.uint8 [3, H, W]`` RGB, on the CPU as read.  Grayscale sources are replicated to 3 channels.
+* **Depth**: z-depth in metres, ``float32 [H, W]``, 0 where invalid.  The SLAM state keeps *inverse* depth
+  ("disparity", ``1/z``) at the bundle-adjustment resolution.
+* **Intrinsics**: pinhole ``fx, fy, cx, cy`` in pixels of the image they belong to, with OpenCV distortion
+  coefficients ``(k1, k2, p1, p2[, k3])``; pixel centres are at integer coordinates.
+* **Panoptic**: ``ids`` is ``int64 [H, W]``; 0 is void/unlabelled; every other id has a :class:`Segment`
+  with its category.  Ids are opaque positive integers; a VPS head keeps the id of a thing instance stable
+  over time.
+* **Flow targets**: for an edge ``(i, j)`` of the frame graph, ``target[e, :, y, x]`` is the ``(u, v)``
+  pixel position in keyframe ``j`` (at the BA resolution) that pixel ``(x, y)`` of keyframe ``i``
+  corresponds to; ``weight[e]`` is the per-coordinate confidence in ``[0, 1]``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Optional, Sequence
+
+import torch
+
+POSE_LAYOUT = "[tx, ty, tz, qx, qy, qz, qw], camera-to-world (T_wc)"
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics with optional OpenCV distortion, for an image of ``width`` x ``height`` pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    dist: tuple[float, ...] = ()  # OpenCV order (k1, k2, p1, p2[, k3]); empty = no distortion
+
+    def __post_init__(self) -> None:
+        if not (self.fx > 0 and self.fy > 0):
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        if len(self.dist) not in (0, 4, 5, 8, 12, 14):
+            raise ValueError(f"distortion must have 0, 4, 5, 8, 12 or 14 coefficients, got {len(self.dist)}")
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0 for d in self.dist)
+
+    def vector(self, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu") -> torch.Tensor:
+        """``[fx, fy, cx, cy]`` as a tensor."""
+        return torch.tensor([self.fx, self.fy, self.cx, self.cy], dtype=dtype, device=device)
+
+    def matrix(self) -> "torch.Tensor":
+        """3x3 camera matrix K (float64)."""
+        return torch.tensor(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=torch.float64
+        )
+
+    def scaled(self, sx: float, sy: Optional[float] = None) -> "Intrinsics":
+        """Intrinsics of the image resized by ``(sx, sy)`` (pixel centres at integers: c' = (c + 0.5) s - 0.5)."""
+        sy = sx if sy is None else sy
+        return replace(
+            self,
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+            width=int(round(self.width * sx)),
+            height=int(round(self.height * sy)),
+        )
+
+    def cropped(self, left: int, top: int, width: int, height: int) -> "Intrinsics":
+        return replace(self, cx=self.cx - left, cy=self.cy - top, width=width, height=height)
+
+
+@dataclass(frozen=True)
+class Category:
+    """A panoptic category: ``isthing`` categories have instances, stuff categories do not."""
+
+    id: int
+    name: str
+    isthing: bool
+    color: tuple[int, int, int] = (128, 128, 128)
+
+
+@dataclass(frozen=True)
+class Segment:
+    id: int
+    category_id: int
+    isthing: bool
+    score: float = 1.0
+
+
+@dataclass
+class PanopticSegmentation:
+    """Per-pixel segment ids plus one :class:`Segment` per id present (0 = void)."""
+
+    ids: torch.Tensor  # int64 [H, W]
+    segments: list[Segment]
+    features: Optional[dict[str, torch.Tensor]] = None  # optional backbone features for a VPS head
+
+    def segment(self, sid: int) -> Optional[Segment]:
+        for s in self.segments:
+            if s.id == sid:
+                return s
+        return None
+
+    def category_map(self) -> torch.Tensor:
+        """int64 [H, W] category id per pixel, -1 for void."""
+        lut_ids = torch.tensor([0] + [s.id for s in self.segments], dtype=torch.int64)
+        lut_cat = torch.tensor([-1] + [s.category_id for s in self.segments], dtype=torch.int64)
+        order = torch.argsort(lut_ids)
+        lut_ids, lut_cat = lut_ids[order], lut_cat[order]
+        pos = torch.searchsorted(lut_ids, self.ids.reshape(-1)).clamp(max=len(lut_ids) - 1)
+        found = lut_ids[pos] == self.ids.reshape(-1)
+        out = torch.where(found, lut_cat[pos], torch.full_like(pos, -1))
+        return out.reshape(self.ids.shape)
+
+
+@dataclass
+class Frame:
+    """One input frame, as every :class:`~pvslam_core.interfaces.DatasetReader` yields it."""
+
+    index: int  # position in the (strided, cropped) input stream, 0-based
+    timestamp: float  # seconds
+    image: torch.Tensor  # uint8 [3, H, W] RGB
+    intrinsics: Intrinsics
+    gt_pose: Optional[torch.Tensor] = None  # float64 [7] T_wc
+    gt_depth: Optional[torch.Tensor] = None  # float32 [H, W] metres, 0 = invalid
+    gt_panoptic: Optional[PanopticSegmentation] = None
+    gt_dynamic: Optional[torch.Tensor] = None  # bool [H, W], True where the scene moves independently
+    name: str = ""  # source file name or similar, for messages and output file names
+
+    @property
+    def height(self) -> int:
+        return int(self.image.shape[-2])
+
+    @property
+    def width(self) -> int:
+        return int(self.image.shape[-1])
+
+    def image_hwc(self):
+        """The image as a contiguous numpy ``uint8 [H, W, 3]`` RGB array (for OpenCV)."""
+        return self.image.permute(1, 2, 0).contiguous().numpy()
+
+    def gray(self):
+        """numpy ``uint8 [H, W]`` luminance."""
+        import cv2
+
+        return cv2.cvtColor(self.image_hwc(), cv2.COLOR_RGB2GRAY)
+
+
+@dataclass
+class SequenceInfo:
+    """What a reader knows about a sequence before iterating it."""
+
+    name: str
+    num_frames: int
+    intrinsics: Intrinsics  # of the frames as yielded (after resize/crop/undistort)
+    categories: Sequence[Category] = ()
+    has_gt_pose: bool = False
+    has_gt_depth: bool = False
+    has_gt_panoptic: bool = False
+    loop_pairs: Optional[list[tuple[int, int]]] = None  # ground-truth revisits (frame indices), if known
+    source: str = ""
+
+
+@dataclass
+class TrackResult:
+    """What :meth:`Frontend.track` says about a new frame."""
+
+    is_keyframe: bool
+    mean_flow: float  # mean optical-flow magnitude to the last keyframe, in BA-resolution pixels
+    # Flow from the last keyframe to this frame at the BA resolution, for pose filling of non-keyframes:
+    target: Optional[torch.Tensor] = None  # float [2, h, w] positions in this frame of last-keyframe pixels
+    weight: Optional[torch.Tensor] = None  # float [2, h, w]
+    failed: bool = False  # tracking failure (black frame, no texture, flow inconsistent); reason in `message`
+    message: str = ""
+
+
+@dataclass
+class EdgeObservations:
+    """Frontend output for a set of frame-graph edges, at the BA resolution ``(h, w)``."""
+
+    ii: torch.Tensor  # int64 [E] source keyframe index
+    jj: torch.Tensor  # int64 [E] target keyframe index
+    target: torch.Tensor  # float32 [E, 2, h, w] (u, v) in keyframe jj of each pixel of keyframe ii
+    weight: torch.Tensor  # float32 [E, 2, h, w] confidence in [0, 1]
+    dynamic: Optional[torch.Tensor] = None  # float32 [E, h, w] probability the pixel moves independently
+    eta: Optional[torch.Tensor] = None  # float32 [N, h, w] per-keyframe depth damping (learned frontends)
+
+    def __post_init__(self) -> None:
+        e = int(self.ii.shape[0])
+        if self.jj.shape[0] != e or self.target.shape[0] != e or self.weight.shape[0] != e:
+            raise ValueError(
+                f"EdgeObservations: inconsistent edge counts ii={tuple(self.ii.shape)} jj={tuple(self.jj.shape)} "
+                f"target={tuple(self.target.shape)} weight={tuple(self.weight.shape)}"
+            )
+
+
+@dataclass
+class LoopCandidate:
+    i: int  # the newer keyframe
+    j: int  # the older keyframe it revisits
+    score: float  # similarity (cosine) in [-1, 1]
+    verified: bool = False  # passed geometric verification
+    inliers: int = 0
+
+
+@dataclass
+class OptimizerReport:
+    """What one optimizer call did: iterations run, cost before and after, and any problem it caught."""
+
+    iterations: int = 0
+    cost_before: float = float("nan")
+    cost_after: float = float("nan")
+    num_edges: int = 0
+    num_free_poses: int = 0
+    rejected: bool = False  # a degenerate or non-finite update was detected and the previous estimate kept
+    message: str = ""
+
+
+@dataclass
+class RunResult:
+    """What :func:`pvslam_core.pipeline.run` returns."""
+
+    run_dir: Optional[str]
+    timestamps: torch.Tensor  # float64 [T]
+    poses: torch.Tensor  # float64 [T, 7] T_wc, one per input frame
+    keyframe_indices: torch.Tensor  # int64 [K] input-frame index of each keyframe
+    keyframe_poses: torch.Tensor  # float64 [K, 7] T_wc
+    metrics: dict = field(default_factory=dict)
+    loops: list[LoopCandidate] = field(default_factory=list)

@@ -1,0 +1,177 @@
+"""Test-only plugins for the framework tests: a tiny exact scene and a frontend that answers from ground truth.
+
+They are registered directly (``build_registry(extra_modules=(fakes,))``), never shipped as product plugins.
+Scene: two fronto-parallel planes (z = 4 on the left half of the view, z = 8 on the right), camera translating
+along +x with identity rotation, so flow targets are exact closed-form values.
+"""
+from __future__ import annotations
+
+import torch
+from pydantic import Field
+
+from pvslam_core.config_base import PluginConfig
+from pvslam_core.interfaces import DatasetReader, Frontend, Optimizer, Segmenter, VPSState, VPSHead
+from pvslam_core.registry import hookimpl
+from pvslam_core.types import (EdgeObservations, Frame, Intrinsics, OptimizerReport, PanopticSegmentation, Segment,
+                               SequenceInfo, TrackResult)
+
+W, H, F = 64, 48, 40.0
+SPEED = 0.05  # metres per frame along +x
+
+
+def depth_map(h: int, w: int) -> torch.Tensor:
+    d = torch.full((h, w), 4.0)
+    d[:, w // 2:] = 8.0
+    return d
+
+
+class FakeDatasetConfig(PluginConfig):
+    frames: int = Field(12, ge=2, description="number of frames")
+
+
+class FakeDataset(DatasetReader):
+    def __init__(self, cfg: FakeDatasetConfig):
+        self.n = cfg.frames
+        self.k = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+
+    def info(self) -> SequenceInfo:
+        return SequenceInfo("fake", self.n, self.k, has_gt_pose=True, has_gt_depth=True)
+
+    def __iter__(self):
+        g = torch.Generator().manual_seed(0)
+        img = torch.randint(0, 255, (3, H, W), generator=g, dtype=torch.uint8)
+        for i in range(self.n):
+            pose = torch.tensor([SPEED * i, 0, 0, 0, 0, 0, 1], dtype=torch.float64)
+            yield Frame(i, 0.1 * i, img.clone(), self.k, gt_pose=pose, gt_depth=depth_map(H, W), name=f"fake{i}")
+
+
+class FakeSegmenterConfig(PluginConfig):
+    pass
+
+
+class FakeSegmenter(Segmenter):
+    def segment(self, frame: Frame) -> PanopticSegmentation:
+        ids = torch.full((frame.height, frame.width), 1000, dtype=torch.int64)
+        ids[:, frame.width // 2:] = 2001
+        return PanopticSegmentation(ids, [Segment(1000, 1, False), Segment(2001, 2, True)])
+
+
+class ExactFrontendConfig(PluginConfig):
+    keyframe_every: int = Field(2, ge=1, description="every n-th frame is a keyframe")
+
+
+class ExactFrontend(Frontend):
+    """Targets from the known scene: u_j = u_i - f (x_j - x_i) / z at the BA resolution."""
+
+    iterations = 1
+
+    def __init__(self, cfg: ExactFrontendConfig, ds: int):
+        self.cfg = cfg
+        self.ds = ds
+        self.kf_x: list[float] = []
+        self.count = 0
+
+    def track(self, frame, seg):
+        self.count += 1
+        x = float(frame.gt_pose[0])
+        is_kf = self.count % self.cfg.keyframe_every == 0
+        return TrackResult(is_kf, 1.0, *self._tw(self.kf_x[-1], x, self.ds)) if self.kf_x else TrackResult(is_kf, 1.0)
+
+    def _tw(self, xi: float, xj: float, ds: int):
+        h, w = H // ds, W // ds
+        f = F / ds
+        ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
+                                indexing="ij")
+        z = depth_map(h, w)
+        target = torch.stack([xs - f * (xj - xi) / z, ys])
+        return target, torch.ones(2, h, w)
+
+    def add_keyframe(self, k, frame, seg):
+        self.kf_x.append(float(frame.gt_pose[0]))
+
+    def remove_keyframe(self, k):
+        del self.kf_x[k]
+
+    def observe(self, graph, ii, jj):
+        h, w = graph.ba_shape
+        ds = H // h
+        tw = [self._tw(self.kf_x[int(i)], self.kf_x[int(j)], ds) for i, j in zip(ii.tolist(), jj.tolist())]
+        return EdgeObservations(ii, jj, torch.stack([t for t, _ in tw]), torch.stack([w_ for _, w_ in tw]))
+
+
+class RecordingOptimizerConfig(PluginConfig):
+    pass
+
+
+class RecordingOptimizer(Optimizer):
+    """Counts calls; leaves the graph alone (the framework tests do not test BA)."""
+
+    def __init__(self):
+        self.steps = 0
+
+    def step(self, graph, obs):
+        self.steps += 1
+        return OptimizerReport(iterations=0, num_edges=int(obs.ii.numel()))
+
+    def loop(self, graph, obs, loops):
+        return OptimizerReport()
+
+
+class PassVPSConfig(PluginConfig):
+    pass
+
+
+class PassVPS(VPSHead):
+    def update(self, prev, frame, seg, cue):
+        return VPSState(frame.index, seg)
+
+
+@hookimpl
+def register_datasets(register):
+    register("fake", lambda c, ctx: FakeDataset(c), FakeDatasetConfig, description="test-only exact scene")
+
+
+@hookimpl
+def register_segmenters(register):
+    register("fake_seg", lambda c, ctx: FakeSegmenter(), FakeSegmenterConfig, description="test-only")
+
+
+@hookimpl
+def register_frontends(register):
+    register("exact", lambda c, ctx: ExactFrontend(c, ctx.ba_downsample), ExactFrontendConfig, description="test-only")
+
+
+@hookimpl
+def register_optimizers(register):
+    register("recording", lambda c, ctx: RecordingOptimizer(), RecordingOptimizerConfig, description="test-only")
+
+
+@hookimpl
+def register_vps_heads(register):
+    register("pass", lambda c, ctx: PassVPS(), PassVPSConfig, description="test-only")
+
+
+FAKE_PIPELINE = """
+[run]
+progress = false
+output_dir = "{output_dir}"
+[dataset]
+plugin = "fake"
+frames = 12
+[segmenter]
+plugin = "fake_seg"
+[frontend]
+plugin = "exact"
+[loop]
+plugin = "none"
+[optimizer]
+plugin = "recording"
+[vps]
+plugin = "pass"
+[graph]
+warmup = 3
+ba_downsample = 4
+remove_redundant = false
+[outputs]
+plots = false
+"""

@@ -1,0 +1,58 @@
+"""The command line: fast start (no heavy imports), config show/validate, plugins, exit codes."""
+import json
+import subprocess
+import sys
+
+from pvslam_core.cli import main
+
+
+def test_help_imports_no_heavy_library():
+    code = ("import sys, contextlib, io\n"
+            "from pvslam_core.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "    main([])\n"
+            "heavy = [m for m in ('torch', 'cv2', 'evo', 'matplotlib', 'pydantic') if m in sys.modules]\n"
+            "print(heavy)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_help_lists_commands(capsys):
+    main([])
+    out = capsys.readouterr().out
+    for cmd in ("run", "plugins", "config", "synth", "eval"):
+        assert cmd in out
+
+
+def test_config_validate_ok_and_error(tmp_path, capsys):
+    good = tmp_path / "good.toml"
+    good.write_text('[loop]\nplugin = "none"\n')
+    assert main(["config", "validate", str(good)]) == 0
+    assert "OK" in capsys.readouterr().out
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[optimizer]\nplugin = "online_ba"\nwindw = 3\n')
+    assert main(["config", "validate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.toml" in err and "optimizer.windw" in err and "window" in err
+
+
+def test_config_show_applies_set(capsys):
+    assert main(["config", "show", "--set", "graph.warmup=9", "--set", "loop.plugin=none"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["graph"]["warmup"] == 9 and data["loop"] == {"plugin": "none"}
+    assert data["frontend"]["plugin"] == "flow" and len(data["frontend"]) > 3
+
+
+def test_plugins_json(capsys):
+    assert main(["plugins", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    by = {(r["interface"], r["name"]): r for r in rows}
+    assert by[("frontend", "flow")]["state"] == "installed"
+    assert by[("dataset", "npz")]["state"] == "installed" and by[("dataset", "npz")]["distribution"] == "pvslam-npz"
+    assert by[("loop", "deit")]["state"] == "planned" and by[("loop", "deit")]["needs_weights"]
+
+
+def test_unknown_plugin_exit_code(capsys):
+    assert main(["config", "show", "--set", "frontend.plugin=droidd"]) == 2
+    err = capsys.readouterr().err
+    assert "droidd" in err and "flow" in err
