@@ -1,0 +1,29 @@
+"""Configuration of the ``synthetic`` dataset plugin."""
+from __future__ import annotations
+
+from typing import Optional
+
+from pydantic import Field, field_validator
+
+from pvslam_core.datasets.base import ReaderOptions
+
+from .scenarios import DEFAULT_SCENARIO, check_name
+
+
+class SyntheticConfig(ReaderOptions):
+    """Generate (and cache) a built-in synthetic sequence, or read one already written (``path``)."""
+
+    scenario: str = Field(DEFAULT_SCENARIO, description="driving_loop | moving_vehicles | indoor_handheld")
+    path: Optional[str] = Field(None, description="read this existing synthetic folder instead of generating")
+    num_frames: Optional[int] = Field(None, ge=1, description="frames to generate; None = the scenario's default")
+    laps: Optional[float] = Field(None, gt=0, description="loop scenarios: laps to drive when num_frames is None")
+    width: int = Field(320, ge=16, description="image width to generate")
+    height: int = Field(240, ge=16, description="image height to generate")
+    seed: int = Field(0, description="scene/trajectory seed (same seed, same sequence)")
+    progress: bool = Field(True, description="progress bar while generating (only on a terminal)")
+
+    @field_validator("scenario")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        check_name(v)
+        return v
