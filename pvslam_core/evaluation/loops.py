@@ -1,0 +1,112 @@
+"""Loop-closure detection precision / recall against ground-truth revisit pairs.
+
+Definitions (frame indices; every pair is normalised to ``(newer, older) = (max, min)``; exact duplicates are
+counted once):
+
+* A detected pair ``(i, j)`` **matches** a GT pair ``(gi, gj)`` when ``|i - gi| <= tolerance`` and
+  ``|j - gj| <= tolerance`` (Chebyshev distance in the (i, j) plane).
+* **Precision** = detections that match some GT pair / detections (NaN when nothing was detected).
+* **Revisit events**: GT pairs come in runs (the camera passes a place again for several frames, and each frame
+  may revisit several older frames). Two GT pairs belong to the same event when they are within ``tolerance``
+  of each other in both indices; an event is a connected component of that relation. A revisit of the same
+  older place at two different times gives two events.
+* **Recall** = events with at least one matching detection / events (NaN when the GT has no event).
+  ``pair_recall`` = GT pairs with a matching detection within ``tolerance`` / GT pairs.
+* ``f1`` = harmonic mean of precision and (event) recall (0 if either is 0, NaN if either is undefined).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Iterable
+
+import numpy as np
+
+__all__ = ["loop_precision_recall", "revisit_events"]
+
+
+def _pairs(pairs: Iterable[Any]) -> np.ndarray:
+    out = []
+    for p in pairs:
+        if hasattr(p, "i") and hasattr(p, "j"):  # LoopCandidate
+            a, b = int(p.i), int(p.j)
+        else:
+            a, b = (int(v) for v in p)
+        out.append((max(a, b), min(a, b)))
+    if not out:
+        return np.zeros((0, 2), dtype=np.int64)
+    return np.unique(np.array(out, dtype=np.int64), axis=0)
+
+
+def revisit_events(gt_pairs: Iterable[Any], tolerance: int = 5) -> list[np.ndarray]:
+    """Group GT pairs into revisit events (connected components, linked within ``tolerance`` in both indices)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    gt = _pairs(gt_pairs)
+    if len(gt) == 0:
+        return []
+    links = cKDTree(gt.astype(np.float64)).query_pairs(r=float(tolerance), p=np.inf, output_type="ndarray")
+    n = len(gt)
+    graph = coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n)) if len(links) else coo_matrix((n, n))
+    _, labels = connected_components(graph, directed=False)
+    order = np.argsort([gt[labels == c][:, 0].min() for c in range(labels.max() + 1)], kind="stable")
+    return [gt[labels == c] for c in order]
+
+
+def loop_precision_recall(detected: Iterable[Any], gt_pairs: Iterable[Any], tolerance: int = 5) -> dict:
+    """Precision / recall of detected loop pairs (see the module docstring for the exact definitions).
+
+    ``detected``: ``(i, j)`` tuples or :class:`~pvslam_core.types.LoopCandidate` objects; ``gt_pairs``: ``(i, j)``.
+    Returns ``precision, recall, pair_recall, f1, num_detected, num_tp, num_fp, num_gt_pairs, num_gt_events,
+    num_events_detected, tolerance, false_positives`` (up to 100 unmatched detections, for debugging).
+    """
+    from scipy.spatial import cKDTree
+
+    if tolerance < 0:
+        raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+    det = _pairs(detected)
+    gt = _pairs(gt_pairs)
+    events = revisit_events(gt, tolerance)
+    tol = float(tolerance) + 1e-9
+
+    if len(det) and len(gt):
+        tree_gt = cKDTree(gt.astype(np.float64))
+        d, _ = tree_gt.query(det.astype(np.float64), k=1, p=np.inf, distance_upper_bound=tol)
+        det_ok = np.isfinite(d)
+        tree_det = cKDTree(det.astype(np.float64))
+        d2, _ = tree_det.query(gt.astype(np.float64), k=1, p=np.inf, distance_upper_bound=tol)
+        gt_ok = np.isfinite(d2)
+        ev_ok = []
+        for ev in events:
+            de, _ = tree_det.query(ev.astype(np.float64), k=1, p=np.inf, distance_upper_bound=tol)
+            ev_ok.append(bool(np.isfinite(de).any()))
+    else:
+        det_ok = np.zeros(len(det), bool)
+        gt_ok = np.zeros(len(gt), bool)
+        ev_ok = [False] * len(events)
+
+    num_tp = int(det_ok.sum())
+    precision = num_tp / len(det) if len(det) else float("nan")
+    recall = sum(ev_ok) / len(events) if events else float("nan")
+    pair_recall = float(gt_ok.sum()) / len(gt) if len(gt) else float("nan")
+    if math.isnan(precision) or math.isnan(recall):
+        f1 = float("nan")
+    elif precision + recall == 0:
+        f1 = 0.0
+    else:
+        f1 = 2 * precision * recall / (precision + recall)
+    return {
+        "precision": float(precision),
+        "recall": float(recall),
+        "pair_recall": float(pair_recall),
+        "f1": float(f1),
+        "num_detected": int(len(det)),
+        "num_tp": num_tp,
+        "num_fp": int(len(det) - num_tp),
+        "num_gt_pairs": int(len(gt)),
+        "num_gt_events": len(events),
+        "num_events_detected": int(sum(ev_ok)),
+        "tolerance": int(tolerance),
+        "false_positives": [tuple(int(v) for v in p) for p in det[~det_ok][:100]],
+    }

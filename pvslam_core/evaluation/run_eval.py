@@ -1,0 +1,206 @@
+"""Recompute the metrics of a run directory from its files (no dataset, no config needed).
+
+Reads (see ``pvslam_core/outputs`` for the layout):
+
+* ``trajectory.txt`` (TUM, every input frame) and ``groundtruth.txt`` (TUM) -> ``ate`` and ``rpe``
+  (evo; Sim(3) alignment by default: monocular scale is unobservable), plus ``ate_keyframes`` from
+  ``keyframes.txt`` when present; plots ``plots/trajectory_top.png`` and ``plots/ate_over_time.png``;
+* ``loops.json`` + ground-truth revisit pairs (given by the caller) -> ``loops`` (precision / recall);
+* ``panoptic/`` (PNG + ``segments.json``) + ground-truth panoptic frames (given by the caller) -> ``panoptic``
+  (PQ and VPQ).
+
+The results are merged into ``metrics.json`` (atomically; keys the pipeline wrote before, e.g. timing, are
+kept). A section that cannot be computed records ``{"error": "..."}`` instead of failing the others.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+
+LOG = logging.getLogger("pvslam")
+
+__all__ = ["evaluate_run"]
+
+
+def _load_gt_trajectory(run_dir: Path, gt: Any):
+    from pvslam_core.outputs.trajectory_io import read_tum
+
+    if gt is None:
+        p = run_dir / "groundtruth.txt"
+        return read_tum(p) if p.is_file() else None
+    if isinstance(gt, (str, os.PathLike)):
+        return read_tum(gt)
+    ts, poses = gt
+    return np.asarray(ts, dtype=np.float64), np.asarray(poses, dtype=np.float64)
+
+
+def _panoptic_sequence(frames: Any) -> dict[int, Any]:
+    """``{frame_index: segmentation}`` from a dict or a list indexed by frame."""
+    if frames is None:
+        return {}
+    if isinstance(frames, Mapping):
+        return {int(k): v for k, v in frames.items() if v is not None}
+    return {i: v for i, v in enumerate(frames) if v is not None}
+
+
+def evaluate_run(
+    run_dir: str | os.PathLike,
+    gt: Any = None,
+    *,
+    panoptic_gt: Any = None,
+    loop_gt: Optional[Sequence[tuple[int, int]]] = None,
+    categories: Any = None,
+    align: str = "sim3",
+    max_diff: float = 0.01,
+    rpe_delta: int = 1,
+    loop_tolerance: int = 5,
+    vpq_ks: Sequence[int] = (0, 5, 10, 15),
+    plots: bool = True,
+    write: bool = True,
+) -> dict:
+    """Metrics of the run in ``run_dir``; merged into ``run_dir/metrics.json`` unless ``write=False``.
+
+    ``gt``: the ground-truth trajectory when it is not ``run_dir/groundtruth.txt`` -- a TUM path or a
+    ``(timestamps, poses)`` tuple -- or a dict with any of ``trajectory``, ``panoptic``, ``loops``,
+    ``categories`` (the same as the keyword arguments). ``panoptic_gt``: GT panoptic frames, a dict
+    ``{frame_index: PanopticSegmentation or (ids, segments)}`` or a list indexed by frame; compared with the
+    frames of ``run_dir/panoptic`` that have GT, in frame order (VPQ windows run over those frames).
+    ``loop_gt``: GT revisit pairs ``(i, j)`` of input-frame indices. ``categories``: panoptic categories
+    (default: those stored in ``panoptic/segments.json``).
+    """
+    from pvslam_core.outputs.metrics import MetricsFile
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run directory not found: {run_dir}")
+    if isinstance(gt, Mapping):
+        panoptic_gt = gt.get("panoptic", panoptic_gt)
+        loop_gt = gt.get("loops", loop_gt)
+        categories = gt.get("categories", categories)
+        gt = gt.get("trajectory")
+    out: dict[str, Any] = {}
+
+    # --- trajectory ---------------------------------------------------------------------------------------------
+    est_path = run_dir / "trajectory.txt"
+    try:
+        gt_traj = _load_gt_trajectory(run_dir, gt)
+    except Exception as e:  # a broken GT file
+        gt_traj = None
+        out["ate"] = {"error": str(e)}
+    if gt_traj is not None and est_path.is_file():
+        from pvslam_core.evaluation.trajectory import aligned_positions, ate, rpe
+        from pvslam_core.outputs.trajectory_io import read_tum
+
+        gt_ts, gt_poses = gt_traj
+        try:
+            est_ts, est = read_tum(est_path)
+            out["ate"] = ate(est_ts, est, gt_ts, gt_poses, align=align, max_diff=max_diff)
+            try:
+                out["rpe"] = rpe(est_ts, est, gt_ts, gt_poses, delta=rpe_delta, align=align, max_diff=max_diff)
+            except ValueError as e:
+                out["rpe"] = {"error": str(e)}
+            if plots:
+                from pvslam_core.outputs.plots import plot_error_over_time, plot_trajectory_top
+
+                res = aligned_positions(est_ts, est, gt_ts, gt_poses, align=align, max_diff=max_diff)
+                (run_dir / "plots").mkdir(exist_ok=True)
+                plot_trajectory_top(run_dir / "plots" / "trajectory_top.png", res["est_xyz"], res["gt_xyz"],
+                                    res["errors"], title=f"ATE RMSE {out['ate']['rmse']:.4g} m ({align})")
+                plot_error_over_time(run_dir / "plots" / "ate_over_time.png", res["timestamps"], res["errors"])
+        except ValueError as e:
+            LOG.warning("ATE of %s not computed: %s", run_dir, e)
+            out["ate"] = {"error": str(e)}
+        kf_path = run_dir / "keyframes.txt"
+        if kf_path.is_file():
+            try:
+                kts, kposes = read_tum(kf_path)
+                out["ate_keyframes"] = ate(kts, kposes, gt_ts, gt_poses, align=align, max_diff=max_diff)
+            except ValueError as e:
+                out["ate_keyframes"] = {"error": str(e)}
+
+    # --- loops --------------------------------------------------------------------------------------------------
+    loops_path = run_dir / "loops.json"
+    if loop_gt is not None and loops_path.is_file():
+        from pvslam_core.evaluation.loops import loop_precision_recall
+        from pvslam_core.outputs.loops_io import loop_frame_pairs, read_loops
+
+        try:
+            detected = loop_frame_pairs(read_loops(loops_path))
+            out["loops"] = loop_precision_recall(detected, list(loop_gt), tolerance=loop_tolerance)
+        except (ValueError, KeyError) as e:
+            out["loops"] = {"error": str(e)}
+
+    # --- panoptic -----------------------------------------------------------------------------------------------
+    pan_dir = run_dir / "panoptic"
+    gt_frames = _panoptic_sequence(panoptic_gt)
+    if gt_frames and (pan_dir / "segments.json").is_file():
+        from pvslam_core.evaluation.panoptic import pq, vpq
+        from pvslam_core.outputs.panoptic_png import load_panoptic_dir
+
+        try:
+            preds = load_panoptic_dir(pan_dir, categories, frames=set(gt_frames))
+            if categories is None:
+                import json
+
+                categories = json.loads((pan_dir / "segments.json").read_text()).get("categories") or None
+            if categories is None:
+                raise ValueError("no panoptic categories: pass categories= or write them to segments.json")
+            idx = sorted(set(preds) & set(gt_frames))
+            if not idx:
+                raise ValueError("no predicted panoptic frame has ground truth")
+            prs, gts = [], []
+            for i in idx:
+                p, g = preds[i], gt_frames[i]
+                g_ids = g.ids if hasattr(g, "ids") else g[0]
+                if tuple(p.ids.shape) != tuple(np.shape(g_ids)):
+                    import torch.nn.functional as F
+
+                    h, w = np.shape(g_ids)
+                    ids = F.interpolate(p.ids[None, None].double(), size=(h, w), mode="nearest")[0, 0].long()
+                    p = type(p)(ids=ids, segments=p.segments)
+                prs.append(p)
+                gts.append(g)
+            r_pq = pq(prs, gts, categories)
+            r_vpq = vpq(prs, gts, categories, ks=vpq_ks)
+            out["panoptic"] = {
+                "num_frames": len(idx),
+                "pq": r_pq["pq"], "sq": r_pq["sq"], "rq": r_pq["rq"],
+                "pq_things": r_pq["things"]["pq"], "pq_stuff": r_pq["stuff"]["pq"],
+                "vpq": r_vpq["vpq"], "vpq_things": r_vpq["vpq_things"], "vpq_stuff": r_vpq["vpq_stuff"],
+                "pq_detail": r_pq,
+                "vpq_detail": r_vpq,
+            }
+        except (ValueError, KeyError, FileNotFoundError) as e:
+            LOG.warning("panoptic metrics of %s not computed: %s", run_dir, e)
+            out["panoptic"] = {"error": str(e)}
+
+    if write:
+        MetricsFile(run_dir / "metrics.json").update(out)
+    return out
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """``python -m pvslam_core.evaluation.run_eval RUN_DIR [--gt groundtruth.txt] [--align sim3|se3|none]``."""
+    import argparse
+    import json
+
+    ap = argparse.ArgumentParser(description="Recompute the trajectory metrics of a pvslam run directory.")
+    ap.add_argument("run_dir")
+    ap.add_argument("--gt", default=None, help="TUM ground truth (default: RUN_DIR/groundtruth.txt)")
+    ap.add_argument("--align", default="sim3", choices=["sim3", "se3", "none"])
+    ap.add_argument("--max-diff", type=float, default=0.01, help="timestamp association tolerance (s)")
+    ap.add_argument("--no-plots", action="store_true")
+    args = ap.parse_args(argv)
+    out = evaluate_run(args.run_dir, gt=args.gt, align=args.align, max_diff=args.max_diff, plots=not args.no_plots)
+    from pvslam_core.outputs.metrics import to_jsonable
+
+    print(json.dumps(to_jsonable({k: v for k, v in out.items() if k in ("ate", "rpe", "ate_keyframes")}), indent=2))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,63 @@
+"""Loop-closure precision / recall on hand-made cases."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from pvslam_core.evaluation.loops import loop_precision_recall, revisit_events
+from pvslam_core.types import LoopCandidate
+
+# Two revisit events: frames 200..209 revisit 10..19, and frames 400..404 revisit 100..104.
+GT = [(200 + k, 10 + k) for k in range(10)] + [(400 + k, 100 + k) for k in range(5)]
+
+
+def test_events_are_connected_runs():
+    ev = revisit_events(GT, tolerance=5)
+    assert len(ev) == 2
+    assert len(ev[0]) == 10 and len(ev[1]) == 5
+    # Same older place revisited twice, far apart in time: two events.
+    assert len(revisit_events([(100, 10), (101, 11), (300, 10), (301, 11)], tolerance=5)) == 2
+    # With tolerance 0 only identical pairs link: a run stepping by one frame falls apart.
+    assert len(revisit_events([(100, 10), (101, 11)], tolerance=0)) == 2
+    assert revisit_events([], 5) == []
+
+
+def test_precision_recall_known_case():
+    detected = [
+        (203, 12),  # matches (203, 13) within 5 in both indices -> TP, event 1
+        (12, 205),  # order does not matter: (205, 12) -> TP, event 1
+        (300, 150),  # nowhere near a GT pair -> FP
+        (207, 30),  # i fine, j off by 13 from (207, 17) -> FP
+    ]
+    r = loop_precision_recall(detected, GT, tolerance=5)
+    assert r["num_detected"] == 4 and r["num_tp"] == 2 and r["num_fp"] == 2
+    assert r["precision"] == pytest.approx(0.5)
+    assert r["num_gt_events"] == 2 and r["num_events_detected"] == 1
+    assert r["recall"] == pytest.approx(0.5)
+    assert r["f1"] == pytest.approx(0.5)
+    # GT pairs within 5 of (203,12) or (205,12): i in 198..210 and j in 7..17 -> k = 0..7 -> 8 of 15.
+    assert r["pair_recall"] == pytest.approx(8 / 15)
+    assert sorted(r["false_positives"]) == [(207, 30), (300, 150)]
+
+
+def test_tolerance_boundaries_and_loop_candidates():
+    gt = [(100, 10)]
+    assert loop_precision_recall([(105, 15)], gt, tolerance=5)["precision"] == 1.0
+    assert loop_precision_recall([(106, 15)], gt, tolerance=5)["precision"] == 0.0
+    assert loop_precision_recall([(100, 10)], gt, tolerance=0)["recall"] == 1.0
+    r = loop_precision_recall([LoopCandidate(i=101, j=9, score=0.9, verified=True)], gt, tolerance=1)
+    assert r["num_tp"] == 1 and r["recall"] == 1.0
+
+
+def test_perfect_and_duplicates():
+    r = loop_precision_recall(GT + GT, GT, tolerance=5)
+    assert r["num_detected"] == 15  # exact duplicates counted once
+    assert r["precision"] == 1.0 and r["recall"] == 1.0 and r["pair_recall"] == 1.0 and r["f1"] == 1.0
+
+
+def test_empty_cases():
+    r = loop_precision_recall([], GT)
+    assert math.isnan(r["precision"]) and r["recall"] == 0.0 and math.isnan(r["f1"])
+    r = loop_precision_recall([(50, 1)], [])
+    assert r["precision"] == 0.0 and math.isnan(r["recall"]) and r["num_fp"] == 1
