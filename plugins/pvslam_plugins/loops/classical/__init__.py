@@ -1,0 +1,28 @@
+"""``classical`` loop detector (no weights): global image descriptor + ORB / essential-matrix verification.
+
+* Descriptor (:mod:`.descriptor`): blurred zero-mean grayscale thumbnail + a grid of gradient-orientation
+  histograms, L2-normalised; similarity = cosine (the paper's eq. 8).
+* Candidates: keyframes older than the temporal exclusion window (``exclude_recent`` keyframes and
+  ``min_time_gap`` seconds) with similarity >= ``threshold``, best ``max_candidates`` first.
+* Verification (:mod:`.verify`): ORB matches (ratio test + mutual check), essential-matrix RANSAC with the
+  keyframes' intrinsics; accepted with >= ``min_inliers`` inliers and inlier ratio >= ``min_inlier_ratio``;
+  optionally ``consecutive`` hits (DPVO uses 3) and NMS against accepted loops.
+
+Registered as loop plugin ``classical`` (entry point ``classical_loop``).
+"""
+from __future__ import annotations
+
+from pvslam_core.registry import hookimpl
+
+
+@hookimpl
+def register_loop_detectors(register):  # type: ignore[no-untyped-def]
+    from .config import ClassicalLoopConfig
+    from .detector import make_loop_detector
+
+    register(
+        "classical",
+        make_loop_detector,
+        ClassicalLoopConfig,
+        description="thumbnail + gradient-histogram descriptor (cosine), ORB + essential-matrix verification",
+    )

@@ -1,0 +1,225 @@
+"""Tests of the ``classical`` loop detector (descriptor, verification, temporal exclusion, index bookkeeping)."""
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data as skd
+import torch
+
+from pvslam_core.types import Frame, Intrinsics
+from pvslam_plugins.loops.classical.config import ClassicalLoopConfig
+from pvslam_plugins.loops.classical.detector import ClassicalLoopDetector, make_loop_detector
+from pvslam_plugins.loops.classical.verify import extract, verify
+
+W, H = 320, 240
+K = Intrinsics(fx=288.0, fy=288.0, cx=(W - 1) / 2, cy=(H - 1) / 2, width=W, height=H)
+
+
+def _rgb(a: np.ndarray) -> np.ndarray:
+    if a.dtype == bool:
+        a = a.astype(np.uint8) * 255
+    if a.ndim == 2:
+        a = np.repeat(a[..., None], 3, axis=2)
+    return np.ascontiguousarray(a[..., :3])
+
+
+PHOTOS = {n: _rgb(getattr(skd, n)()) for n in ("astronaut", "coffee", "rocket", "chelsea", "camera",
+                                               "immunohistochemistry", "hubble_deep_field", "moon")}
+
+
+def view(name: str, dx: int = 0, dy: int = 0, gain: float = 1.0, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    """A 320x240 view of a photo: a crop whose window is shifted by (dx, dy), with exposure change and noise."""
+    a = PHOTOS[name]
+    y0, x0 = (a.shape[0] - H) // 2 + dy, (a.shape[1] - W) // 2 + dx
+    v = a[y0 : y0 + H, x0 : x0 + W].astype(np.float32) * gain
+    if noise:
+        v += np.random.default_rng(seed).normal(0, noise, v.shape)
+    return np.clip(v, 0, 255).astype(np.uint8)
+
+
+def textured_noise(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = np.zeros((H, W, 3), np.float32)
+    for scale in (2, 8, 32):
+        small = rng.uniform(0, 255, (H // scale + 1, W // scale + 1, 3)).astype(np.float32)
+        img += cv2.resize(small, (W, H), interpolation=cv2.INTER_CUBIC)[:H, :W] / 3
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def frame(img: np.ndarray, index: int, t: float | None = None) -> Frame:
+    return Frame(index=index, timestamp=float(index if t is None else t),
+                 image=torch.from_numpy(img).permute(2, 0, 1).contiguous(), intrinsics=K)
+
+
+def gray(img: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+
+
+def cfg(**kw) -> ClassicalLoopConfig:
+    base = dict(exclude_recent=3, min_time_gap=0.0, nms_keyframes=0)
+    base.update(kw)
+    return ClassicalLoopConfig(**base)
+
+
+# ------------------------------------------------------------------------------------------------------------
+def test_descriptor_revisit_vs_other_place():
+    det = ClassicalLoopDetector()
+    thr = det.config.threshold
+    for name in PHOTOS:
+        d0 = det.descriptor(torch.from_numpy(view(name)).permute(2, 0, 1))
+        assert d0.dtype == np.float32 and abs(np.linalg.norm(d0) - 1) < 1e-5
+        revisit = det.descriptor(view(name, dx=7, dy=-5, gain=1.15, noise=4.0))
+        assert float(d0 @ revisit) >= thr, name
+        for other in PHOTOS:
+            if other != name:
+                assert float(d0 @ det.descriptor(view(other))) < thr, (name, other)
+        for s in range(3):
+            assert float(d0 @ det.descriptor(textured_noise(s))) < thr, (name, s)
+
+
+def test_descriptor_accepts_gray_and_numpy_layouts():
+    det = ClassicalLoopDetector()
+    img = view("coffee")
+    d_rgb = det.descriptor(img)
+    d_t = det.descriptor(torch.from_numpy(img).permute(2, 0, 1))
+    d_g = det.descriptor(gray(img))
+    assert np.allclose(d_rgb, d_t) and np.allclose(d_rgb, d_g, atol=1e-5)
+
+
+def test_verification_accepts_revisit_rejects_other_place():
+    a = extract(gray(view("astronaut")), K, 500)
+    b = extract(gray(view("astronaut", dx=10, dy=6, gain=0.9, noise=3.0)), K, 500)
+    res = verify(a, b, min_inliers=30, min_inlier_ratio=0.3)
+    assert res.accepted and res.inliers >= 100, res
+    for other in ("coffee", "rocket", "camera"):
+        res = verify(a, extract(gray(view(other)), K, 500), min_inliers=30, min_inlier_ratio=0.3)
+        assert not res.accepted, (other, res)
+    n1, n2 = extract(gray(textured_noise(1)), K, 500), extract(gray(textured_noise(2)), K, 500)
+    assert not verify(n1, n2).accepted
+
+
+def _tour(names=("astronaut", "coffee", "rocket", "chelsea", "camera", "immunohistochemistry")) -> list[np.ndarray]:
+    """Distinct places (photos and textured noise), then a revisit of the first place."""
+    imgs = [view(n) for n in names] + [textured_noise(s) for s in range(3)]
+    return imgs
+
+
+def test_revisit_detected_and_verified():
+    det = ClassicalLoopDetector(cfg())
+    tour = _tour()
+    for k, img in enumerate(tour):
+        assert det.add_keyframe(k, frame(img, 10 * k)) == []
+    k = len(tour)
+    loops = det.add_keyframe(k, frame(view("astronaut", dx=6, dy=4, gain=1.1, noise=3.0), 10 * k))
+    assert len(loops) == 1
+    lc = loops[0]
+    assert (lc.i, lc.j) == (k, 0) and lc.verified and lc.inliers >= 30 and lc.score >= det.config.threshold
+    # a new place does not close a loop
+    assert det.add_keyframe(k + 1, frame(textured_noise(7), 10 * (k + 1))) == []
+    sim = det.similarity_matrix()
+    assert sim.shape == (k + 2, k + 2) and np.allclose(sim, sim.T) and np.allclose(np.diag(sim), 1, atol=1e-5)
+    assert sim[k, 0] == pytest.approx(lc.score, abs=1e-6)
+
+
+def test_verification_rejects_retrieval_false_positive():
+    """With threshold -1 every old keyframe is retrieved; only the true revisit survives verification."""
+    det = ClassicalLoopDetector(cfg(threshold=-1.0, max_candidates=20))
+    tour = _tour()
+    for k, img in enumerate(tour):
+        det.add_keyframe(k, frame(img, k))
+    k = len(tour)
+    loops = det.add_keyframe(k, frame(view("coffee", dx=-8, dy=3), k))
+    assert [(lc.i, lc.j) for lc in loops] == [(k, 1)]
+    assert len(det.last_verifications) == k - det.config.exclude_recent
+    unverified = ClassicalLoopDetector(cfg(threshold=-1.0, max_candidates=2, verify=False))
+    for kk, img in enumerate(tour):
+        unverified.add_keyframe(kk, frame(img, kk))
+    out = unverified.add_keyframe(k, frame(view("coffee", dx=-8, dy=3), k))
+    assert len(out) == 2 and not any(lc.verified for lc in out) and out[0].j == 1
+
+
+def test_temporal_exclusion_keyframes_and_seconds():
+    tour = [view("astronaut"), view("coffee"), view("rocket")]
+    revisit = view("astronaut", dx=5, dy=5)
+    # keyframe window: the revisit is 3 keyframes after the original; exclude_recent=3 excludes it, 2 does not
+    for excl, expect in ((3, 0), (2, 1)):
+        det = ClassicalLoopDetector(cfg(exclude_recent=excl))
+        for k, img in enumerate(tour):
+            det.add_keyframe(k, frame(img, k, t=100.0 * k))
+        assert len(det.add_keyframe(3, frame(revisit, 3, t=300.0))) == expect, excl
+    # time window: 3 s after the original with min_time_gap 5 s -> excluded; 6 s -> accepted
+    for t_revisit, expect in ((3.0, 0), (6.0, 1)):
+        det = ClassicalLoopDetector(cfg(exclude_recent=0, min_time_gap=5.0))
+        for k, img in enumerate(tour):
+            det.add_keyframe(k, frame(img, k, t=0.5 * k))
+        assert len(det.add_keyframe(3, frame(revisit, 3, t=t_revisit))) == expect, t_revisit
+
+
+def test_remove_keyframe_shifts_indices():
+    det = ClassicalLoopDetector(cfg(exclude_recent=1))
+    tour = _tour()
+    for k, img in enumerate(tour):
+        det.add_keyframe(k, frame(img, k))
+    n = len(tour)
+    det.remove_keyframe(1)  # "coffee" goes; "rocket" (was 2) becomes 1
+    assert len(det) == n - 1 and det.descriptors.shape[0] == n - 1
+    assert det.keyframe_frame_indices()[:3] == [0, 2, 3]
+    loops = det.add_keyframe(n - 1, frame(view("rocket", dx=4, dy=-6), n))
+    assert [(lc.i, lc.j) for lc in loops] == [(n - 1, 1)]
+    # the similarity matrix follows the removal
+    assert det.similarity_matrix().shape == (n, n)
+    # a revisit of the removed place finds nothing verified
+    assert det.add_keyframe(n, frame(view("coffee", dx=3), n + 1)) == []
+    # accepted loops are re-indexed too
+    det.remove_keyframe(0)
+    assert [(lc.i, lc.j) for lc in det.accepted] == [(n - 2, 0)]
+    with pytest.raises(ValueError):
+        det.add_keyframe(5, frame(view("moon"), 99))
+    with pytest.raises(IndexError):
+        det.remove_keyframe(100)
+
+
+def test_consecutive_hits_and_nms():
+    tour = _tour()
+    n = len(tour)
+    revisits = [view("astronaut", dx=4 * m, dy=2 * m) for m in range(3)]
+    # consecutive = 2: the first revisit is not reported, the second one is
+    det = ClassicalLoopDetector(cfg(consecutive=2))
+    for k, img in enumerate(tour):
+        det.add_keyframe(k, frame(img, k))
+    got = [det.add_keyframe(n + m, frame(img, n + m)) for m, img in enumerate(revisits)]
+    assert got[0] == [] and [(lc.i, lc.j) for lc in got[1]] == [(n + 1, 0)]
+    # nms: after a loop (n, 0) is accepted, (n+1, 0) is suppressed with nms_keyframes=2 and kept with 0
+    for nms, expect in ((2, 0), (0, 1)):
+        det = ClassicalLoopDetector(cfg(nms_keyframes=nms))
+        for k, img in enumerate(tour):
+            det.add_keyframe(k, frame(img, k))
+        assert len(det.add_keyframe(n, frame(revisits[0], n))) == 1
+        assert len(det.add_keyframe(n + 1, frame(revisits[1], n + 1))) == expect
+
+
+def test_registered_and_fast():
+    import pvslam_plugins.loops.classical as plugin
+
+    spec_names = []  # call the hook directly: entry points may be filtered by PVSLAM_LOAD_PLUGINS
+
+    def register(name, factory, model, description=""):
+        spec_names.append((name, factory, model))
+
+    plugin.register_loop_detectors(register=register)
+    assert spec_names[0][0] == "classical"
+    det = spec_names[0][1](spec_names[0][2](), None)
+    assert isinstance(det, ClassicalLoopDetector)
+    with pytest.raises(Exception):
+        ClassicalLoopConfig(treshold=0.5)  # typo -> error (extra="forbid")
+    # a keyframe without candidates is cheap (brief: < ~5 ms at 320x240; generous bound for loaded CI machines)
+    imgs = [textured_noise(s) for s in range(12)]
+    det = make_loop_detector(ClassicalLoopConfig(), None)
+    t = time.perf_counter()
+    for k, img in enumerate(imgs):
+        det.add_keyframe(k, frame(img, k))
+    per_call = (time.perf_counter() - t) / len(imgs)
+    assert per_call < 0.05, per_call

@@ -1,0 +1,171 @@
+"""Forward warping of a panoptic id map with a flow field (vectorised scatter with z-order or last-write-wins),
+DIS optical flow, and the rigid flow induced by depth + camera motion."""
+from __future__ import annotations
+
+from typing import Optional
+
+import cv2
+import numpy as np
+import torch
+
+_DIS_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+
+
+def to_gray_u8(image: torch.Tensor) -> np.ndarray:
+    """uint8 [H, W] luminance of a uint8 [3, H, W] (or [H, W]) image tensor."""
+    a = image.detach().cpu().numpy()
+    if a.ndim == 3:
+        a = np.ascontiguousarray(a.transpose(1, 2, 0))
+    if a.dtype != np.uint8:
+        a = np.clip(a, 0, 255).astype(np.uint8)
+    if a.ndim == 3:
+        a = cv2.cvtColor(np.ascontiguousarray(a[..., :3]), cv2.COLOR_RGB2GRAY) if a.shape[2] >= 3 else a[..., 0]
+    return a
+
+
+def dis_flow(prev: torch.Tensor, cur: torch.Tensor, preset: str = "medium", max_side: int = 640) -> np.ndarray:
+    """float32 [2, H, W]: for each pixel of ``prev``, its offset into ``cur`` (OpenCV DIS)."""
+    g0, g1 = to_gray_u8(prev), to_gray_u8(cur)
+    if g0.shape != g1.shape:
+        g1 = cv2.resize(g1, (g0.shape[1], g0.shape[0]), interpolation=cv2.INTER_AREA)
+    h, w = g0.shape
+    s = min(1.0, max_side / float(max(h, w)))
+    if s < 1.0:
+        size = (max(8, int(round(w * s))), max(8, int(round(h * s))))
+        a, b = cv2.resize(g0, size, interpolation=cv2.INTER_AREA), cv2.resize(g1, size, interpolation=cv2.INTER_AREA)
+    else:
+        a, b = g0, g1
+    dis = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset])
+    f = dis.calc(a, b, None)
+    if s < 1.0:
+        sx, sy = w / a.shape[1], h / a.shape[0]
+        f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR)
+        f[..., 0] *= sx
+        f[..., 1] *= sy
+    return np.ascontiguousarray(f.transpose(2, 0, 1), dtype=np.float32)
+
+
+def resize_flow(flow: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Resize a [2, h0, w0] flow to [2, h, w], scaling the vectors."""
+    if flow.shape[1:] == (h, w):
+        return flow
+    h0, w0 = flow.shape[1:]
+    f = cv2.resize(np.ascontiguousarray(flow.transpose(1, 2, 0)), (w, h), interpolation=cv2.INTER_LINEAR)
+    f[..., 0] *= w / w0
+    f[..., 1] *= h / h0
+    return np.ascontiguousarray(f.transpose(2, 0, 1))
+
+
+def _quat_to_rot(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def rigid_flow(
+    depth_prev: np.ndarray, pose_prev: np.ndarray, pose_cur: np.ndarray, intrinsics: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flow [2, H, W] of the static scene from camera motion, the z-depth in the current camera [H, W] and a
+    validity mask [H, W] (depth > 0 and in front of the current camera).  Poses are T_wc ``[t, q_xyzw]``."""
+    h, w = depth_prev.shape
+    fx, fy, cx, cy = [float(v) for v in intrinsics[:4]]
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    z = depth_prev.astype(np.float32)
+    X = np.stack([(xs - cx) / fx * z, (ys - cy) / fy * z, z], axis=0).reshape(3, -1)
+    R0, t0 = _quat_to_rot(np.asarray(pose_prev[3:7], np.float64)), np.asarray(pose_prev[:3], np.float64)
+    R1, t1 = _quat_to_rot(np.asarray(pose_cur[3:7], np.float64)), np.asarray(pose_cur[:3], np.float64)
+    # X_cur = R1^T (R0 X + t0 - t1) = R X + t  (composed in float64, applied in float32)
+    R = (R1.T @ R0).astype(np.float32)
+    t = (R1.T @ (t0 - t1)).astype(np.float32)
+    Xc = R @ X + t[:, None]
+    zc = Xc[2].reshape(h, w)
+    valid = (z > 0) & (zc > 1e-6)
+    zs = np.where(valid, zc, 1.0)
+    u = fx * Xc[0].reshape(h, w) / zs + cx
+    v = fy * Xc[1].reshape(h, w) / zs + cy
+    flow = np.stack([u - xs, v - ys]).astype(np.float32)
+    return flow, np.where(valid, zc, 0.0).astype(np.float32), valid
+
+
+def forward_warp(
+    ids: np.ndarray,
+    flow: np.ndarray,
+    depth: Optional[np.ndarray] = None,
+    mask: Optional[np.ndarray] = None,
+    splat: str = "bilinear",
+) -> np.ndarray:
+    """Forward-warp an int64 id map [H, W] with a flow [2, H, W] (source pixel -> offset into the target).
+
+    Void (0) and masked-out source pixels are not written.  Several sources landing on one target pixel: the
+    smallest ``depth`` wins when ``depth`` (> 0 where known) is given, otherwise the last source in raster order.
+    ``splat="bilinear"`` writes the 4 integer neighbours of each target position (a source's own nearest pixel
+    is always preferred over a neighbour's spill-over), ``"nearest"`` only the rounded position.
+    """
+    h, w = ids.shape
+    src = ids.reshape(-1)
+    keep = src != 0
+    if mask is not None:
+        keep &= mask.reshape(-1).astype(bool)
+    sel = np.nonzero(keep)[0]
+    out = np.zeros(h * w, dtype=ids.dtype)
+    if len(sel) == 0:
+        return out.reshape(h, w)
+    ys, xs = np.divmod(sel, w)
+    tx = xs + flow[0].reshape(-1)[sel].astype(np.float64)
+    ty = ys + flow[1].reshape(-1)[sel].astype(np.float64)
+    finite = np.isfinite(tx) & np.isfinite(ty)
+    if not finite.all():
+        sel, tx, ty = sel[finite], tx[finite], ty[finite]
+    n = len(sel)
+    # secondary priority (lower wins), unique per source: depth rank (nearest first) or reversed raster order
+    if depth is not None:
+        z = depth.reshape(-1)[sel].astype(np.float64)
+        z = np.where(z > 0, z, np.inf)
+        r2 = np.empty(n, np.int64)
+        r2[np.argsort(z, kind="stable")] = np.arange(n)
+    else:
+        r2 = (n - 1) - np.arange(n, dtype=np.int64)
+    rx, ry = np.rint(tx), np.rint(ty)
+    vals = src[sel]
+    filled = _scatter_min(out, rx, ry, r2, vals, h, w, None)
+    if splat != "nearest":
+        # spill-over to the other integer neighbours fills only pixels no source landed on (holes)
+        x0, y0 = np.floor(tx), np.floor(ty)
+        qx = np.concatenate([x0, x0 + 1, x0, x0 + 1])
+        qy = np.concatenate([y0, y0, y0 + 1, y0 + 1])
+        own = (qx == np.tile(rx, 4)) & (qy == np.tile(ry, 4))
+        _scatter_min(out, qx, qy, np.tile(r2, 4), np.tile(vals, 4), h, w, ~own, empty=~filled)
+    return out.reshape(h, w)
+
+
+def _scatter_min(
+    out: np.ndarray, qx: np.ndarray, qy: np.ndarray, prio: np.ndarray, vals: np.ndarray, h: int, w: int,
+    keep: Optional[np.ndarray], empty: Optional[np.ndarray] = None,
+) -> np.ndarray:
+    """``out[qy*w+qx] = vals`` where the lowest ``prio`` wins per target pixel (priorities unique per target);
+    only in-bounds targets (and, if given, ``keep`` entries and ``empty`` target pixels).  Returns the mask of
+    pixels written."""
+    ok = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
+    if keep is not None:
+        ok &= keep
+    t = qy[ok].astype(np.int64) * w + qx[ok].astype(np.int64)
+    p, v = prio[ok], vals[ok]
+    if empty is not None:
+        e = empty[t]
+        t, p, v = t[e], p[e], v[e]
+    written = np.zeros(h * w, dtype=bool)
+    if len(t) == 0:
+        return written
+    best = np.full(h * w, np.iinfo(np.int64).max, dtype=np.int64)
+    np.minimum.at(best, t, p)
+    win = p == best[t]
+    out[t[win]] = v[win]
+    written[t[win]] = True
+    return written
