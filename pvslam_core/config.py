@@ -89,6 +89,10 @@ class GraphSection(PluginConfig):
     remove_redundant: bool = Field(True, description="drop a keyframe that is too close to its predecessor")
     redundant_thresh: float = Field(1.5, ge=0, description="frame distance (BA px) under which a keyframe is redundant")
     reinit_after: int = Field(4, ge=1, description="consecutive failed frames before the map is re-initialised")
+    loop_max_rotation_deg: float = Field(
+        60.0, gt=0, le=180,
+        description="reject a loop whose two keyframes' current orientations differ by more than this (look-alike "
+                    "places seen from opposite directions); rotation drift is far smaller than this")
     bidirectional: bool = Field(True, description="add edges in both directions")
 
 
@@ -206,7 +210,18 @@ def format_validation_error(exc: ValidationError, source: str, model: type[BaseM
     return "\n".join(lines)
 
 
+def _default_plugins(raw: dict[str, Any]) -> dict[str, Any]:
+    """A component table without ``plugin`` keeps the default plugin: ``[frontend] preset = "fast"``."""
+    out = dict(raw)
+    for name in COMPONENTS:
+        if isinstance(out.get(name), dict) and "plugin" not in out[name]:
+            default = PipelineConfig.model_fields[name].default_factory().plugin
+            out[name] = {"plugin": default, **out[name]}
+    return out
+
+
 def validate_pipeline(raw: dict[str, Any], source: str = "<config>") -> PipelineConfig:
+    raw = _default_plugins(raw)
     try:
         return PipelineConfig.model_validate(raw)
     except ValidationError as exc:

@@ -14,12 +14,11 @@ from .anchors import FrameAnchors
 from .config import PipelineConfig
 from .edges import active_edges, loop_edges, neighbour_edges, proximity_edges
 from .geometry.lie import se3_interpolate, se3_inv, se3_mul
-from .graph import FrameGraph
+from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph
 from .initializer import two_view_init
 from .types import Frame, LoopCandidate, PanopticSegmentation, SequenceInfo, TrackResult
 
 LOG = logging.getLogger("pvslam")
-KIND_ODOMETRY, KIND_PROXIMITY, KIND_LOOP = 0, 1, 2
 
 
 class Mapper:
@@ -119,10 +118,10 @@ class Mapper:
             if guess is not None:
                 disp = guess
             elif k_new > 0:
-                disp = torch.full((h, w), float(self.graph.disps[k_new - 1].median()), device=self.graph.disps.device)
+                disp = torch.full((h, w), float(self.graph.disps[k_new - 1].median()))
             else:
                 disp = torch.ones(h, w)
-        k = self.graph.add_keyframe(frame.index, frame.timestamp, pose.to(self.graph.poses.device if self.graph.n else "cpu"), disp)
+        k = self.graph.add_keyframe(frame.index, frame.timestamp, pose.to(self.graph.device), disp.to(self.graph.device))
         self.frontend.add_keyframe(k, frame, seg)
         self.anchors.add_keyframe(frame.index, frame.timestamp, k)
         img, small = self._small(frame, seg)
@@ -130,11 +129,11 @@ class Mapper:
         self.kf_segs.append(small)
         if k > self.fragment_start:
             ii, jj = neighbour_edges(k, self.cfg, first=self.fragment_start)
-            self.graph.add_edges(ii, jj, KIND_ODOMETRY)
+            self.graph.add_edges(ii, jj, EDGE_ODOMETRY)
             if self.initialized:
                 ii, jj = proximity_edges(self.graph, k, self.cfg, first=self.fragment_start)
                 if ii.numel():
-                    self.graph.add_edges(ii, jj, KIND_PROXIMITY)
+                    self.graph.add_edges(ii, jj, EDGE_PROXIMITY)
         # every keyframe is described in order (indices must match); candidates are used after the local BA
         self._loop_cands = self.loop_detector.add_keyframe(k, frame) if self.loop_detector is not None else []
         return k
@@ -169,13 +168,26 @@ class Mapper:
             self._fill_pending(a)
 
     # ------------------------------------------------------------------------------------------ loops --
+    def _rotation_deg(self, i: int, j: int) -> float:
+        qi, qj = self.graph.poses[i, 3:].double(), self.graph.poses[j, 3:].double()
+        dot = float((qi * qj).sum().abs().clamp(max=1.0))
+        return float(torch.rad2deg(2 * torch.acos(torch.tensor(dot))))
+
     def _close_loops(self, k: int) -> None:
-        accepted = [c for c in self._loop_cands if c.verified and 0 <= c.j < k]
+        accepted = []
+        for c in self._loop_cands:
+            if not (c.verified and 0 <= c.j < k):
+                continue
+            rot = self._rotation_deg(k, c.j)
+            if rot > self.cfg.loop_max_rotation_deg:
+                LOG.info("loop %d <-> %d rejected: current orientations differ by %.0f deg", k, c.j, rot)
+                continue
+            accepted.append(c)
         if not accepted:
             return
         best = accepted[0]
         ii, jj = loop_edges(k, best.j, self.graph.n, self.cfg.bidirectional)
-        added = self.graph.add_edges(ii, jj, KIND_LOOP)
+        added = self.graph.add_edges(ii, jj, EDGE_LOOP)
         if not bool(added.any()):
             return
         fi, fj = int(self.graph.frame_index[k]), int(self.graph.frame_index[best.j])
@@ -215,7 +227,7 @@ class Mapper:
         r = k - 1
         if not self.cfg.remove_redundant or r - 1 <= self.fragment_start:
             return
-        touches_loop = ((self.graph.edge_kind == KIND_LOOP) & ((self.graph.ii == r) | (self.graph.jj == r))).any()
+        touches_loop = ((self.graph.edge_kind == EDGE_LOOP) & ((self.graph.ii == r) | (self.graph.jj == r))).any()
         if bool(touches_loop):
             return
         i = torch.tensor([r - 1], device=self.graph.ii.device)

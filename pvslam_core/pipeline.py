@@ -92,8 +92,10 @@ class Pipeline:
         vps_state: Optional[VPSState] = None
         t_start = time.perf_counter()
         n_frames = 0
+        frame_seconds: list[float] = []
         try:
             with _progress(total, self.pcfg.run.progress, "pvslam") as bar:
+                t_prev = time.perf_counter()
                 for frame in self.dataset:
                     if n_frames >= total:
                         break
@@ -108,6 +110,9 @@ class Pipeline:
                         if new_kf and mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
                             outputs.checkpoint(mapper)
                     n_frames += 1
+                    now = time.perf_counter()
+                    frame_seconds.append(now - t_prev)
+                    t_prev = now
                     bar.update(1)
                     if n_frames % 50 == 0:
                         bar.set_postfix(kf=mapper.graph.n, loops=len(mapper.loops))
@@ -144,6 +149,7 @@ class Pipeline:
             keyframe_poses=mapper.graph.poses.double().cpu().clone(),
             metrics=metrics,
             loops=list(mapper.loops),
+            frame_seconds=frame_seconds,
         )
 
 

@@ -34,14 +34,14 @@ def summary_lines(result: RunResult) -> list[str]:
         lines.append(f"ATE RMSE ({a.get('align', 'sim3')}): {_fmt(a.get('rmse'))}  "
                      f"= {_fmt(a.get('rmse_percent_of_path'), '.3f')} % of the {_fmt(a.get('path_length'), '.1f')} path")
     if "rpe" in m:
-        lines.append(f"RPE trans RMSE: {_fmt(_get(m, 'rpe', 'trans_rmse'))}  rot RMSE: {_fmt(_get(m, 'rpe', 'rot_rmse_deg'), '.3f')} deg")
+        lines.append(f"RPE trans RMSE: {_fmt(_get(m, 'rpe', 'trans_rmse'))}  rot RMSE: {_fmt(_get(m, 'rpe', 'rot_rmse'), '.3f')} deg")
     if "loops" in m:
         lp = m["loops"]
         lines.append(f"loops: {lp.get('detected', len(result.loops))} detected  precision {_fmt(lp.get('precision'), '.2f')}  "
                      f"recall {_fmt(lp.get('recall'), '.2f')}")
     if "panoptic" in m:
         p = m["panoptic"]
-        lines.append(f"PQ: {_fmt(p.get('PQ'), '.3f')}  VPQ: {_fmt(p.get('VPQ'), '.3f')}")
+        lines.append(f"PQ: {_fmt(p.get('pq'), '.3f')}  VPQ: {_fmt(p.get('vpq'), '.3f')}")
     return lines
 
 
@@ -56,8 +56,8 @@ def comparison_rows(results: list[tuple[str, RunResult]]) -> list[dict[str, Any]
             "rpe_trans": _get(m, "rpe", "trans_rmse"),
             "loops": len(r.loops),
             "loop_precision": _get(m, "loops", "precision"),
-            "PQ": _get(m, "panoptic", "PQ"),
-            "VPQ": _get(m, "panoptic", "VPQ"),
+            "PQ": _get(m, "panoptic", "pq"),
+            "VPQ": _get(m, "panoptic", "vpq"),
             "fps": _get(m, "timing", "fps"),
             "keyframes": _get(m, "timing", "keyframes"),
             "run_dir": r.run_dir,

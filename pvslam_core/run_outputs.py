@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from .config import PipelineConfig, ResolvedConfig
-from .outputs.trajectory_io import TrajectoryWriter, read_tum, write_tum
+from .outputs.trajectory_io import TrajectoryWriter, write_tum
 from .types import Frame, PanopticSegmentation, SequenceInfo
 
 LOG = logging.getLogger("pvslam")
@@ -96,79 +96,49 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
                        dataset=None, pcfg: Optional[PipelineConfig] = None) -> dict[str, Any]:
     """Metrics of a run directory: ATE/RPE (evo), loop precision/recall, PQ/VPQ; writes ``metrics.json`` and plots.
 
-    Ground truth comes from ``groundtruth.txt`` in the run directory (trajectory) and from the dataset
-    (panoptic labels, revisit pairs), which is rebuilt from the run's config when not given.
+    The trajectory ground truth is ``groundtruth.txt`` in the run directory; panoptic labels and revisit pairs
+    come from the dataset, rebuilt from the run's config when not given.
     """
+    from .evaluation.run_eval import evaluate_run
+    from .outputs.metrics import MetricsFile
+
     run_dir = Path(run_dir)
     pcfg = pcfg or resolved.pipeline
     ecfg = pcfg.evaluation
-    metrics: dict[str, Any] = {"timing": timing}
+    MetricsFile(run_dir / "metrics.json").update({"timing": timing})
     if not ecfg.enabled:
-        _write_json(run_dir / "metrics.json", metrics)
-        return metrics
+        return {"timing": timing}
     if dataset is None and resolved is not None:
-        from .registry import get_registry
         from .interfaces import BuildContext
+        from .registry import get_registry
 
         spec = (registry or get_registry()).get("dataset", resolved.pipeline.dataset.plugin)
         dataset = spec.factory(resolved.models["dataset"], BuildContext(device=torch.device("cpu")))
-    est_path, gt_path = run_dir / "trajectory.txt", run_dir / "groundtruth.txt"
-    if est_path.is_file() and gt_path.is_file():
-        from .evaluation.trajectory import aligned_positions, ate, rpe
-
-        est_ts, est = read_tum(est_path)
-        gt_ts, gt = read_tum(gt_path)
-        try:
-            metrics["ate"] = {"align": ecfg.align, **ate(est_ts, est, gt_ts, gt, align=ecfg.align)}
-            metrics["rpe"] = rpe(est_ts, est, gt_ts, gt, delta=ecfg.rpe_delta, align=ecfg.align)
-            if pcfg.outputs.plots:
-                _plots(run_dir, est_ts, est, gt_ts, gt, ecfg.align)
-        except ValueError as exc:  # e.g. a degenerate (static) estimate cannot be Sim(3)-aligned
-            LOG.warning("trajectory evaluation failed: %s", exc)
-            metrics["ate"] = {"align": ecfg.align, "error": str(exc)}
     info = dataset.info() if dataset is not None else None
-    if info is not None and info.loop_pairs is not None and (run_dir / "loops.json").is_file():
-        from .evaluation.loops import loop_precision_recall
-
-        loops = json.loads((run_dir / "loops.json").read_text())["loops"]
-        detected = [(d["frame_i"], d["frame_j"]) for d in loops]
-        metrics["loops"] = {"detected": len(detected),
-                            **loop_precision_recall(detected, info.loop_pairs, tolerance=ecfg.loop_tolerance)}
+    panoptic_gt = None
     if info is not None and info.has_gt_panoptic and (run_dir / "panoptic" / "segments.json").is_file():
-        metrics["panoptic"] = _panoptic_metrics(run_dir, dataset, info, ecfg)
-    _write_json(run_dir / "metrics.json", metrics)
-    return metrics
+        panoptic_gt = {}
+        for frame in dataset:  # int32 ids bound the memory; at most max_panoptic_frames frames
+            if frame.gt_panoptic is not None:
+                panoptic_gt[frame.index] = (frame.gt_panoptic.ids.numpy().astype(np.int32),
+                                            frame.gt_panoptic.segments)
+            if len(panoptic_gt) >= ecfg.max_panoptic_frames:
+                break
+    out = evaluate_run(
+        run_dir,
+        panoptic_gt=panoptic_gt,
+        loop_gt=info.loop_pairs if info is not None else None,
+        categories=list(info.categories) if info is not None and info.categories else None,
+        align=ecfg.align, rpe_delta=ecfg.rpe_delta, loop_tolerance=ecfg.loop_tolerance,
+        vpq_ks=tuple(ecfg.vpq_ks), plots=pcfg.outputs.plots,
+    )
+    if "ate" in out:
+        out["ate"]["align"] = ecfg.align
+        MetricsFile(run_dir / "metrics.json").update({"ate": out["ate"]})
+    if "loops" in out and isinstance(out["loops"], dict):
+        import json
 
-
-def _plots(run_dir: Path, est_ts, est, gt_ts, gt, align: str) -> None:
-    from .evaluation.trajectory import aligned_positions
-    from .outputs.plots import plot_error_over_time, plot_trajectory_top
-
-    res = aligned_positions(est_ts, est, gt_ts, gt, align=align)
-    (run_dir / "plots").mkdir(exist_ok=True)
-    plot_trajectory_top(run_dir / "plots" / "trajectory_top.png", res["est_xyz"], res["gt_xyz"], res["errors"])
-    plot_error_over_time(run_dir / "plots" / "ate_over_time.png", res["timestamps"], res["errors"])
-
-
-def _panoptic_metrics(run_dir: Path, dataset, info: SequenceInfo, ecfg) -> dict[str, Any]:
-    from .evaluation.panoptic import pq, vpq
-    from .outputs.panoptic_png import load_panoptic_dir
-
-    preds = load_panoptic_dir(run_dir / "panoptic")  # {frame index: PanopticSegmentation}
-    gts, prs = [], []
-    for frame in dataset:
-        if frame.index not in preds or frame.gt_panoptic is None:
-            continue
-        gts.append((frame.gt_panoptic.ids.numpy().astype(np.int32), frame.gt_panoptic.segments))
-        pred = preds.pop(frame.index)
-        prs.append((pred.ids.numpy().astype(np.int32), pred.segments))
-        if len(gts) >= ecfg.max_panoptic_frames:
-            break
-    if not gts:
-        return {}
-    cats = list(info.categories)
-    out = {"frames": len(gts), **{k: v for k, v in pq(prs, gts, cats).items()}}
-    v = vpq(prs, gts, cats, ks=tuple(ecfg.vpq_ks))
-    out["VPQ"] = v.get("VPQ")
-    out["vpq"] = v
-    return out
+        n = len(json.loads((run_dir / "loops.json").read_text()).get("loops", []))
+        out["loops"]["detected"] = n
+        MetricsFile(run_dir / "metrics.json").update({"loops": out["loops"]})
+    return {"timing": timing, **out}

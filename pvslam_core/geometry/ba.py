@@ -1,0 +1,415 @@
+"""Dense bundle adjustment over keyframe poses and per-pixel inverse depths (DROID-SLAM's BA, anchors 1.4),
+in plain vectorised torch.
+
+Problem.  For every edge ``e = (i -> j)`` and pixel ``p`` of keyframe ``i`` the residual is
+``r = target - pi(G_ij pi^-1(p, d_i[p]))`` with per-coordinate weights ``w = weight_scale * conf * valid``
+(``weight_scale = 1e-3`` as DROID); the cost reported in :class:`~pvslam_core.types.OptimizerReport` is the
+plain ``sum conf * valid * |r|^2`` (no ``weight_scale``, no robust re-weighting).
+
+Unknowns.  Poses of the keyframes with ``free = True`` (left retraction of the world-to-camera pose,
+``G <- Exp(xi) G``, i.e. ``T_wc <- T_wc Exp(-xi)``; see :mod:`.projective`) and the inverse depths of the
+keyframes with ``depth_free = True`` (default: every source keyframe of an edge, as DROID updates the depth of
+fixed-pose frames too).
+
+Gauss-Newton step.  ``[B E; E^T C] [dxi; dd] = [v; w]`` with ``C`` diagonal (one entry per pixel,
+``C = sum_e w Jd^2 + eta``: ``eta`` is DROID's depth damping).  The depths are eliminated with the Schur
+complement ``S = B - E C^-1 E^T``, ``b = v - E C^-1 w``; ``S`` is assembled with vectorised scatters (one
+``6 x 6`` block per pair of unknown poses coupled through one source keyframe's depth, no Python loop over
+edges), LM-damped ``S_kk += ep + lm S_kk`` and solved densely in float64 by Cholesky.  Depths are then
+back-substituted ``dd = C^-1 (w - E^T dxi)`` and clamped to ``>= 1e-3``.  Per-iteration cost is linear in
+edges x pixels plus the small dense ``6F x 6F`` pose solve.
+
+Gauge.  Poses with ``free = False`` do not enter the system.  The caller fixes at least one pose (keyframe 0);
+for monocular problems the remaining scale direction (all free translations and all depths scaled together) is
+*not* fixed explicitly: it is held by the LM damping (``ep``, ``lm``) and by the depth damping ``eta``, so it
+only drifts as far as the data push it - exactly DROID-SLAM's behaviour.  Fixing two poses with a baseline
+fixes it exactly.
+
+Safety.  Inputs and every update are checked; any NaN/Inf or a failed factorisation (after two retries with
+10x / 100x damping) keeps the previous estimate, sets ``report.rejected`` with a message and logs once per
+distinct message on the ``pvslam.ba`` logger.  Nothing non-finite is ever written to the graph.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import re
+from typing import TYPE_CHECKING, Optional
+
+import torch
+
+from ..types import EdgeObservations, OptimizerReport
+from .lie import quat_to_rotmat, se3_exp, se3_inv, se3_mul
+from .projective import project_points
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..graph import FrameGraph
+
+__all__ = ["dense_ba", "motion_only_ba", "weighted_cost", "DISP_MIN", "WEIGHT_SCALE"]
+
+log = logging.getLogger("pvslam.ba")
+_LOGGED: set[str] = set()
+
+DISP_MIN = 1e-3  # disps.clamp_(min=0.001) as DROID
+WEIGHT_SCALE = 1e-3  # w = 0.001 * confidence (DROID's ba kernel)
+
+
+def _log_once(msg: str) -> None:
+    """Log a warning once per distinct message (numbers ignored, so per-iteration variants count once)."""
+    key = re.sub(r"[0-9.e+-]+", "#", msg)
+    if key not in _LOGGED:
+        _LOGGED.add(key)
+        log.warning(msg)
+
+
+def _robust_weights(ru: torch.Tensor, rv: torch.Tensor, kind: Optional[str], scale: float) -> Optional[torch.Tensor]:
+    """Per-pixel IRLS factor from the 2D residual (None: no re-weighting)."""
+    if kind is None or kind == "none":
+        return None
+    n = torch.sqrt(ru * ru + rv * rv)
+    if kind == "huber":
+        return torch.where(n <= scale, torch.ones_like(n), scale / n.clamp(min=1e-12))
+    if kind == "cauchy":
+        return 1.0 / (1.0 + (n / scale) ** 2)
+    raise ValueError(f"unknown robust kernel {kind!r} (use None, 'huber' or 'cauchy')")
+
+
+def _edge_rt(G: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, dtype: torch.dtype):
+    """``R_ij, t_ij`` of ``G_ij = G_j G_i^-1`` (world-to-camera poses ``G [N, 7]``), via rotation matrices."""
+    R = quat_to_rotmat(G[:, 3:])
+    Rij = torch.bmm(R[jj], R[ii].transpose(1, 2))
+    tij = G[jj, :3] - torch.bmm(Rij, G[ii, :3].unsqueeze(-1)).squeeze(-1)
+    return Rij.to(dtype), tij.to(dtype)
+
+
+def _residuals(G, d, ii, jj, target, intr, h, w, min_depth, jacobians):
+    """``target [E, 2, P]`` -> residuals ``ru, rv [E, P]`` and :func:`project_points`' output."""
+    R, t = _edge_rt(G, ii, jj, d.dtype)
+    out = project_points(R, t, d[ii], intr, h, w, min_depth, jacobians)
+    return target[:, 0] - out["u"], target[:, 1] - out["v"], out
+
+
+def _cost(conf, valid, ru, rv) -> float:
+    return float((valid * (conf[:, 0] * ru * ru + conf[:, 1] * rv * rv)).sum())
+
+
+def weighted_cost(graph: "FrameGraph", obs: EdgeObservations, min_depth: float = 0.2) -> float:
+    """``sum conf * valid * |target - reprojection|^2`` for the graph's current state."""
+    h, w = graph.ba_shape
+    dtype = torch.float64 if graph.device.type == "cpu" else torch.float32
+    target, conf = _flat_obs(obs, dtype)
+    G = se3_inv(graph.poses)
+    ru, rv, out = _residuals(G, graph.disps.reshape(graph.n, -1).to(dtype), obs.ii.to(graph.device),
+                             obs.jj.to(graph.device), target, graph.intrinsics, h, w, min_depth, False)
+    return _cost(conf, out["valid"], ru, rv)
+
+
+def _flat_obs(obs: EdgeObservations, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """``target, conf [E, 2, P]``."""
+    E = obs.target.shape[0]
+    return obs.target.reshape(E, 2, -1).to(dtype), obs.weight.reshape(E, 2, -1).to(dtype)
+
+
+def _report_reject(report: OptimizerReport, msg: str) -> OptimizerReport:
+    report.rejected = True
+    report.message = msg
+    _log_once(msg)
+    return report
+
+
+def dense_ba(
+    graph: "FrameGraph",
+    obs: EdgeObservations,
+    free: torch.Tensor,
+    iters: int = 2,
+    lm: float = 1e-4,
+    ep: float = 0.1,
+    eta: float | torch.Tensor = 1e-3,
+    depth_free: Optional[torch.Tensor] = None,
+    min_depth: float = 0.2,
+    robust: Optional[str] = None,
+    robust_scale: float = 2.0,
+    weight_scale: float = WEIGHT_SCALE,
+    dtype: Optional[torch.dtype] = None,
+) -> OptimizerReport:
+    """Run ``iters`` Gauss-Newton/LM iterations of dense BA on ``graph`` in place (see the module docstring).
+
+    ``free`` / ``depth_free``: bool ``[n]``.  ``eta``: depth damping, a float or a tensor broadcastable to
+    ``[n, h, w]``; when ``obs.eta`` (learned, per keyframe) is given it is used instead, as DROID:
+    ``0.2 * obs.eta + 1e-7``.  ``robust``: None, ``'huber'`` or ``'cauchy'`` IRLS on the 2D residual with
+    ``robust_scale`` pixels.  ``dtype``: per-pixel arithmetic (default float32 - the graph stores float32
+    disparities anyway, and noise-free problems still converge to ~1e-7; the reduced pose system, the pose
+    updates and the poses are always float64).
+    """
+    N = graph.n
+    h, w = graph.ba_shape
+    P = h * w
+    dev = graph.device
+    dtype = dtype or torch.float32
+    ii = obs.ii.to(dev, torch.int64).reshape(-1)
+    jj = obs.jj.to(dev, torch.int64).reshape(-1)
+    E = int(ii.shape[0])
+    free = torch.as_tensor(free, dtype=torch.bool, device=dev).reshape(-1)
+    report = OptimizerReport(num_edges=E)
+    if free.shape[0] != N:
+        raise ValueError(f"free must have one entry per keyframe ({N}), got {free.shape[0]}")
+    if E == 0 or N == 0:
+        report.message = "no edges"
+        return report
+    if int(ii.min()) < 0 or int(jj.min()) < 0 or int(ii.max()) >= N or int(jj.max()) >= N:
+        raise IndexError(f"edge index out of range for {N} keyframes")
+    if tuple(obs.target.shape) != (E, 2, h, w) or tuple(obs.weight.shape) != (E, 2, h, w):
+        raise ValueError(f"obs target/weight must be [{E}, 2, {h}, {w}], got {tuple(obs.target.shape)}")
+    if depth_free is None:
+        depth_free = torch.zeros(N, dtype=torch.bool, device=dev)
+        depth_free[ii] = True
+    else:
+        depth_free = torch.as_tensor(depth_free, dtype=torch.bool, device=dev).reshape(-1).clone()
+    # ---- input checks
+    for name, t in (("poses", graph.poses), ("disps", graph.disps), ("target", obs.target), ("weight", obs.weight)):
+        if not bool(torch.isfinite(t).all()):
+            return _report_reject(report, f"dense_ba: non-finite values in {name}; estimate left unchanged")
+    intr = graph.intrinsics
+    target, conf = _flat_obs(obs, dtype)
+    target, conf = target.to(dev), conf.to(dev).clamp(min=0.0)
+    if obs.eta is not None:
+        eta_map = (0.2 * obs.eta.to(dev, dtype) + 1e-7).reshape(N, P)
+    else:
+        eta_t = torch.as_tensor(eta, dtype=dtype, device=dev)
+        eta_map = eta_t.expand(N, h, w).reshape(N, P) if eta_t.dim() > 0 else eta_t.expand(N, P)
+    if not bool(torch.isfinite(eta_map).all()) or bool((eta_map < 0).any()):
+        return _report_reject(report, "dense_ba: non-finite or negative eta; estimate left unchanged")
+
+    free_idx = torch.nonzero(free).squeeze(1)
+    F = int(free_idx.shape[0])
+    pose_map = torch.full((N,), -1, dtype=torch.int64, device=dev)
+    pose_map[free_idx] = torch.arange(F, device=dev)
+    src = torch.nonzero(depth_free).squeeze(1)
+    # only sources that actually have edges get depth unknowns
+    has_edge = torch.zeros(N, dtype=torch.bool, device=dev)
+    has_edge[ii] = True
+    src = src[has_edge[src]]
+    Ns = int(src.shape[0])
+    src_map = torch.full((N,), -1, dtype=torch.int64, device=dev)
+    src_map[src] = torch.arange(Ns, device=dev)
+    report.num_free_poses = F
+
+    G = se3_inv(graph.poses)  # world-to-camera, updated by left retraction
+    d = graph.disps.reshape(N, P).to(dtype, copy=True)  # the graph itself is written only at the end
+    pi_, pj_ = pose_map[ii], pose_map[jj]
+    es = src_map[ii]  # depth-source slot of each edge (-1: depth fixed)
+    e_has_src = es >= 0
+
+    # Edges whose source depth is an unknown, grouped by source into a padded [Ns, D] layout (D = max edges of one
+    # source): the Schur complement then needs one batched matmul over sources, and a list of (source, a, b) pairs.
+    e_src = torch.nonzero(e_has_src).squeeze(1)
+    order = e_src[torch.argsort(es[e_src], stable=True)]
+    counts = torch.bincount(es[order], minlength=Ns) if Ns > 0 else torch.zeros(0, dtype=torch.int64, device=dev)
+    D = int(counts.max()) if len(order) else 0
+    starts = torch.cumsum(counts, 0) - counts
+    slot_of = torch.arange(len(order), device=dev) - starts[es[order]]  # position of each edge in its group
+    pad_pos = es[order] * D + slot_of  # row of each edge in the padded [Ns * D] layout
+    ga, gb = torch.meshgrid(torch.arange(D, device=dev), torch.arange(D, device=dev), indexing="ij")
+    pair_ok = (ga.unsqueeze(0) < counts.view(-1, 1, 1)) & (gb.unsqueeze(0) < counts.view(-1, 1, 1))  # [Ns, D, D]
+    pk_src, psa, psb = torch.nonzero(pair_ok, as_tuple=True)
+    grid_edge = torch.full((max(Ns * D, 1),), -1, dtype=torch.int64, device=dev)
+    grid_edge[pad_pos] = order
+    pa, pb = grid_edge[pk_src * D + psa], grid_edge[pk_src * D + psb]  # edge ids of each pair (same source)
+    pk, pja, pjb = pi_[pa], pj_[pa], pj_[pb]
+
+    # scatter plans (fixed over the iterations): which blocks land where in the [F*F, 36] pose matrix / [F, 6] rhs
+    def plan(terms):
+        sels, dests = [], []
+        for r_, c_ in terms:
+            sel = torch.nonzero((r_ >= 0) & (c_ >= 0)).squeeze(1)
+            sels.append(sel)
+            dests.append(r_[sel] * F + c_[sel])
+        return sels, torch.cat(dests)
+
+    H_terms = [(pi_, pi_), (pj_, pj_), (pi_, pj_), (pj_, pi_)]
+    if Ns > 0:
+        H_terms += [(pja, pjb), (pk, pjb), (pja, pk), (pk, pk)]
+    H_sel, H_dest = plan(H_terms)
+    zero_col = torch.zeros_like(pi_)
+    v_sel, v_dest = plan([(pj_, zero_col), (pi_, zero_col)])
+    v_dest = torch.div(v_dest, F, rounding_mode="floor") if F > 0 else v_dest
+
+    cost0 = None
+    problems: list[str] = []
+    for it in range(max(0, int(iters))):
+        ru, rv, out = _residuals(G, d, ii, jj, target, intr, h, w, min_depth, "parts")
+        valid = out["valid"].to(dtype)
+        if cost0 is None:
+            cost0 = _cost(conf, valid, ru, rv)
+        rw = _robust_weights(ru, rv, robust, robust_scale)
+        vw = valid * weight_scale if rw is None else valid * rw * weight_scale
+        wu, wv = conf[:, 0] * vw, conf[:, 1] * vw  # [E, P]
+        JuT, JvT, Jdu, Jdv = out["JuT"], out["JvT"], out["Jdu"], out["Jdv"]  # [E, 6, P] x2, [E, P] x2
+        Ad = out["Ad"].double()  # [E, 6, 6];  Ji = -Jj Ad is never formed
+        AdT = Ad.transpose(1, 2)
+        # ---- pose-pose blocks and pose gradients (per edge)
+        Au, Av = JuT * wu.unsqueeze(1), JvT * wv.unsqueeze(1)  # W J^T
+        Hjj = (torch.bmm(Au, JuT.transpose(1, 2)) + torch.bmm(Av, JvT.transpose(1, 2))).double()
+        vj = (torch.bmm(Au, ru.unsqueeze(-1)) + torch.bmm(Av, rv.unsqueeze(-1))).squeeze(-1).double()
+        Hij = -torch.bmm(AdT, Hjj)
+        Hii = -torch.bmm(Hij, Ad)
+        H_blocks = [Hii, Hjj, Hij, Hij.transpose(1, 2)]
+
+        # ---- depth part: C (diagonal), w, and the Schur complement over pairs of edges sharing a source
+        dd = torch.zeros(Ns, P, dtype=dtype, device=dev)
+        q = vj  # reduced gradient of pose jj per edge (that of pose ii is -Ad^T q)
+        if Ns > 0:
+            bu, bv = wu * Jdu, wv * Jdv
+            C = eta_map[src].clone()
+            C.index_add_(0, es[order], (bu * Jdu + bv * Jdv)[order])
+            wd = torch.zeros(Ns, P, dtype=dtype, device=dev)
+            wd.index_add_(0, es[order], (bu * ru + bv * rv)[order])
+            Cinv = 1.0 / C.clamp(min=1e-12)
+            EjT = Au[order] * Jdu[order].unsqueeze(1) + Av[order] * Jdv[order].unsqueeze(1)  # [Es, 6, P]
+            B = torch.zeros(Ns * D, 6, P, dtype=dtype, device=dev)
+            B[pad_pos] = EjT
+            B = B.view(Ns, D * 6, P)
+            Bc = B * Cinv.unsqueeze(1)  # C^-1 applied
+            if F > 0:
+                # g_e = sum_p Ej C^-1 w:  reduced gradients v[jj] -= g, v[ii] += Ad^T g
+                g_pad = torch.bmm(Bc, wd.unsqueeze(-1)).view(Ns * D, 6).double()
+                gj = torch.zeros(E, 6, dtype=torch.float64, device=dev)
+                gj[order] = g_pad[pad_pos]
+                q = vj - gj
+                # M_ab = sum_p Ej_a C^-1 Ej_b^T for all pairs of edges of one source, as one batched matmul
+                M_all = torch.bmm(Bc, B.transpose(1, 2)).view(Ns, D, 6, D, 6).permute(0, 1, 3, 2, 4)
+                M = M_all[pk_src, psa, psb].double()  # [pairs, 6, 6]
+                AdTM = torch.bmm(AdT[pa], M)
+                H_blocks += [-M, AdTM, torch.bmm(M, Ad[pb]), -torch.bmm(AdTM, Ad[pb])]
+        H = torch.zeros(F * F, 36, dtype=torch.float64, device=dev)
+        v = torch.zeros(F, 6, dtype=torch.float64, device=dev)
+        if F > 0:
+            H.index_add_(0, H_dest, torch.cat([blk[sel] for blk, sel in zip(H_blocks, H_sel)]).reshape(-1, 36))
+            qi = -torch.bmm(AdT, q.unsqueeze(-1)).squeeze(-1)
+            v.index_add_(0, v_dest, torch.cat([q[v_sel[0]], qi[v_sel[1]]]))
+        # ---- solve the reduced pose system
+        dxi = torch.zeros(F, 6, dtype=torch.float64, device=dev)
+        if F > 0:
+            S = H.reshape(F, F, 6, 6).permute(0, 2, 1, 3).reshape(6 * F, 6 * F)
+            S = 0.5 * (S + S.T)
+            b = v.reshape(-1)
+            diag = torch.diagonal(S).clone()
+            solved = False
+            for boost in (1.0, 10.0, 100.0):
+                A = S + torch.diag(ep * boost + lm * boost * diag)
+                L, info = torch.linalg.cholesky_ex(A)
+                if int(info) == 0:
+                    x = torch.cholesky_solve(b.unsqueeze(-1), L).squeeze(-1)
+                    if bool(torch.isfinite(x).all()):
+                        dxi = x.reshape(F, 6)
+                        solved = True
+                        if boost > 1.0:
+                            problems.append(f"iteration {it}: Cholesky needed {boost:g}x damping")
+                        break
+            if not solved:
+                problems.append(f"iteration {it}: pose system not positive definite, pose step skipped")
+        # ---- back-substitute depths: dd = C^-1 (w - sum_e Ej (dxi_jj - Ad dxi_ii))
+        if Ns > 0:
+            rhs = wd.clone()
+            if F > 0 and D > 0:
+                xi_full = torch.zeros(N, 6, dtype=torch.float64, device=dev)
+                xi_full[free_idx] = dxi
+                y = xi_full[jj] - torch.bmm(Ad, xi_full[ii].unsqueeze(-1)).squeeze(-1)  # [E, 6]
+                y_pad = torch.zeros(Ns * D, 6, dtype=dtype, device=dev)
+                y_pad[pad_pos] = y[order].to(dtype)
+                rhs = rhs - torch.bmm(y_pad.view(Ns, 1, D * 6), B).squeeze(1)
+            dd = Cinv * rhs
+        if not (bool(torch.isfinite(dxi).all()) and bool(torch.isfinite(dd).all())):
+            report.iterations = it
+            report.cost_before = report.cost_after = cost0 if cost0 is not None else float("nan")
+            return _report_reject(report, "dense_ba: non-finite update; previous estimate kept")
+        if F > 0:
+            G[free_idx] = se3_mul(se3_exp(dxi), G[free_idx])
+        if Ns > 0:
+            d[src] = (d[src] + dd).clamp(min=DISP_MIN)
+        report.iterations = it + 1
+
+    ru, rv, out = _residuals(G, d, ii, jj, target, intr, h, w, min_depth, False)
+    cost1 = _cost(conf, out["valid"], ru, rv)
+    if cost0 is None:
+        cost0 = cost1
+    report.cost_before, report.cost_after = cost0, cost1
+    newT = se3_inv(G)
+    if not (math.isfinite(cost1) and bool(torch.isfinite(newT).all()) and bool(torch.isfinite(d).all())):
+        report.cost_after = cost0
+        return _report_reject(report, "dense_ba: non-finite state after update; previous estimate kept")
+    if F > 0:
+        graph.set_poses(free_idx, newT[free_idx])
+    if Ns > 0:
+        graph.set_disps(src, d[src].reshape(Ns, h, w).float())
+    if problems:
+        report.message = "; ".join(problems)
+        _log_once("dense_ba: " + report.message)
+    return report
+
+
+def motion_only_ba(
+    pose_wc: torch.Tensor,
+    kf_pose_wc: torch.Tensor,
+    kf_disp: torch.Tensor,
+    intr: torch.Tensor,
+    target: torch.Tensor,
+    weight: torch.Tensor,
+    iters: int = 4,
+    lm: float = 1e-4,
+    ep: float = 0.1,
+    min_depth: float = 0.2,
+    weight_scale: float = WEIGHT_SCALE,
+) -> tuple[torch.Tensor, float]:
+    """Estimate the pose ``T_wc [7]`` of a new frame from flow targets of a fixed reference keyframe.
+
+    ``target [2, h, w]``: positions in the new frame of the keyframe's pixels; ``weight [2, h, w]`` their
+    confidences.  Returns ``(pose_wc float64 [7], final cost)`` with the cost as in :func:`dense_ba`.  On
+    non-finite input or update the initial pose is returned (cost NaN if it could not be evaluated).
+    """
+    dev = kf_disp.device
+    dtype = torch.float64 if dev.type == "cpu" else torch.float32
+    h, w = kf_disp.shape[-2:]
+    pose0 = pose_wc.to(dev, torch.float64).reshape(7)
+    kf = kf_pose_wc.to(dev, torch.float64).reshape(7)
+    for t in (pose0, kf, kf_disp, target, weight):
+        if not bool(torch.isfinite(t).all()):
+            _log_once("motion_only_ba: non-finite input; initial pose returned")
+            return pose0.clone(), float("nan")
+    tgt = target.reshape(2, -1).T.unsqueeze(0).to(dtype)  # [1, P, 2]
+    conf = weight.reshape(2, -1).T.unsqueeze(0).to(dtype).clamp(min=0)
+    dd = kf_disp.reshape(1, -1).to(dtype)
+    G_kf_inv = kf  # T_wc of the keyframe = G_kf^-1
+    G = se3_inv(pose0)
+
+    def evaluate(G, jac):
+        Gij = se3_mul(G, G_kf_inv)  # camera kf -> camera new
+        R, t = quat_to_rotmat(Gij[3:]).to(dtype)[None], Gij[:3].to(dtype)[None]
+        out = project_points(R, t, dd, intr, h, w, min_depth, jac)
+        r = tgt - torch.stack([out["u"], out["v"]], dim=-1)
+        return r, out
+
+    cost = float("nan")
+    for _ in range(max(0, int(iters))):
+        r, out = evaluate(G, True)
+        cw = conf * out["valid"].unsqueeze(-1)
+        W = (cw * weight_scale).reshape(-1, 1)
+        J = out["Jj"].reshape(-1, 6)
+        Hm = (J * W).T @ J
+        b = ((J * W).T @ r.reshape(-1, 1)).squeeze(-1)
+        Hm = Hm.double()
+        A = Hm + torch.diag(ep + lm * torch.diagonal(Hm))
+        L, info = torch.linalg.cholesky_ex(A)
+        if int(info) != 0:
+            break
+        dx = torch.cholesky_solve(b.double().unsqueeze(-1), L).squeeze(-1)
+        if not bool(torch.isfinite(dx).all()):
+            break
+        G = se3_mul(se3_exp(dx), G)
+    r, out = evaluate(G, False)
+    cost = float((conf * out["valid"].unsqueeze(-1) * r * r).sum())
+    T = se3_inv(G)
+    if not (math.isfinite(cost) and bool(torch.isfinite(T).all())):
+        _log_once("motion_only_ba: non-finite result; initial pose returned")
+        return pose0.clone(), float("nan")
+    return T, cost

@@ -1,0 +1,335 @@
+"""Batched SE(3) / Sim(3) on plain torch tensors (float32 or float64, any device, autograd-friendly).
+
+Layouts (see :mod:`pvslam_core.types`):
+
+* SE3 ``[..., 7] = [tx, ty, tz, qx, qy, qz, qw]`` (Hamilton quaternion, scalar last), acting as ``X -> R X + t``.
+* se3 tangent ``[..., 6] = [tau(3), phi(3)]`` (translation first, as lietorch / DROID-SLAM).
+* Sim3 ``[..., 8] = [t, q, s]`` acting as ``X -> s R X + t``; tangent ``[..., 7] = [tau, phi, sigma]`` with
+  ``sigma = log(s)``.
+
+``Exp`` / ``Log`` are the group exponential and logarithm (``Exp(xi)`` is the 4x4 matrix exponential of the
+generator ``[[phi^ (+ sigma I), tau], [0, 0]]``).  Everything broadcasts over leading dimensions.  Small-angle
+branches use Taylor expansions, and the rotation logarithm goes through ``atan2`` on a quaternion with
+non-negative scalar part, so it is stable near identity and near rotation angle pi.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+__all__ = [
+    "hat",
+    "quat_to_rotmat",
+    "rotmat_to_quat",
+    "quat_mul",
+    "quat_conj",
+    "quat_rotate",
+    "so3_exp",
+    "so3_log",
+    "identity_se3",
+    "se3_exp",
+    "se3_log",
+    "se3_inv",
+    "se3_mul",
+    "se3_act",
+    "se3_adjoint",
+    "se3_to_matrix",
+    "se3_from_matrix",
+    "se3_interpolate",
+    "identity_sim3",
+    "sim3_exp",
+    "sim3_log",
+    "sim3_inv",
+    "sim3_mul",
+    "sim3_act",
+    "sim3_from_se3",
+    "sim3_to_se3",
+]
+
+
+def _eps(dtype: torch.dtype) -> float:
+    return 1e-4 if dtype in (torch.float16, torch.bfloat16, torch.float32) else 1e-7
+
+
+def hat(v: torch.Tensor) -> torch.Tensor:
+    """``[..., 3] -> [..., 3, 3]`` skew-symmetric matrix with ``hat(a) @ b = a x b``."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(v.shape[:-1] + (3, 3))
+
+
+# ----------------------------------------------------------------------------------------------- quaternions
+def quat_conj(q: torch.Tensor) -> torch.Tensor:
+    return torch.cat([-q[..., :3], q[..., 3:]], dim=-1)
+
+
+def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product of ``[x, y, z, w]`` quaternions."""
+    av, aw = a[..., :3], a[..., 3:]
+    bv, bw = b[..., :3], b[..., 3:]
+    av, bv = torch.broadcast_tensors(av, bv)
+    v = aw * bv + bw * av + torch.cross(av, bv, dim=-1)
+    w = aw * bw - (av * bv).sum(-1, keepdim=True)
+    return torch.cat([v, w], dim=-1)
+
+
+def quat_rotate(q: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Rotate points ``x [..., 3]`` by unit quaternions ``q [..., 4]`` (``R x``)."""
+    qv, qw = q[..., :3], q[..., 3:]
+    qv, x = torch.broadcast_tensors(qv, x)
+    uv = 2.0 * torch.cross(qv, x, dim=-1)
+    return x + qw * uv + torch.cross(qv, uv, dim=-1)
+
+
+def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion ``[..., 4]`` (xyzw) -> rotation matrix ``[..., 3, 3]``."""
+    x, y, z, w = q.unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    m = torch.stack(
+        [
+            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+        ],
+        dim=-1,
+    )
+    return m.reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``[..., 3, 3]`` -> unit quaternion ``[..., 4]`` (xyzw, ``w >= 0``).
+
+    Shepperd's method, vectorised: of the four candidate formulas the one with the largest denominator is used.
+    """
+    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    tr = m00 + m11 + m22
+    # candidates (each is 4 * (component) * (that component))
+    cand = torch.stack(
+        [
+            torch.stack([m21 - m12, m02 - m20, m10 - m01, 1 + tr], -1),  # w largest
+            torch.stack([1 + m00 - m11 - m22, m01 + m10, m02 + m20, m21 - m12], -1),  # x largest
+            torch.stack([m01 + m10, 1 - m00 + m11 - m22, m12 + m21, m02 - m20], -1),  # y largest
+            torch.stack([m02 + m20, m12 + m21, 1 - m00 - m11 + m22, m10 - m01], -1),  # z largest
+        ],
+        dim=-2,
+    )  # [..., 4, 4]
+    diag = torch.stack([1 + tr, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    k = diag.argmax(-1, keepdim=True)  # [..., 1]
+    q = torch.gather(cand, -2, k.unsqueeze(-1).expand(k.shape[:-1] + (1, 4))).squeeze(-2)
+    q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
+    return torch.where(q[..., 3:] < 0, -q, q)
+
+
+def so3_exp(phi: torch.Tensor) -> torch.Tensor:
+    """Rotation vector ``[..., 3]`` -> unit quaternion ``[..., 4]``."""
+    th2 = (phi * phi).sum(-1, keepdim=True)
+    small = th2 < _eps(phi.dtype) ** 2 * 100
+    th2s = torch.where(small, torch.ones_like(th2), th2)
+    th = torch.sqrt(th2s)
+    k = torch.where(small, 0.5 - th2 / 48.0 + th2 * th2 / 3840.0, torch.sin(0.5 * th) / th)
+    w = torch.where(small, 1.0 - th2 / 8.0 + th2 * th2 / 384.0, torch.cos(0.5 * th))
+    return torch.cat([k * phi, w], dim=-1)
+
+
+def so3_log(q: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion ``[..., 4]`` -> rotation vector ``[..., 3]`` with angle in ``[0, pi]``."""
+    q = torch.where(q[..., 3:] < 0, -q, q)
+    v, w = q[..., :3], q[..., 3:]
+    n2 = (v * v).sum(-1, keepdim=True)
+    small = n2 < _eps(q.dtype) ** 2 * 100
+    n = torch.sqrt(torch.where(small, torch.ones_like(n2), n2))
+    ws = torch.where(small, torch.ones_like(w), w)
+    # small: 2 atan(n / w) / n = 2 / w (1 - n^2 / (3 w^2) + ...)
+    k = torch.where(small, 2.0 / ws * (1.0 - n2 / (3.0 * ws * ws)), 2.0 * torch.atan2(n, w) / n)
+    return k * v
+
+
+def _so3_left_jacobian_coeffs(th2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Coefficients ``a, b`` of ``V = I + a phi^ + b phi^2`` (SO3 left Jacobian)."""
+    small = th2 < 1e-6 if th2.dtype == torch.float64 else th2 < 1e-3
+    t2 = torch.where(small, torch.ones_like(th2), th2)
+    th = torch.sqrt(t2)
+    a = torch.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - torch.cos(th)) / t2)
+    b = torch.where(small, 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0, (th - torch.sin(th)) / (t2 * th))
+    return a, b
+
+
+def _so3_left_jacobian_inv_coeff(th2: torch.Tensor) -> torch.Tensor:
+    """``c`` of ``V^-1 = I - 1/2 phi^ + c phi^2``; ``c = 1/th^2 - cot(th/2) / (2 th)`` (finite up to pi)."""
+    small = th2 < 1e-6 if th2.dtype == torch.float64 else th2 < 1e-3
+    t2 = torch.where(small, torch.ones_like(th2), th2)
+    th = torch.sqrt(t2)
+    half = 0.5 * th
+    c = 1.0 / t2 - torch.cos(half) / (2.0 * th * torch.sin(half))
+    return torch.where(small, 1.0 / 12.0 + th2 / 720.0 + th2 * th2 / 30240.0, c)
+
+
+# ------------------------------------------------------------------------------------------------------ SE3
+def identity_se3(shape: Sequence[int] | int = (), dtype: torch.dtype = torch.float64,
+                 device: str | torch.device = "cpu") -> torch.Tensor:
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
+    T = torch.zeros(shape + (7,), dtype=dtype, device=device)
+    T[..., 6] = 1.0
+    return T
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """Tangent ``[..., 6] = [tau, phi]`` -> SE3 ``[..., 7]``: ``t = V(phi) tau``, ``q = exp(phi)``."""
+    tau, phi = xi[..., :3], xi[..., 3:]
+    th2 = (phi * phi).sum(-1, keepdim=True)
+    a, b = _so3_left_jacobian_coeffs(th2)
+    c1 = torch.cross(phi, tau, dim=-1)
+    c2 = torch.cross(phi, c1, dim=-1)
+    t = tau + a * c1 + b * c2
+    return torch.cat([t, so3_exp(phi)], dim=-1)
+
+
+def se3_log(T: torch.Tensor) -> torch.Tensor:
+    """SE3 ``[..., 7]`` -> tangent ``[..., 6] = [tau, phi]``."""
+    t, q = T[..., :3], T[..., 3:]
+    phi = so3_log(q)
+    th2 = (phi * phi).sum(-1, keepdim=True)
+    c = _so3_left_jacobian_inv_coeff(th2)
+    c1 = torch.cross(phi, t, dim=-1)
+    c2 = torch.cross(phi, c1, dim=-1)
+    tau = t - 0.5 * c1 + c * c2
+    return torch.cat([tau, phi], dim=-1)
+
+
+def se3_inv(T: torch.Tensor) -> torch.Tensor:
+    qi = quat_conj(T[..., 3:])
+    return torch.cat([-quat_rotate(qi, T[..., :3]), qi], dim=-1)
+
+
+def se3_mul(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """Composition ``A o B`` (apply B first)."""
+    q = quat_mul(A[..., 3:], B[..., 3:])
+    q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
+    t = quat_rotate(A[..., 3:], B[..., :3]) + A[..., :3]
+    t, q = _bcast_last(t, q)
+    return torch.cat([t, q], dim=-1)
+
+
+def se3_act(T: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """Apply ``T [..., 7]`` to points ``X [..., 3]``: ``R X + t``."""
+    return quat_rotate(T[..., 3:], X) + T[..., :3]
+
+
+def se3_adjoint(T: torch.Tensor) -> torch.Tensor:
+    """Adjoint ``[..., 6, 6]`` for the ``[tau, phi]`` ordering: ``[[R, t^ R], [0, R]]``."""
+    R = quat_to_rotmat(T[..., 3:])
+    tR = hat(T[..., :3]) @ R
+    z = torch.zeros_like(R)
+    top = torch.cat([R, tR], dim=-1)
+    bot = torch.cat([z, R], dim=-1)
+    return torch.cat([top, bot], dim=-2)
+
+
+def se3_to_matrix(T: torch.Tensor) -> torch.Tensor:
+    R = quat_to_rotmat(T[..., 3:])
+    M = torch.zeros(T.shape[:-1] + (4, 4), dtype=T.dtype, device=T.device)
+    M[..., :3, :3] = R
+    M[..., :3, 3] = T[..., :3]
+    M[..., 3, 3] = 1.0
+    return M
+
+
+def se3_from_matrix(M: torch.Tensor) -> torch.Tensor:
+    return torch.cat([M[..., :3, 3], rotmat_to_quat(M[..., :3, :3])], dim=-1)
+
+
+def se3_interpolate(A: torch.Tensor, B: torch.Tensor, alpha: torch.Tensor | float) -> torch.Tensor:
+    """``Exp(alpha Log(B A^-1)) A``: alpha = 0 gives A, alpha = 1 gives B."""
+    if not torch.is_tensor(alpha):
+        alpha = torch.tensor(alpha, dtype=A.dtype, device=A.device)
+    alpha = alpha.to(A.dtype)
+    if alpha.dim() > 0:
+        alpha = alpha.unsqueeze(-1)
+    return se3_mul(se3_exp(alpha * se3_log(se3_mul(B, se3_inv(A)))), A)
+
+
+# ----------------------------------------------------------------------------------------------------- Sim3
+def identity_sim3(shape: Sequence[int] | int = (), dtype: torch.dtype = torch.float64,
+                  device: str | torch.device = "cpu") -> torch.Tensor:
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
+    S = torch.zeros(shape + (8,), dtype=dtype, device=device)
+    S[..., 6] = 1.0
+    S[..., 7] = 1.0
+    return S
+
+
+def _sim3_W(phi: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """``W = sum_k M^k / (k+1)!`` with ``M = sigma I + phi^`` (the Sim3 'V' matrix), via a 6x6 matrix exponential:
+    ``expm([[M, I], [0, 0]]) = [[e^M, W], [0, I]]``.  Exact for all ``(phi, sigma)`` without special cases."""
+    shape = phi.shape[:-1]
+    I3 = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(shape + (3, 3))
+    M = hat(phi) + sigma[..., None] * I3
+    G = torch.zeros(shape + (6, 6), dtype=phi.dtype, device=phi.device)
+    G[..., :3, :3] = M
+    G[..., :3, 3:] = I3
+    return torch.linalg.matrix_exp(G)[..., :3, 3:]
+
+
+def sim3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """Tangent ``[..., 7] = [tau, phi, sigma]`` -> Sim3 ``[..., 8] = [t, q, s]``."""
+    tau, phi, sigma = xi[..., :3], xi[..., 3:6], xi[..., 6:7]
+    W = _sim3_W(phi, sigma)
+    t = (W @ tau.unsqueeze(-1)).squeeze(-1)
+    return torch.cat([t, so3_exp(phi), torch.exp(sigma)], dim=-1)
+
+
+def sim3_log(S: torch.Tensor) -> torch.Tensor:
+    """Sim3 ``[..., 8]`` -> tangent ``[..., 7] = [tau, phi, sigma]``."""
+    t, q, s = S[..., :3], S[..., 3:7], S[..., 7:8]
+    phi = so3_log(q)
+    sigma = torch.log(s)
+    W = _sim3_W(phi, sigma)
+    tau = torch.linalg.solve(W, t.unsqueeze(-1)).squeeze(-1)
+    return torch.cat([tau, phi, sigma], dim=-1)
+
+
+def sim3_inv(S: torch.Tensor) -> torch.Tensor:
+    qi = quat_conj(S[..., 3:7])
+    si = 1.0 / S[..., 7:8]
+    return torch.cat([-si * quat_rotate(qi, S[..., :3]), qi, si], dim=-1)
+
+
+def sim3_mul(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    q = quat_mul(A[..., 3:7], B[..., 3:7])
+    q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
+    t = A[..., 7:8] * quat_rotate(A[..., 3:7], B[..., :3]) + A[..., :3]
+    s = A[..., 7:8] * B[..., 7:8]
+    t, q, s = _bcast_last(t, q, s)
+    return torch.cat([t, q, s], dim=-1)
+
+
+def sim3_act(S: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    return S[..., 7:8] * quat_rotate(S[..., 3:7], X) + S[..., :3]
+
+
+def sim3_from_se3(T: torch.Tensor, s: torch.Tensor | float = 1.0) -> torch.Tensor:
+    """``[R | t]`` with scale ``s`` -> Sim3 ``[t, q, s]``; ``s`` is a float, a tensor broadcastable to
+    ``T.shape[:-1]`` (one scale per transform) or of shape ``[..., 1]``."""
+    if not torch.is_tensor(s):
+        s = torch.tensor(s, dtype=T.dtype, device=T.device)
+    s = s.to(T.dtype)
+    if s.dim() == T.dim() and s.shape[-1] == 1:  # already [..., 1]
+        s = s.expand(T.shape[:-1] + (1,))
+    else:  # one scale per transform, broadcast to T.shape[:-1]
+        s = s.expand(T.shape[:-1]).unsqueeze(-1)
+    return torch.cat([T, s], dim=-1)
+
+
+def sim3_to_se3(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split a Sim3 into its rigid part ``[t, q]`` and its scale ``s [...]``."""
+    return S[..., :7], S[..., 7]
+
+
+def _bcast_last(*xs: torch.Tensor) -> list[torch.Tensor]:
+    shape = torch.broadcast_shapes(*(x.shape[:-1] for x in xs))
+    return [x.expand(shape + x.shape[-1:]) for x in xs]
