@@ -1,2 +1,11 @@
-"""Geometry for pvslam: batched SE3/Sim3 (:mod:`.lie`), projective operations (:mod:`.projective`),
-dense bundle adjustment (:mod:`.ba`) and the Sim(3) pose graph (:mod:`.pose_graph`)."""
+"""Geometry for pvslam, in plain torch (CPU or GPU):
+
+* :mod:`.lie` - batched SE(3) / Sim(3): exp/log, composition, inverse, action, adjoint, interpolation.
+* :mod:`.projective` - back-projection with inverse depth, reprojection with analytic Jacobians, DROID's frame
+  distance.
+* :mod:`.ba` - dense bundle adjustment (Schur complement over per-pixel inverse depths) and motion-only BA.
+* :mod:`.pose_graph` - Sim(3) pose-graph optimisation and loop-edge Sim(3) measurement.
+* :mod:`.testing` - exact synthetic BA problems for tests and benchmarks.
+
+Poses crossing these modules' public functions are camera-to-world ``T_wc [..., 7]`` (see :mod:`pvslam_core.types`).
+"""

@@ -21,7 +21,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as nnf
 
-from .ba import motion_only_ba
+from .ba import motion_only_ba, solve_spd, sparse_block_matrix, sparse_solve
 from .lie import se3_inv, se3_mul, sim3_exp, sim3_from_se3, sim3_inv, sim3_log, sim3_mul
 from .projective import edge_transforms, project_points
 
@@ -60,10 +60,13 @@ def sim3_pose_graph(
     lm: float = 1e-4,
     fd_step: float = 1e-6,
     tol: float = 1e-10,
+    sparse_min_nodes: int = 64,
 ) -> PoseGraphResult:
     """Optimise Sim3 nodes ``S0 [N, 8]`` against edge measurements ``Z [E, 8]`` (module docstring).
 
     ``fixed``: bool ``[N]``; ``weights``: ``[E]`` or ``[E, 7]`` information (diagonal), default 1.
+    On the CPU, graphs with more than ``sparse_min_nodes`` free nodes are solved with a sparse LU (the normal
+    matrix of a chain with a few loops is block-sparse; a dense Cholesky of 7N x 7N would dominate).
     """
     S = S0.to(torch.float64).clone()
     dev = S.device
@@ -106,30 +109,40 @@ def sim3_pose_graph(
         rj = sim3_log(sim3_mul(Zi, sim3_mul(sim3_inv(Si), Sj_p)))
         Ji = ((ri[:, :7] - ri[:, 7:]) / (2 * fd_step)).transpose(1, 2)  # [E, 7(res), 7(var)]
         Jj = ((rj[:, :7] - rj[:, 7:]) / (2 * fd_step)).transpose(1, 2)
-        H = torch.zeros(F * F, 49, dtype=torch.float64, device=dev)
         g = torch.zeros(F, 7, dtype=torch.float64, device=dev)
         si, sj = slot[ii], slot[jj]
         WJi, WJj = Ji * Wt.unsqueeze(-1), Jj * Wt.unsqueeze(-1)
+        blk_r, blk_c, blk_v = [], [], []
         for (sa, Ja, WJa) in ((si, Ji, WJi), (sj, Jj, WJj)):
             m = sa >= 0
             g.index_add_(0, sa[m], torch.einsum("erv,er->ev", WJa[m], r[m]))
             for (sb, Jb) in ((si, Ji), (sj, Jj)):
                 mm = m & (sb >= 0)
-                H.index_add_(0, sa[mm] * F + sb[mm], torch.einsum("erv,erw->evw", WJa[mm], Jb[mm]).reshape(-1, 49))
-        Hm = H.reshape(F, F, 7, 7).permute(0, 2, 1, 3).reshape(7 * F, 7 * F)
-        Hm = 0.5 * (Hm + Hm.T)
+                blk_r.append(sa[mm])
+                blk_c.append(sb[mm])
+                blk_v.append(torch.einsum("erv,erw->evw", WJa[mm], Jb[mm]))
+        br, bc, bv = torch.cat(blk_r), torch.cat(blk_c), torch.cat(blk_v)  # block rows / cols / 7x7 values
         gv = g.reshape(-1)
+        sparse = dev.type == "cpu" and F > sparse_min_nodes
+        if sparse:  # chain + loops: block-sparse normal matrix, solved with SuperLU
+            Hs = sparse_block_matrix(br, bc, bv, F)
+            hdiag = Hs.diagonal()
+        else:
+            H = torch.zeros(F * F, 49, dtype=torch.float64, device=dev)
+            H.index_add_(0, br * F + bc, bv.reshape(-1, 49))
+            Hm = H.reshape(F, F, 7, 7).permute(0, 2, 1, 3).reshape(7 * F, 7 * F)
+            Hm = 0.5 * (Hm + Hm.T)
         accepted = False
         for _ in range(8):
-            A = Hm + lam * torch.diag(torch.diagonal(Hm)) + 1e-9 * torch.eye(7 * F, dtype=torch.float64, device=dev)
-            L, info = torch.linalg.cholesky_ex(A)
-            if int(info) != 0:
+            if sparse:
+                x = sparse_solve(Hs, hdiag * lam + 1e-9, -gv)
+            else:
+                A = Hm + lam * torch.diag(torch.diagonal(Hm)) + 1e-9 * torch.eye(7 * F, dtype=torch.float64, device=dev)
+                x = solve_spd(A, -gv)
+            if x is None:
                 lam *= 10
                 continue
-            delta = -torch.cholesky_solve(gv.unsqueeze(-1), L).squeeze(-1).reshape(F, 7)
-            if not bool(torch.isfinite(delta).all()):
-                lam *= 10
-                continue
+            delta = x.reshape(F, 7)
             S_new = S.clone()
             S_new[free_idx] = sim3_mul(sim3_exp(delta), S[free_idx])
             c_new = cost_of(S_new)

@@ -33,6 +33,22 @@ def pixel_grid(h: int, w: int, device: str | torch.device = "cpu", dtype: torch.
     return torch.stack([x, y], dim=-1)
 
 
+_RAYS: dict = {}
+
+
+def _rays(h: int, w: int, fx: float, fy: float, cx: float, cy: float, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalised ray coordinates ``X0, Y0 [h*w]`` of the pixel grid (cached: the BA calls this every iteration)."""
+    key = (h, w, fx, fy, cx, cy, dtype, str(device))
+    hit = _RAYS.get(key)
+    if hit is None:
+        grid = pixel_grid(h, w, device, dtype).reshape(-1, 2)
+        hit = ((grid[:, 0] - cx) / fx, (grid[:, 1] - cy) / fy)
+        if len(_RAYS) > 32:
+            _RAYS.clear()
+        _RAYS[key] = hit
+    return hit
+
+
 def edge_transforms(poses_wc: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Rotation ``[E, 3, 3]`` and translation ``[E, 3]`` of ``G_ij = T_wc_j^-1 T_wc_i`` (camera i -> camera j)."""
     Gij = se3_mul(se3_inv(poses_wc[jj]), poses_wc[ii])
@@ -60,9 +76,7 @@ def project_points(
     """
     dtype, device = d.dtype, d.device
     fx, fy, cx, cy = (float(v) for v in intr.tolist())
-    grid = pixel_grid(h, w, device, dtype).reshape(-1, 2)
-    X0 = (grid[:, 0] - cx) / fx
-    Y0 = (grid[:, 1] - cy) / fy
+    X0, Y0 = _rays(h, w, fx, fy, cx, cy, dtype, device)
     if translation_only:
         X = X0 + t[:, 0:1] * d
         Y = Y0 + t[:, 1:2] * d

@@ -1,0 +1,159 @@
+import math
+
+import pytest
+import torch
+
+from pvslam_core.geometry.lie import se3_exp, se3_inv, se3_mul, se3_to_matrix, sim3_from_se3
+from pvslam_core.geometry.pose_graph import loop_relative_sim3, odometry_measurements, sim3_pose_graph
+from pvslam_core.geometry.testing import make_problem, perturb, scale_drifted, umeyama_ate
+from pvslam_core.interfaces import BuildContext, Optimizer
+from pvslam_core.registry import get_registry
+from pvslam_core.types import EdgeObservations, LoopCandidate
+
+
+def make(name, **cfg):
+    spec = get_registry().get("optimizer", name)
+    return spec.factory(spec.config_model(**cfg), BuildContext(device=torch.device("cpu")))
+
+
+@pytest.fixture(scope="module")
+def loop_problem():
+    return make_problem(n=16, trajectory="loop", loop_edges=True, radius=2, seed=1)
+
+
+def test_registered_with_described_configs():
+    reg = get_registry()
+    for name in ("online_ba", "offline_ba"):
+        spec = reg.get("optimizer", name)
+        fields = spec.config_model.model_fields
+        for f in ("window", "iters", "lm", "ep", "eta", "loop_window", "loop_iters", "loop_lm", "loop_ep", "sim3_pgo"):
+            assert f in fields and fields[f].description, (name, f)
+        assert isinstance(make(name), Optimizer)
+        with pytest.raises(Exception):
+            spec.config_model(windw=3)
+
+
+@pytest.mark.parametrize("name", ["online_ba", "offline_ba"])
+def test_step_windowed(name):
+    pr = make_problem(n=10, seed=4)
+    p0, d0 = perturb(pr, fixed=(0,), rot=0.01, trans=0.02, disp_rel=0.1)
+    g = pr.graph(p0, d0)
+    opt = make(name, window=4, iters=3)
+    rep = opt.step(g, pr.obs())
+    assert not rep.rejected and rep.cost_after < rep.cost_before
+    assert rep.num_free_poses == 4
+    assert torch.equal(g.poses[:6], p0[:6])  # outside the window: fixed
+    for _ in range(5):
+        opt.step(g, pr.obs())
+    err = se3_mul(se3_inv(pr.poses[6:]), g.poses[6:])[:, :3].norm(dim=-1)
+    assert float(err.max()) < float(se3_mul(se3_inv(pr.poses[6:]), p0[6:])[:, :3].norm(dim=-1).max())
+
+
+@pytest.mark.parametrize("name", ["online_ba", "offline_ba"])
+def test_loop_and_finalize_fix_scale_drift(name, loop_problem):
+    pr = loop_problem
+    n = pr.poses.shape[0]
+    p0, d0 = scale_drifted(pr, rate=0.96, yaw_drift=0.01)
+    g = pr.graph(p0, d0)
+    ate0 = umeyama_ate(g.poses[:, :3], pr.poses[:, :3])
+    assert ate0 > 0.05
+    opt = make(name)
+    sel = (pr.ii >= n - 6) | (pr.jj >= n - 6) | ((pr.ii == 0) & (pr.jj == n - 1))
+    obs = EdgeObservations(pr.ii[sel], pr.jj[sel], pr.target[sel], pr.weight[sel])
+    rep = opt.loop(g, obs, [LoopCandidate(n - 1, 0, 0.9)])
+    assert not rep.rejected and "sim3 pgo" in rep.message and opt.last_pgo["applied"]
+    ate1 = umeyama_ate(g.poses[:, :3], pr.poses[:, :3])
+    assert ate1 < 0.1 * ate0, (ate0, ate1)
+    rep = opt.finalize(g, lambda ii, jj: pr.obs(ii, jj))
+    assert not rep.rejected and rep.cost_after <= rep.cost_before
+    ate2 = umeyama_ate(g.poses[:, :3], pr.poses[:, :3])
+    assert ate2 < 0.01 * ate0, (ate0, ate2)
+
+
+def test_loop_without_pgo_runs(loop_problem):
+    pr = loop_problem
+    g = pr.graph(*perturb(pr, fixed=(0,), rot=0.005, trans=0.01, disp_rel=0.05))
+    opt = make("online_ba", sim3_pgo=False, loop_iters=4)
+    rep = opt.loop(g, pr.obs(), [LoopCandidate(15, 0, 0.9)])
+    assert not rep.rejected and rep.cost_after < rep.cost_before and "sim3" not in rep.message
+
+
+def test_online_finalize_zero_iters(loop_problem):
+    g = loop_problem.graph()
+    rep = make("online_ba", final_iters=0).finalize(g, lambda ii, jj: loop_problem.obs(ii, jj))
+    assert rep.iterations == 0
+
+
+def _circle(N=24):
+    poses = []
+    for k in range(N):
+        a = 2 * math.pi * k / N
+        T = se3_exp(torch.tensor([0, 0, 0, 0, -a, 0.0], dtype=torch.float64))
+        T[:3] = torch.tensor([3 * math.cos(a), 0, 3 * math.sin(a)], dtype=torch.float64)
+        poses.append(T)
+    return torch.stack(poses)
+
+
+def test_sim3_pose_graph_scale_drifted_loop():
+    gt = _circle()
+    N = gt.shape[0]
+    c = torch.tensor([0.97 ** k for k in range(N)], dtype=torch.float64)
+    est = [gt[0]]
+    for k in range(N - 1):
+        rel = se3_mul(se3_inv(gt[k]), gt[k + 1])
+        rel[:3] *= c[k]
+        rel = se3_mul(rel, se3_exp(torch.tensor([0, 0, 0, 0, 0.01, 0], dtype=torch.float64)))
+        est.append(se3_mul(est[-1], rel))
+    est = torch.stack(est)
+    S = sim3_from_se3(est, 1.0)
+    ii, jj, Z = odometry_measurements(S)
+    a, b = N - 1, 0
+    Zl = sim3_from_se3(se3_mul(se3_inv(gt[a]), gt[b]), c[a] / c[b])
+    Zl[:3] *= c[a]  # measured in a's (drifted) scale
+    ii, jj = torch.cat([ii, torch.tensor([a])]), torch.cat([jj, torch.tensor([b])])
+    Z = torch.cat([Z, Zl[None]])
+    w = torch.ones(len(ii), dtype=torch.float64)
+    w[-1] = 10
+    fixed = torch.zeros(N, dtype=torch.bool)
+    fixed[0] = True
+    res = sim3_pose_graph(S, ii, jj, Z, fixed, w, iters=30)
+    assert res.cost_after < 1e-2 * res.cost_before
+    before = float((est[:, :3] - gt[:, :3]).norm(dim=-1).max())
+    after = float((res.poses[:, :3] - gt[:, :3]).norm(dim=-1).max())
+    assert before > 1.0 and after < 0.03, (before, after)
+    # recovered per-keyframe scale ~ 1 / drift
+    assert torch.allclose(res.poses[:, 7], 1 / c, rtol=0.05)
+    assert torch.equal(res.poses[0], S[0])
+
+
+def test_loop_relative_sim3_measures_scale(loop_problem):
+    pr = loop_problem
+    n = pr.poses.shape[0]
+    e = int(torch.nonzero((pr.ii == 0) & (pr.jj == n - 1))[0])
+    s_true = 0.8  # keyframe n-1's map is 0.8x the true size
+    start = se3_mul(pr.poses[n - 1], se3_exp(torch.tensor([0.05, 0.02, -0.03, 0.01, 0.02, 0.0], dtype=torch.float64)))
+    Z, s, used = loop_relative_sim3(pr.poses[0], pr.disps[0], start, pr.disps[n - 1] / s_true, pr.intr,
+                                    pr.target[e], pr.weight[e])
+    assert used > 100
+    assert abs(s - 1 / s_true) < 1e-3
+    T_true = se3_mul(se3_inv(pr.poses[0]), pr.poses[n - 1])  # camera n-1 -> camera 0, keyframe 0's (true) scale
+    assert torch.allclose(se3_to_matrix(Z[:7]), se3_to_matrix(T_true), atol=1e-5)
+    assert abs(float(Z[7]) - s) < 1e-12
+
+
+def test_sim3_pose_graph_sparse_matches_dense():
+    gt = _circle(30)
+    N = gt.shape[0]
+    est = se3_mul(gt, se3_exp(0.02 * torch.randn(N, 6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)))
+    est[0] = gt[0]
+    S = sim3_from_se3(est, 1.0)
+    ii, jj, Z = odometry_measurements(sim3_from_se3(gt, 1.0))
+    ii, jj = torch.cat([ii, torch.tensor([N - 1])]), torch.cat([jj, torch.tensor([0])])
+    Z = torch.cat([Z, sim3_from_se3(se3_mul(se3_inv(gt[N - 1]), gt[0]), 1.0)[None]])
+    fixed = torch.zeros(N, dtype=torch.bool)
+    fixed[0] = True
+    dense = sim3_pose_graph(S, ii, jj, Z, fixed, iters=10, sparse_min_nodes=10_000)
+    sparse = sim3_pose_graph(S, ii, jj, Z, fixed, iters=10, sparse_min_nodes=4)
+    assert sparse.cost_after < 1e-6 * sparse.cost_before
+    assert torch.allclose(dense.poses[:, :3], sparse.poses[:, :3], atol=1e-6)
+    assert float((sparse.poses[:, :3] - gt[:, :3]).norm(dim=-1).max()) < 1e-4
