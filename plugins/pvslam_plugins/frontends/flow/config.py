@@ -1,0 +1,159 @@
+"""Configuration of the classical ``flow`` frontend (OpenCV DIS optical flow)."""
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+from pydantic import Field, field_validator
+
+from pvslam_core.config_base import PluginConfig
+
+
+class FlowFrontendConfig(PluginConfig):
+    """DIS optical flow + forward-backward and photometric confidence + panoptic-aware dynamic masking.
+
+    Units: ``*_px`` fields and ``fb_sigma`` are in **full-resolution image pixels** unless they say "BA px"
+    (pixels at the bundle-adjustment resolution, 1/``ba_downsample`` of the image).
+    """
+
+    # --- DIS optical flow -----------------------------------------------------------------------------------
+    preset: Literal["ultrafast", "fast", "medium"] = Field(
+        "ultrafast",
+        description="OpenCV DIS preset for keyframe edges (see finest_scale; the pyramid depth matters more than "
+        "the preset on low-texture road).",
+    )
+    flow_scale: float = Field(
+        0.5,
+        description="Resolution at which flow is computed, relative to the input image: 1.0 (full) or 0.5.",
+    )
+    finest_scale: Optional[int] = Field(
+        1, ge=0, le=5,
+        description="DIS finest pyramid level (0 = the flow resolution itself); None: the preset's own "
+        "(ultrafast/fast 2, medium 1). Median target error on the ground of the synthetic driving loop (1-frame gap, "
+        "BA px) and relative DIS cost: ultrafast@0.5 fs1 0.20 (1x, default); ultrafast@0.5 fs0 0.09 (3.2x; "
+        "keyframe-edge confident-pixel p90 error 0.20 vs 0.30 BA px: the accuracy option); medium@0.5 0.12 (2.6x); "
+        "fast@1.0 0.15 (2.8x); fast@0.5 fs0 0.07 (6x); medium@1.0 0.06 (8x).",
+    )
+    track_preset: Optional[Literal["ultrafast", "fast", "medium"]] = Field(
+        None,
+        description="DIS preset for the per-frame motion filter (track); None: same as `preset`.",
+    )
+    track_finest_scale: Optional[int] = Field(
+        None, ge=0, le=5,
+        description="DIS finest level for track; None: same as `finest_scale`.",
+    )
+    reuse_track_flow: bool = Field(
+        True,
+        description="Reuse the flow computed while tracking a frame that becomes a keyframe for its edges to the "
+        "previous keyframe (saves one flow pair per keyframe; only as accurate as the track settings, so set it "
+        "to false when track uses cheaper settings than the edges).",
+    )
+    gradient_descent_iterations: Optional[int] = Field(
+        None, ge=1, le=100, description="DIS patch gradient-descent iterations; None: preset default."
+    )
+    variational_refinement_iterations: Optional[int] = Field(
+        None, ge=0, le=50, description="DIS variational refinement iterations (0 = off); None: preset default."
+    )
+    patch_size: Optional[int] = Field(None, ge=4, le=32, description="DIS patch size; None: preset default (8).")
+    patch_stride: Optional[int] = Field(None, ge=1, le=16, description="DIS patch stride; None: preset default.")
+
+    # --- targets and confidence -----------------------------------------------------------------------------
+    ba_downsample: int = Field(
+        8, ge=1, le=16,
+        description="BA resolution = image / ba_downsample, for `track` until a graph has been seen (keep it equal "
+        "to graph.ba_downsample); afterwards track and observe follow graph.ba_shape.",
+    )
+    fb_sigma: float = Field(
+        1.0, gt=0.0,
+        description="Forward-backward consistency scale (full-res px): confidence c = exp(-fb^2 / (2 sigma^2)).",
+    )
+    photo_sigma: float = Field(
+        4.0, ge=0.0,
+        description="Photometric confidence scale (gray levels): the confidence is multiplied by "
+        "exp(-r^2 / (2 sigma^2)), r = local mean |I1(x + f) - I0(x)| after removing the global brightness offset. "
+        "Catches flows that are consistently wrong in both directions (low texture, strong perspective shear). "
+        "0 disables.",
+    )
+    weighted_pooling: bool = Field(
+        True,
+        description="Average the flow over each BA block weighted by the FB confidence (robust at occlusion "
+        "boundaries); False: plain block average. Both are exact for a smooth flow.",
+    )
+
+    # --- motion filter and tracking failure -----------------------------------------------------------------
+    keyframe_thresh: float = Field(
+        2.0, gt=0.0,
+        description="New keyframe when the mean flow magnitude to the last keyframe exceeds this (BA px). DROID "
+        "uses 2.4 with its learned flow.",
+    )
+    keyframe_min_coverage: float = Field(
+        0.7, ge=0.0, le=1.0,
+        description="New keyframe when fewer than this fraction of the last keyframe's pixels are still tracked "
+        "(inside the frame and forward-backward consistent). On forward driving many pixels leave the view or "
+        "fail long before the mean measured flow grows, so this keeps keyframes overlapping (about every 2nd "
+        "frame on the synthetic driving loop at 12 fps).",
+    )
+    min_texture_std: float = Field(
+        2.0, ge=0.0,
+        description="Tracking failure when the grayscale intensity std of a frame is below this (black/blank frame).",
+    )
+    fb_fail_px: float = Field(
+        3.0, gt=0.0, description="A pixel fails the forward-backward check when fb > this (full-res px)."
+    )
+    max_fb_fail_fraction: float = Field(
+        0.8, gt=0.0, le=1.0,
+        description="Tracking failure (sudden jump) when more than this fraction of pixels fail the FB check or "
+        "leave the image.",
+    )
+
+    # --- long-baseline edges --------------------------------------------------------------------------------
+    use_reprojection_init: bool = Field(
+        True,
+        description="Initialise DIS with the flow induced by the current poses/depths (graph reprojection) for "
+        "long-baseline edges (proximity/loop edges); makes large displacements work.",
+    )
+    init_min_flow: float = Field(
+        1.0, ge=0.0,
+        description="Use the reprojection init only when the predicted mean flow exceeds this (BA px).",
+    )
+    init_compare_min_gap: int = Field(
+        4, ge=1,
+        description="For edges whose keyframe indices differ by at least this (proximity/loop edges, where the "
+        "estimate may be off), also run DIS from zero and keep the result with the higher mean FB confidence. "
+        "Closer edges trust the reprojection init.",
+    )
+
+    # --- dynamic masking (panoptic-aware confidence) --------------------------------------------------------
+    dynamic_masking: bool = Field(
+        True,
+        description="Second observe round per keyframe: pixels whose target disagrees with the reprojection under "
+        "the current estimate are dynamic; segment vote; PV-SLAM eq. 4 weights. Sets iterations = 2.",
+    )
+    dynamic_thresh: float = Field(
+        1.0, gt=0.0, description="Reprojection residual (BA px) above which a pixel is dynamic."
+    )
+    dynamic_rel_thresh: float = Field(
+        3.0, ge=0.0,
+        description="The threshold is also at least this multiple of the edge's median residual (robust to a "
+        "not-yet-converged estimate); 0 disables.",
+    )
+    max_dynamic_fraction: float = Field(
+        0.5, gt=0.0, le=1.0,
+        description="If more than this fraction of an edge's pixels would be dynamic, the estimate (not the scene) "
+        "is wrong: the edge gets no dynamic mask.",
+    )
+    eta: float = Field(10.0, ge=0.0, description="PV-SLAM eq. 4 logit offset.")
+    convention: Literal["paper", "pvo_code"] = Field(
+        "paper", description="Mask convention of eq. 4 (see pvslam_core.confidence); keep 'paper'."
+    )
+    vote_thresh: float = Field(
+        0.5, ge=0.0, le=1.0,
+        description="A segment becomes dynamic when more than this fraction of its pixels is dynamic.",
+    )
+    things_only: bool = Field(True, description="Only thing segments (cars, people) vote; stuff keeps per-pixel masks.")
+
+    @field_validator("flow_scale")
+    @classmethod
+    def _check_scale(cls, v: float) -> float:
+        if v not in (1.0, 0.5):
+            raise ValueError(f"flow_scale must be 1.0 or 0.5, got {v}")
+        return v

@@ -1,0 +1,65 @@
+"""Synthetic test scenes for the flow frontend: textured photos (scikit-image) under known warps."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import skimage.data as skd
+import torch
+
+from pvslam_core.types import Frame, Intrinsics, PanopticSegmentation, Segment
+
+H, W = 240, 320
+PAD = 60
+INTR = Intrinsics(fx=288.0, fy=288.0, cx=(W - 1) / 2, cy=(H - 1) / 2, width=W, height=H)
+
+
+def texture(name: str = "astronaut", size=(H + 2 * PAD, W + 2 * PAD)) -> np.ndarray:
+    img = getattr(skd, name)()
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    return cv2.resize(img[..., :3], (size[1], size[0]), interpolation=cv2.INTER_AREA)
+
+
+def affine_view(big: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """View of ``big`` (cropped to HxW at PAD) after the affine map ``q = c + L (p - c) + t`` (c = image centre).
+
+    Returns the warped HxW RGB image and the exact flow ``[H, W, 2]`` from the unwarped crop to it.
+    """
+    L, t = A[:, :2].astype(np.float64), A[:, 2].astype(np.float64)
+    c_big = np.array([PAD + (W - 1) / 2, PAD + (H - 1) / 2])
+    M = np.hstack([L, (c_big - L @ c_big + t)[:, None]]).astype(np.float32)
+    warped = cv2.warpAffine(big, M, (big.shape[1], big.shape[0]), flags=cv2.INTER_LINEAR)
+    img = np.ascontiguousarray(warped[PAD:PAD + H, PAD:PAD + W])
+    xs, ys = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    P = np.stack([xs, ys], -1)
+    c = np.array([(W - 1) / 2, (H - 1) / 2])
+    Q = (P - c) @ L.T + c + t
+    return img, (Q - P).astype(np.float32)
+
+
+def shifted(big: np.ndarray, dx: float, dy: float = 0.0) -> np.ndarray:
+    return affine_view(big, np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]]))[0]
+
+
+def base(big: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(big[PAD:PAD + H, PAD:PAD + W])
+
+
+def frame(img: np.ndarray, index: int = 0) -> Frame:
+    return Frame(index=index, timestamp=index * 0.1, image=torch.from_numpy(img).permute(2, 0, 1).contiguous(),
+                 intrinsics=INTR)
+
+
+def with_patch(img: np.ndarray, patch: np.ndarray, x0: int, y0: int) -> np.ndarray:
+    out = img.copy()
+    ph, pw = patch.shape[:2]
+    out[y0:y0 + ph, x0:x0 + pw] = patch
+    return out
+
+
+def patch_segmentation(x0: int, y0: int, ph: int, pw: int, car_id: int = 26001, bg_id: int = 11000):
+    """Panoptic ids: a 'car' thing segment at the patch, 'building' stuff elsewhere."""
+    ids = torch.full((H, W), bg_id, dtype=torch.int64)
+    ids[y0:y0 + ph, x0:x0 + pw] = car_id
+    segs = [Segment(id=bg_id, category_id=11, isthing=False), Segment(id=car_id, category_id=26, isthing=True)]
+    return PanopticSegmentation(ids=ids, segments=segs)

@@ -1,0 +1,329 @@
+"""The ``flow`` frontend: motion filter, failures, edge cache by stable ids, dynamic masking, registry."""
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from pvslam_core.confidence import observed_flow_weight
+from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
+from pvslam_plugins.frontends.flow.frontend import FlowFrontend, make_frontend
+
+import _flow_scenes as S
+
+BA_H, BA_W = S.H // 8, S.W // 8
+DISP = 0.5  # fronto-parallel plane at z = 2: a lateral camera translation tx shifts the image by -fx_ba * tx * DISP
+
+
+def _graph(n_shifts_px):
+    """A FrameGraph whose keyframes look at a fronto-parallel plane; keyframe k's image is shifted by
+    ``n_shifts_px[k]`` full-res px (camera translated along -x)."""
+    from pvslam_core.graph import FrameGraph
+
+    intr = S.INTR.scaled(1 / 8).vector()
+    g = FrameGraph(BA_H, BA_W, intr)
+    for k, dx in enumerate(n_shifts_px):
+        tx = -(dx / 8.0) / (float(intr[0]) * DISP)
+        pose = torch.tensor([tx, 0, 0, 0, 0, 0, 1.0], dtype=torch.float64)
+        g.add_keyframe(k, 0.1 * k, pose, torch.full((BA_H, BA_W), DISP))
+    return g
+
+
+def _grid():
+    ys, xs = torch.meshgrid(torch.arange(BA_H, dtype=torch.float32), torch.arange(BA_W, dtype=torch.float32),
+                            indexing="ij")
+    return xs, ys
+
+
+def _frontend(**kw):
+    return FlowFrontend(FlowFrontendConfig(**kw))
+
+
+# ------------------------------------------------------------------------------------------ track --
+def test_motion_filter_thresholds_and_targets():
+    big = S.texture("astronaut")
+    fe = _frontend()
+    r0 = fe.track(S.frame(S.base(big), 0), None)
+    assert r0.is_keyframe and not r0.failed  # the first frame is always a keyframe
+    fe.add_keyframe(0, S.frame(S.base(big), 0), None)
+    small = fe.track(S.frame(S.shifted(big, 8.0), 1), None)  # 1 BA px
+    assert not small.failed and not small.is_keyframe
+    assert small.mean_flow == pytest.approx(1.0, abs=0.1)
+    big_move = fe.track(S.frame(S.shifted(big, 24.0, 4.0), 2), None)  # 3 BA px, > keyframe_thresh = 2
+    assert big_move.is_keyframe and not big_move.failed
+    assert big_move.mean_flow == pytest.approx(np.hypot(3.0, 0.5), abs=0.15)
+    xs, ys = _grid()
+    w = big_move.weight[0]
+    ok = w > 0.5
+    assert ok.float().mean() > 0.6
+    assert big_move.target.shape == (2, BA_H, BA_W) and big_move.weight.shape == (2, BA_H, BA_W)
+    assert float((big_move.target[0] - xs - 3.0).abs()[ok].median()) < 0.1
+    assert float((big_move.target[1] - ys - 0.5).abs()[ok].median()) < 0.1
+    # a lower threshold turns the small motion into a keyframe
+    fe2 = _frontend(keyframe_thresh=0.5)
+    fe2.add_keyframe(0, S.frame(S.base(big), 0), None)
+    assert fe2.track(S.frame(S.shifted(big, 8.0), 1), None).is_keyframe
+
+
+def test_repeated_frame_is_not_a_failure():
+    big = S.texture("chelsea")
+    fe = _frontend()
+    img = S.base(big)
+    fe.add_keyframe(0, S.frame(img, 0), None)
+    r = fe.track(S.frame(img.copy(), 1), None)
+    assert not r.failed and not r.is_keyframe
+    assert r.mean_flow < 0.02
+
+
+def test_black_and_constant_frames_fail():
+    big = S.texture("astronaut")
+    fe = _frontend()
+    fe.add_keyframe(0, S.frame(S.base(big), 0), None)
+    for img in (np.zeros((S.H, S.W, 3), np.uint8), np.full((S.H, S.W, 3), 128, np.uint8)):
+        r = fe.track(S.frame(img, 1), None)
+        assert r.failed and not r.is_keyframe and "texture" in r.message
+    # also before any keyframe exists
+    assert _frontend().track(S.frame(np.zeros((S.H, S.W, 3), np.uint8), 0), None).failed
+
+
+def test_sudden_jump_fails():
+    fe = _frontend()
+    fe.add_keyframe(0, S.frame(S.base(S.texture("astronaut")), 0), None)
+    r = fe.track(S.frame(S.base(S.texture("coffee")), 1), None)
+    assert r.failed and "forward-backward" in r.message
+    # tracking still works afterwards (failure changed nothing)
+    r2 = fe.track(S.frame(S.shifted(S.texture("astronaut"), 4.0), 2), None)
+    assert not r2.failed and fe.num_keyframes == 1
+
+
+def test_track_timing_printout():
+    big = S.texture("astronaut")
+    variants = [("default (ultrafast, finest 1, flow_scale 0.5)", {}),
+                ("ultrafast, finest 0, flow_scale 0.5 (accuracy option)", dict(track_finest_scale=0)),
+                ("medium, flow_scale 0.5", dict(track_preset="medium", track_finest_scale=None, finest_scale=None)),
+                ("fast, flow_scale 1.0", dict(track_preset="fast", track_finest_scale=None, finest_scale=None,
+                                              flow_scale=1.0))]
+    for name, kw in variants:
+        fe = _frontend(**kw)
+        fe.add_keyframe(0, S.frame(S.base(big), 0), None)
+        frames = [S.frame(S.shifted(big, 0.7 * t, 0.2 * t), t) for t in range(1, 16)]
+        fe.track(frames[0], None)  # warm-up
+        t0 = time.perf_counter()
+        for f in frames:
+            fe.track(f, None)
+        ms = (time.perf_counter() - t0) / len(frames) * 1e3
+        print(f"\n[flow frontend] track() at 320x240, {name}: {ms:.2f} ms/frame")
+
+
+# -------------------------------------------------------------------------------------- observe --
+def test_observe_targets_and_track_reuse():
+    big = S.texture("astronaut")
+    shifts = [0.0, 20.0, 36.0]
+    g = _graph(shifts)
+    fe = _frontend(dynamic_masking=False)  # default: the track flow is reused for (k-1, k)
+    assert fe.iterations == 1
+    for k, dx in enumerate(shifts):
+        f = S.frame(S.shifted(big, dx), k)
+        if k:
+            r = fe.track(f, None)
+            assert r.is_keyframe
+        fe.add_keyframe(k, f, None)
+    # edges (0,1), (1,0), (1,2), (2,1) come from tracking; (0,2), (2,0) are computed now
+    assert fe.stats["edges_computed"] == 0
+    ii = torch.tensor([0, 1, 1, 2, 0, 2])
+    jj = torch.tensor([1, 0, 2, 1, 2, 0])
+    obs = fe.observe(g, ii, jj)
+    assert fe.stats["edges_computed"] == 2
+    assert obs.target.shape == (6, 2, BA_H, BA_W) and obs.weight.shape == (6, 2, BA_H, BA_W)
+    assert obs.dynamic.shape == (6, BA_H, BA_W) and float(obs.dynamic.abs().max()) == 0.0
+    xs, ys = _grid()
+    for e in range(6):
+        du = (shifts[int(jj[e])] - shifts[int(ii[e])]) / 8.0
+        ok = obs.weight[e, 0] > 0.5
+        err = (obs.target[e, 0] - xs - du).abs()[ok]
+        assert float(err.median()) < 0.1, (e, float(err.median()))
+        assert float((obs.target[e, 1] - ys).abs()[ok].median()) < 0.1
+    assert torch.equal(obs.weight[:, 0], obs.weight[:, 1])
+    assert 0.0 <= float(obs.weight.min()) and float(obs.weight.max()) <= 1.0
+    # asking again returns the cache, computing nothing
+    obs2 = fe.observe(g, ii, jj)
+    assert fe.stats["edges_computed"] == 2
+    assert torch.equal(obs2.target, obs.target)
+    # without reuse (e.g. when track runs cheaper settings) all three pairs are computed for the edges
+    fe3 = _frontend(dynamic_masking=False, reuse_track_flow=False)
+    for k, dx in enumerate(shifts):
+        f = S.frame(S.shifted(big, dx), k)
+        if k:
+            fe3.track(f, None)
+        fe3.add_keyframe(k, f, None)
+    fe3.observe(g, ii, jj)
+    assert fe3.stats["edges_computed"] == 6
+
+
+def test_keyframe_when_coverage_drops():
+    """Forward motion: pixels leave the view long before the mean measured flow is large."""
+    big = S.texture("astronaut")
+    fe = _frontend()
+    fe.add_keyframe(0, S.frame(S.base(big), 0), None)
+    zoom, _ = S.affine_view(big, np.array([[1.12, 0.0, 0.0], [0.0, 1.12, 0.0]]))
+    r = fe.track(S.frame(zoom, 1), None)
+    assert not r.failed and r.mean_flow < 2.0
+    lo = _frontend(keyframe_min_coverage=0.95)
+    lo.add_keyframe(0, S.frame(S.base(big), 0), None)
+    assert lo.track(S.frame(zoom, 1), None).is_keyframe
+    off = _frontend(keyframe_min_coverage=0.0)
+    off.add_keyframe(0, S.frame(S.base(big), 0), None)
+    assert not off.track(S.frame(zoom, 1), None).is_keyframe
+
+
+def test_index_shift_after_remove_keyframe():
+    big = S.texture("astronaut")
+    shifts = [0.0, 12.0, 30.0, 44.0]
+    g = _graph(shifts)
+    fe = _frontend(dynamic_masking=False)
+    for k, dx in enumerate(shifts):
+        fe.add_keyframe(k, S.frame(S.shifted(big, dx), k), None)
+    ii = torch.tensor([0, 2, 1, 3])
+    jj = torch.tensor([2, 0, 3, 1])
+    before = fe.observe(g, ii, jj)
+    computed = fe.stats["edges_computed"]
+    sids = [fe.stable_id(k) for k in range(4)]
+    # the graph drops keyframe 1: the frontend forgets its edges, then the keyframe; later indices shift down
+    fe.forget_edges(torch.tensor([1, 3]), torch.tensor([3, 1]))
+    assert (sids[1], sids[3]) not in fe.cached_edges() and (sids[3], sids[1]) not in fe.cached_edges()
+    fe.remove_keyframe(1)
+    g.remove_keyframe(1)
+    assert fe.num_keyframes == 3 and [fe.stable_id(k) for k in range(3)] == [sids[0], sids[2], sids[3]]
+    assert all(sids[1] not in e for e in fe.cached_edges())
+    after = fe.observe(g, torch.tensor([0, 1]), torch.tensor([1, 0]))  # old (0, 2) and (2, 0)
+    assert fe.stats["edges_computed"] == computed  # served from the cache by stable id
+    assert torch.equal(after.target, before.target[:2])
+    # a new keyframe gets the next index and a fresh stable id
+    fe.add_keyframe(3, S.frame(S.shifted(big, 60.0), 4), None)
+    assert fe.stable_id(3) == sids[3] + 1
+    with pytest.raises(ValueError):
+        fe.add_keyframe(7, S.frame(S.base(big), 5), None)
+
+
+def test_reprojection_init_for_long_baseline_edge():
+    big = S.texture("astronaut")
+    shifts = [0.0, 130.0]  # 16 BA px: beyond what DIS finds from a zero initialisation here
+    xs, ys = _grid()
+
+    def run(use_init):
+        g = _graph(shifts)
+        fe = _frontend(dynamic_masking=False, use_reprojection_init=use_init)
+        for k, dx in enumerate(shifts):
+            fe.add_keyframe(k, S.frame(S.shifted(big, dx), k), None)
+        obs = fe.observe(g, torch.tensor([0]), torch.tensor([1]))
+        ok = (xs + shifts[1] / 8 < BA_W - 1)  # pixels that stay in view
+        err = (obs.target[0, 0] - xs - shifts[1] / 8).abs()[ok]
+        return float(err.median()), fe.stats["reprojection_init_used"]
+
+    err_init, used = run(True)
+    err_zero, _ = run(False)
+    assert used == 1
+    assert err_init < 0.1, err_init
+    assert err_zero > 1.0, err_zero
+
+
+def test_initial_depth_median_of_previous_keyframe():
+    big = S.texture("astronaut")
+    g = _graph([0.0, 16.0])
+    g.set_disps(torch.tensor([1]), torch.linspace(0.2, 1.0, BA_H * BA_W).reshape(1, BA_H, BA_W))
+    fe = _frontend()
+    assert fe.initial_depth(2) is None  # no graph seen yet: pipeline default
+    for k, dx in enumerate([0.0, 16.0]):
+        fe.add_keyframe(k, S.frame(S.shifted(big, dx), k), None)
+    fe.observe(g, torch.tensor([0]), torch.tensor([1]))
+    d = fe.initial_depth(2)
+    assert d.shape == (BA_H, BA_W)
+    assert float(d[0, 0]) == pytest.approx(float(g.disps[1].median()))
+
+
+# ------------------------------------------------------------------------- moving object / eq. 4 --
+def _moving_patch_scene(convention, with_seg):
+    """Static background shifted by 16 px between two keyframes (explained by the camera), plus a textured
+    'car' that moves by another (+24, +10) px on its own."""
+    big = S.texture("astronaut")
+    patch = S.texture("coffee", (72, 96))
+    x0, y0 = 100, 80
+    dx = 16.0
+    i0 = S.with_patch(S.base(big), patch, x0, y0)
+    i1 = S.with_patch(S.shifted(big, dx), patch, x0 + int(dx) + 24, y0 + 10)
+    seg0 = S.patch_segmentation(x0, y0, 72, 96) if with_seg else None
+    seg1 = S.patch_segmentation(x0 + int(dx) + 24, y0 + 10, 72, 96) if with_seg else None
+    g = _graph([0.0, dx])
+    fe = _frontend(convention=convention, preset="medium")  # a flow that tracks the object itself
+    assert fe.iterations == 2
+    fe.add_keyframe(0, S.frame(i0, 0), seg0)
+    fe.add_keyframe(1, S.frame(i1, 1), seg1)
+    ii, jj = torch.tensor([0, 1]), torch.tensor([1, 0])
+    first = fe.observe(g, ii, jj)  # round 1: FB confidence only
+    second = fe.observe(g, ii, jj)  # round 2: residual vs reprojection -> dynamic mask -> eq. 4
+    # BA pixels fully inside the car in keyframe 0 (block centres 8x+3.5 in [x0, x0+96), 8y+3.5 in [y0, y0+72))
+    car = torch.zeros(BA_H, BA_W, dtype=torch.bool)
+    car[y0 // 8 + 1:(y0 + 72) // 8 - 1, x0 // 8 + 1:(x0 + 96) // 8 - 1] = True
+    static = torch.ones(BA_H, BA_W, dtype=torch.bool)
+    static[y0 // 8 - 4:(y0 + 72) // 8 + 4, x0 // 8 - 4:(x0 + 96 + 40) // 8 + 4] = False
+    static[:, BA_W - 4:] = False  # leaves the image
+    return first, second, car, static
+
+
+def test_moving_patch_downweighted_with_paper_convention_only():
+    """The deliberate sign decision: for observed-flow targets, dynamic pixels must lose weight (paper M_d = 1 on
+    dynamic pixels); PVO's code convention (its mask is 1 on static pixels) would instead keep / raise them."""
+    first, second, car, static = _moving_patch_scene("paper", with_seg=False)
+    w1, w2 = first.weight[0, 0], second.weight[0, 0]
+    # forward-backward confidence alone does not reject a rigidly moving textured object
+    assert float(w1[car].mean()) > 0.5 * float(w1[static].mean())
+    assert float(first.dynamic.abs().max()) == 0.0
+    # after one round the residual against the camera-explained reprojection marks the object dynamic
+    assert float(second.dynamic[0][car].mean()) > 0.9
+    assert float(second.dynamic[0][static].mean()) < 0.02
+    assert float(w2[car].mean()) < 1e-2 * float(w2[static].mean())
+    torch.testing.assert_close(w2[static], w1[static])  # static pixels keep their FB confidence exactly
+
+    _, pvo, car, static = _moving_patch_scene("pvo_code", with_seg=False)
+    wp = pvo.weight[0, 0]
+    assert float(pvo.dynamic[0][car].mean()) > 0.9  # same mask ...
+    assert float(wp[car].mean()) > 0.3 * float(w1[static].mean())  # ... but the object is NOT down-weighted
+    assert float(wp[car].mean()) > 100 * float(wp[static].mean())  # (static pixels are, instead)
+
+
+def test_segment_vote_marks_whole_car():
+    _, second, car, static = _moving_patch_scene("paper", with_seg=True)
+    x0, y0 = 100, 80
+    ys, xs = torch.meshgrid(torch.arange(BA_H), torch.arange(BA_W), indexing="ij")
+    cx, cy = 8 * xs + 4, 8 * ys + 4  # block-centre pixel used to downsample the ids
+    seg_car = (cx >= x0) & (cx < x0 + 96) & (cy >= y0) & (cy < y0 + 72)
+    assert bool(second.dynamic[0][seg_car].bool().all())  # every pixel of the car segment, borders included
+    assert float(second.dynamic[0][static].mean()) < 0.02
+    assert float(second.weight[0, 0][seg_car].max()) <= float(observed_flow_weight(torch.tensor(1.0), torch.tensor(1.0)))
+    assert float(observed_flow_weight(torch.tensor(1.0), torch.tensor(1.0))) < 5e-3
+
+
+def test_registered_plugin(monkeypatch):
+    from pvslam_core.registry import build_registry
+    import pvslam_plugins.frontends.flow as flow_plugin
+
+    monkeypatch.setenv("PVSLAM_LOAD_PLUGINS", "")
+    reg = build_registry(extra_modules=(flow_plugin,))
+    spec = reg.get("frontend", "flow")
+    cfg = spec.config_model(preset="medium", flow_scale=1.0)
+    fe = spec.factory(cfg, type("Ctx", (), {"device": torch.device("cpu")})())
+    assert isinstance(fe, FlowFrontend) and fe.iterations == 2
+    with pytest.raises(Exception):
+        spec.config_model(flow_scale=0.3)
+    with pytest.raises(Exception):
+        spec.config_model(presett="fast")
+    assert isinstance(make_frontend(FlowFrontendConfig(dynamic_masking=False), None), FlowFrontend)
+
+
+def test_memory_per_keyframe_bounded():
+    big = S.texture("astronaut")
+    fe = _frontend()
+    for k in range(5):
+        fe.add_keyframe(k, S.frame(S.shifted(big, 3.0 * k), k), S.patch_segmentation(10, 10, 20, 20))
+    per_kf = fe.memory_bytes() / 5
+    assert per_kf < 200_000, per_kf
