@@ -289,3 +289,33 @@ class BaseReader(DatasetReader):
         geo = self.geometry()
         for i, raw in enumerate(self.frame_range()):
             yield transform_frame(self._load(raw), geo, i)
+
+
+class ImageFileReader(BaseReader):
+    """A reader whose raw frames are image files with timestamps and optional ground-truth poses.
+
+    Subclasses set ``self.files`` (paths), ``self.timestamps`` (float64 seconds, one per file), ``self.poses``
+    (float64 ``[N, 7]`` T_wc or None) and ``self._intr`` before calling ``BaseReader.__init__``, and implement
+    ``_sequence_name`` and ``_source``.
+    """
+
+    files: list
+    timestamps: np.ndarray
+    poses: Optional[np.ndarray] = None
+    _intr: Intrinsics
+
+    def _raw_count(self) -> int:
+        return len(self.files)
+
+    def _raw_intrinsics(self) -> Intrinsics:
+        return self._intr
+
+    def _has_gt(self) -> tuple[bool, bool, bool]:
+        return (self.poses is not None, False, False)
+
+    def _load(self, raw_index: int) -> Frame:
+        from .io import pose_at, read_rgb
+
+        path = self.files[raw_index]
+        return Frame(index=raw_index, timestamp=float(self.timestamps[raw_index]), image=read_rgb(path),
+                     intrinsics=self._intr, gt_pose=pose_at(self.poses, raw_index), name=path.name)

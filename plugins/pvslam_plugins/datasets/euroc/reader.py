@@ -27,9 +27,9 @@ from typing import Any, Optional
 
 import numpy as np
 
-from pvslam_core.datasets.base import BaseReader, DatasetError
-from pvslam_core.datasets.io import associate_poses, check_timestamps, pose_at, read_rgb
-from pvslam_core.types import Frame, Intrinsics
+from pvslam_core.datasets.base import DatasetError, ImageFileReader
+from pvslam_core.datasets.io import associate_poses, check_timestamps
+from pvslam_core.types import Intrinsics
 
 from .config import EurocConfig
 
@@ -198,7 +198,7 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ------------------------------------------------------------------------------------------------- reader ----
-class EurocReader(BaseReader):
+class EurocReader(ImageFileReader):
     def __init__(self, options: EurocConfig):
         super().__init__(options)
         self.cfg = options
@@ -209,6 +209,7 @@ class EurocReader(BaseReader):
             raise DatasetError(f"{root}: no mav0/{options.camera}/ folder (expected the EuRoC ASL layout)")
         csv = self.cam_dir / "data.csv"
         self.ts_ns, names = read_image_list(csv)
+        self.timestamps = self.ts_ns * 1e-9
         if len(names) == 0:
             raise DatasetError(f"{csv}: lists no frames")
         self.files = [self.cam_dir / "data" / n for n in names]
@@ -229,31 +230,11 @@ class EurocReader(BaseReader):
             if self.poses is None:
                 log.warning("%s: no ground-truth sample within %.3g s of any frame", gt_path, options.gt_max_diff)
 
-    def _raw_count(self) -> int:
-        return len(self.files)
-
-    def _raw_intrinsics(self) -> Intrinsics:
-        return self._intr
-
     def _sequence_name(self) -> str:
         return f"euroc_{Path(self.cfg.path).expanduser().resolve().name}_{self.cfg.camera}"
 
     def _source(self) -> str:
         return str(self.cam_dir)
-
-    def _has_gt(self) -> tuple[bool, bool, bool]:
-        return (self.poses is not None, False, False)
-
-    def _load(self, raw_index: int) -> Frame:
-        path = self.files[raw_index]
-        return Frame(
-            index=raw_index,
-            timestamp=float(self.ts_ns[raw_index]) * 1e-9,
-            image=read_rgb(path),
-            intrinsics=self._intr,
-            gt_pose=pose_at(self.poses, raw_index),
-            name=path.name,
-        )
 
 
 def make_reader(config: EurocConfig, context=None) -> EurocReader:  # type: ignore[no-untyped-def]

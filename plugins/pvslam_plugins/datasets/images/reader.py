@@ -20,10 +20,9 @@ from typing import Optional
 
 import numpy as np
 
-from pvslam_core.datasets.base import BaseReader, DatasetError
+from pvslam_core.datasets.base import DatasetError, ImageFileReader
 from pvslam_core.datasets.calib import calibration_from_option
-from pvslam_core.datasets.io import associate_poses, check_timestamps, image_size, list_images, pose_at, read_rgb
-from pvslam_core.types import Frame, Intrinsics
+from pvslam_core.datasets.io import associate_poses, check_timestamps, image_size, list_images
 
 from .config import ImagesConfig
 
@@ -41,7 +40,7 @@ def timestamps_from_names(files: list[Path]) -> np.ndarray:
     return arr
 
 
-class ImagesReader(BaseReader):
+class ImagesReader(ImageFileReader):
     def __init__(self, options: ImagesConfig):
         super().__init__(options)
         self.cfg = options
@@ -50,9 +49,9 @@ class ImagesReader(BaseReader):
         if not self.files:
             raise DatasetError(f"{self.folder}: no images (png, jpg, ...) in the folder")
         if options.timestamps == "filename":
-            self.ts = timestamps_from_names(self.files)
+            self.timestamps = timestamps_from_names(self.files)
         else:
-            self.ts = np.arange(len(self.files), dtype=np.float64) / options.fps
+            self.timestamps = np.arange(len(self.files), dtype=np.float64) / options.fps
         w, h = image_size(self.files[0])
         self._intr = calibration_from_option(
             options.calib, w, h, search=(self.folder, self.folder.parent), owner=f"images reader ({self.folder})"
@@ -62,38 +61,18 @@ class ImagesReader(BaseReader):
             from pvslam_core.outputs.trajectory_io import read_tum
 
             gts, gposes = read_tum(Path(options.groundtruth).expanduser())
-            self.poses = associate_poses(self.ts, gts, gposes, options.gt_max_diff)
+            self.poses = associate_poses(self.timestamps, gts, gposes, options.gt_max_diff)
             if self.poses is None:
                 raise DatasetError(
                     f"{options.groundtruth}: no ground-truth timestamp within {options.gt_max_diff} s of any frame "
-                    f"(frames span {self.ts[0]:.3f}..{self.ts[-1]:.3f} s; timestamps={options.timestamps!r})"
+                    f"(frames span {self.timestamps[0]:.3f}..{self.timestamps[-1]:.3f} s; timestamps={options.timestamps!r})"
                 )
-
-    def _raw_count(self) -> int:
-        return len(self.files)
-
-    def _raw_intrinsics(self) -> Intrinsics:
-        return self._intr
 
     def _sequence_name(self) -> str:
         return f"images_{self.folder.resolve().name}"
 
     def _source(self) -> str:
         return str(self.folder)
-
-    def _has_gt(self) -> tuple[bool, bool, bool]:
-        return (self.poses is not None, False, False)
-
-    def _load(self, raw_index: int) -> Frame:
-        path = self.files[raw_index]
-        return Frame(
-            index=raw_index,
-            timestamp=float(self.ts[raw_index]),
-            image=read_rgb(path),
-            intrinsics=self._intr,
-            gt_pose=pose_at(self.poses, raw_index),
-            name=path.name,
-        )
 
 
 def make_reader(config: ImagesConfig, context=None) -> ImagesReader:  # type: ignore[no-untyped-def]

@@ -27,9 +27,9 @@ from typing import Optional
 
 import numpy as np
 
-from pvslam_core.datasets.base import BaseReader, DatasetError
-from pvslam_core.datasets.io import check_timestamps, image_size, pose_at, read_rgb
-from pvslam_core.types import Frame, Intrinsics
+from pvslam_core.datasets.base import DatasetError, ImageFileReader
+from pvslam_core.datasets.io import check_timestamps, image_size
+from pvslam_core.types import Intrinsics
 
 from .config import KittiConfig
 
@@ -77,7 +77,7 @@ def read_times(path: Path) -> np.ndarray:
     return ts
 
 
-class KittiReader(BaseReader):
+class KittiReader(ImageFileReader):
     def __init__(self, options: KittiConfig):
         super().__init__(options)
         self.cfg = options
@@ -96,18 +96,18 @@ class KittiReader(BaseReader):
         present = set(files)
         n = len(files)
         times_path = self.seq_dir / "times.txt"
-        self.times: Optional[np.ndarray] = None
+        self.timestamps: Optional[np.ndarray] = None
         if times_path.is_file():
-            self.times = read_times(times_path)
-            n = len(self.times)
+            self.timestamps = read_times(times_path)
+            n = len(self.timestamps)
         self.files = [self.image_dir / f"{i:06d}.png" for i in range(n)]
         for p in self.files:
             if p.name not in present:
-                listed = f" (listed in {times_path})" if self.times is not None else ""
+                listed = f" (listed in {times_path})" if self.timestamps is not None else ""
                 raise DatasetError(f"{p}: frame missing{listed}")
-        if self.times is None:
+        if self.timestamps is None:
             log.warning("%s: no times.txt; using %.3g Hz timestamps (KITTI's frame rate)", self.seq_dir, options.fps)
-            self.times = np.arange(n, dtype=np.float64) / options.fps
+            self.timestamps = np.arange(n, dtype=np.float64) / options.fps
 
         calib = read_kitti_calib(self.seq_dir / "calib.txt")
         pname = "P" + options.camera[-1]
@@ -138,31 +138,11 @@ class KittiReader(BaseReader):
                 T_wc0 = T_wc0 @ T_c0ck
             self.poses = matrix_to_pose(T_wc0)
 
-    def _raw_count(self) -> int:
-        return len(self.files)
-
-    def _raw_intrinsics(self) -> Intrinsics:
-        return self._intr
-
     def _sequence_name(self) -> str:
         return f"kitti_{self.cfg.sequence}_{self.cfg.camera}"
 
     def _source(self) -> str:
         return str(self.seq_dir)
-
-    def _has_gt(self) -> tuple[bool, bool, bool]:
-        return (self.poses is not None, False, False)
-
-    def _load(self, raw_index: int) -> Frame:
-        path = self.files[raw_index]
-        return Frame(
-            index=raw_index,
-            timestamp=float(self.times[raw_index]),
-            image=read_rgb(path),
-            intrinsics=self._intr,
-            gt_pose=pose_at(self.poses, raw_index),
-            name=path.name,
-        )
 
 
 def make_reader(config: KittiConfig, context=None) -> KittiReader:  # type: ignore[no-untyped-def]
