@@ -13,7 +13,8 @@ import torch
 from .anchors import FrameAnchors
 from .config import PipelineConfig
 from .edges import active_edges, loop_edges, neighbour_edges, proximity_edges
-from .geometry.lie import se3_interpolate, se3_inv, se3_mul
+from .geometry.lie import se3_act, se3_interpolate, se3_inv, se3_mul
+from .geometry.projective import depth_to_points
 from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph
 from .initializer import two_view_init
 from .types import Frame, LoopCandidate, PanopticSegmentation, SequenceInfo, TrackResult
@@ -110,9 +111,33 @@ class Mapper:
                                  iters=4)
         return pose.double().cpu() if torch.isfinite(pose).all() else t_a.cpu().clone()
 
+    def _warped_depth(self, a: int, pose_k: torch.Tensor) -> Optional[torch.Tensor]:
+        """Inverse depth of a new keyframe at ``pose_k``: keyframe ``a``'s depth map moved into it (z-buffered
+        splat at the BA resolution, holes filled with the median). A far better start for the BA than a constant."""
+        h, w = self.ba_shape
+        g = self.graph
+        pts_a = depth_to_points(g.disps[a].float(), g.intrinsics)  # [h, w, 3] in camera a
+        t_ka = se3_mul(se3_inv(pose_k.to(g.device).double()), g.poses[a].double())
+        pts = se3_act(t_ka.float(), pts_a.reshape(-1, 3))  # [P, 3] in camera k
+        fx, fy, cx, cy = g.intrinsics.tolist()
+        z = pts[:, 2]
+        ok = z > 1e-6
+        u = torch.round(fx * pts[:, 0] / z.clamp(min=1e-6) + cx)
+        v = torch.round(fy * pts[:, 1] / z.clamp(min=1e-6) + cy)
+        ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        if int(ok.sum()) < 0.2 * h * w:
+            return None
+        idx = (v[ok] * w + u[ok]).long()
+        disp = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, 1.0 / z[ok], reduce="amax")
+        hole = disp <= 0
+        disp[hole] = disp[~hole].median()
+        return disp.reshape(h, w)
+
     def _add_keyframe(self, frame: Frame, seg, pose: torch.Tensor, disp: Optional[torch.Tensor]) -> int:
         h, w = self.ba_shape
         k_new = self.graph.n
+        if disp is None and self.initialized and k_new > self.fragment_start:
+            disp = self._warped_depth(k_new - 1, pose)
         if disp is None:
             guess = self.frontend.initial_depth(k_new) if k_new > 0 else None
             if guess is not None:

@@ -78,6 +78,8 @@ class Pipeline:
         from .run_outputs import RunOutputs
 
         torch.manual_seed(self.pcfg.run.seed)
+        if self.pcfg.run.threads > 0:
+            torch.set_num_threads(self.pcfg.run.threads)
         info = self.dataset.info()
         gcfg = self.pcfg.graph
         ds = gcfg.ba_downsample

@@ -25,7 +25,9 @@ class BAConfigBase(PluginConfig):
     iters: int = Field(2, ge=0, description="Gauss-Newton iterations per step() call")
     lm: float = Field(1e-4, ge=0, description="multiplicative LM damping of the reduced pose system (S_kk += lm S_kk)")
     ep: float = Field(0.1, ge=0, description="additive LM damping of the reduced pose system (S_kk += ep)")
-    eta: float = Field(1e-3, ge=0, description="inverse-depth damping added to C (used when the frontend gives none)")
+    eta: float = Field(1e-5, ge=0, description="inverse-depth damping added to C (used when the frontend gives none); "
+                       "with exact flow on 150 driving-loop frames 1e-3 left 0.88 % ATE (depths never converge in "
+                       "the window), 1e-5 gave 0.007 %")
     min_depth: float = Field(0.2, gt=0, description="points with relative depth z_j/z_i below this get zero weight")
     robust: Optional[str] = Field(None, description="robust kernel on the 2D residual: null, 'huber' or 'cauchy'")
     robust_scale: float = Field(2.0, gt=0, description="robust kernel scale in BA-resolution pixels")

@@ -17,12 +17,12 @@ class FlowFrontendConfig(PluginConfig):
 
     # --- DIS optical flow -----------------------------------------------------------------------------------
     preset: Literal["ultrafast", "fast", "medium"] = Field(
-        "ultrafast",
+        "medium",
         description="OpenCV DIS preset for keyframe edges (see finest_scale; the pyramid depth matters more than "
         "the preset on low-texture road).",
     )
     flow_scale: float = Field(
-        0.5,
+        1.0,
         description="Resolution at which flow is computed, relative to the input image: 1.0 (full) or 0.5.",
     )
     finest_scale: Optional[int] = Field(
@@ -65,6 +65,12 @@ class FlowFrontendConfig(PluginConfig):
     fb_sigma: float = Field(
         1.0, gt=0.0,
         description="Forward-backward consistency scale (full-res px): confidence c = exp(-fb^2 / (2 sigma^2)).",
+    )
+    texture_tau: float = Field(
+        0.0, ge=0.0,
+        description="Texture term of the confidence: lam / (lam + texture_tau) with lam the Shi-Tomasi minimum "
+        "eigenvalue of the 5x5 structure tensor (gray levels^2); down-weights the aperture-problem flow of "
+        "textureless regions such as the sky. 0 = off.",
     )
     photo_sigma: float = Field(
         4.0, ge=0.0,

@@ -234,3 +234,14 @@ def photometric_confidence(g0: np.ndarray, g1: np.ndarray, flow: np.ndarray, sig
     offset = float(np.median(diff[::4, ::4]))
     r = cv2.blur(np.abs(diff - offset), (window, window))
     return cv2.exp(cv2.multiply(r, r, scale=-1.0 / (2.0 * sigma * sigma)))
+
+
+def texture_confidence(gray: np.ndarray, tau: float, block: int = 5) -> np.ndarray:
+    """``lam / (lam + tau)`` with ``lam`` the smaller eigenvalue of the local structure tensor (Shi-Tomasi),
+    float32 ``[H, W]`` in [0, 1).  Flow in textureless regions (sky, flat walls) is an aperture-problem guess:
+    DIS answers ~zero flow there consistently in both directions, which the forward-backward check cannot
+    catch, and such pixels would otherwise dominate the BA (they are most of the confident pixels outdoors).
+    """
+    lam = cv2.cornerMinEigenVal(gray, blockSize=block, ksize=3)
+    lam = np.maximum(lam, 0.0)  # OpenCV normalises by the kernel size and 255: ~1e-4 on textured regions
+    return (lam / (lam + tau)).astype(np.float32)

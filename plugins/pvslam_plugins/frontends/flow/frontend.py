@@ -163,6 +163,9 @@ class FlowFrontend(Frontend):
         if self.cfg.photo_sigma > 0:
             conf_f = conf_f * F.photometric_confidence(g0, g1, fwd, self.cfg.photo_sigma)
             conf_b = conf_b * F.photometric_confidence(g1, g0, bwd, self.cfg.photo_sigma)
+        if self.cfg.texture_tau > 0:
+            conf_f = conf_f * F.texture_confidence(g0, self.cfg.texture_tau)
+            conf_b = conf_b * F.texture_confidence(g1, self.cfg.texture_tau)
         tf, wf = F.pool_to_ba(fwd, conf_f, h, w, self.cfg.weighted_pooling)
         tb, wb = F.pool_to_ba(bwd, conf_b, h, w, self.cfg.weighted_pooling)
         return (tf, wf, fb_f), (tb, wb, fb_b), fwd
