@@ -47,6 +47,34 @@ def test_default_pipeline_short_driving_sequence(tmp_path, driving_seq):
     for name in ("cloud_rgb.ply", "cloud_panoptic.ply", "keyframes.txt", "plots/trajectory_top.png",
                  "plots/ate_over_time.png", "panoptic/000000.png", "panoptic/segments.json", "loops.json"):
         assert (d / name).is_file(), name
+    _pvslam_eval_matches_evo_cli(d, tmp_path, ate["rmse"])
+
+
+def _pvslam_eval_matches_evo_cli(run_dir: Path, tmp_path: Path, rmse_run: float) -> None:
+    """`pvslam eval RUN_DIR` recomputes the ATE, and it equals evo's own command line on the same files."""
+    import contextlib
+    import io
+    import os
+    import subprocess
+    import sys
+    import zipfile
+
+    from pvslam_core.cli import main
+
+    (run_dir / "metrics.json").unlink()
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["eval", str(run_dir)]) == 0
+    rmse_eval = json.loads(buf.getvalue())["ate"]["rmse"]
+    assert rmse_eval == pytest.approx(rmse_run, rel=1e-12)
+    exe = Path(sys.executable).parent / "evo_ape"
+    out = tmp_path / "evo.zip"
+    subprocess.run([str(exe), "tum", str(run_dir / "groundtruth.txt"), str(run_dir / "trajectory.txt"), "-as",
+                    "--save_results", str(out), "--no_warnings"], check=True, capture_output=True, timeout=120,
+                   env=dict(os.environ, HOME=str(tmp_path), MPLBACKEND="Agg"))
+    with zipfile.ZipFile(out) as z:
+        rmse_evo = json.loads(z.read("stats.json"))["rmse"]
+    assert rmse_eval == pytest.approx(rmse_evo, rel=1e-9)
 
 
 class _PerturbedConfig(PluginConfig):
