@@ -78,6 +78,9 @@ class Pipeline:
         from .run_outputs import RunOutputs
 
         torch.manual_seed(self.pcfg.run.seed)
+        import cv2
+
+        cv2.setRNGSeed(self.pcfg.run.seed)  # RANSAC (two-view init, loop verification) draws from OpenCV's RNG
         if self.pcfg.run.threads > 0:
             torch.set_num_threads(self.pcfg.run.threads)
         info = self.dataset.info()
