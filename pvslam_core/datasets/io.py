@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -110,12 +110,15 @@ def check_timestamps(ts: np.ndarray, path: str | Path) -> None:
             )
 
 
-def read_file_list(path: str | Path) -> tuple[np.ndarray, list[str]]:
-    """TUM-style list ``timestamp filename`` (``#`` comments) -> (float64 [N], names); checks sortedness."""
+def read_file_list(path: str | Path, parse: Callable[[str], Any] = float, dtype: Any = np.float64,
+                   what: str = "timestamp") -> tuple[np.ndarray, list[str]]:
+    """``timestamp filename`` lists (TUM's rgb.txt, EuRoC's data.csv; ``#`` comments, spaces or commas) ->
+    (timestamps [N] as ``dtype``, names); checks sortedness. ``parse`` reads one timestamp (EuRoC passes an
+    exact integer-nanosecond parser: float64 cannot hold 19-digit nanoseconds)."""
     p = Path(path)
     if not p.is_file():
         raise DatasetError(f"{p}: file list not found")
-    ts: list[float] = []
+    ts: list[Any] = []
     names: list[str] = []
     for lineno, line in enumerate(p.read_text().splitlines(), 1):
         s = line.strip()
@@ -123,13 +126,13 @@ def read_file_list(path: str | Path) -> tuple[np.ndarray, list[str]]:
             continue
         parts = s.replace(",", " ").split()
         if len(parts) < 2:
-            raise DatasetError(f"{p}:{lineno}: expected 'timestamp filename', got {s!r}")
+            raise DatasetError(f"{p}:{lineno}: expected '{what} filename', got {s!r}")
         try:
-            ts.append(float(parts[0]))
+            ts.append(parse(parts[0]))
         except ValueError:
-            raise DatasetError(f"{p}:{lineno}: not a timestamp: {parts[0]!r}") from None
+            raise DatasetError(f"{p}:{lineno}: not a {what}: {parts[0]!r}") from None
         names.append(parts[1])
-    arr = np.asarray(ts, dtype=np.float64)
+    arr = np.asarray(ts, dtype=dtype)
     check_timestamps(arr, p)
     return arr, names
 

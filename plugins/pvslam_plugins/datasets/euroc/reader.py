@@ -28,7 +28,7 @@ from typing import Any, Optional
 import numpy as np
 
 from pvslam_core.datasets.base import DatasetError, ImageFileReader
-from pvslam_core.datasets.io import associate_poses, check_timestamps
+from pvslam_core.datasets.io import associate_poses, check_timestamps, read_file_list
 from pvslam_core.types import Intrinsics
 
 from .config import EurocConfig
@@ -150,24 +150,7 @@ def read_image_list(path: Path) -> tuple[np.ndarray, list[str]]:
     """cam0/data.csv -> (timestamps int64 ns, file names)."""
     if not path.is_file():
         raise DatasetError(f"{path}: image list not found")
-    ts: list[int] = []
-    names: list[str] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        parts = [p.strip() for p in s.split(",")]
-        if len(parts) < 2:
-            raise DatasetError(f"{path}:{lineno}: expected 'timestamp_ns,filename', got {s!r}")
-        try:
-            ts.append(_parse_ns(parts[0]))
-        except ValueError:
-            raise DatasetError(f"{path}:{lineno}: not a timestamp in ns: {parts[0]!r}") from None
-        names.append(parts[1])
-    arr = np.asarray(ts, dtype=np.int64)
-    check_timestamps(arr, path)
-    return arr, names
-
+    return read_file_list(path, parse=_parse_ns, dtype=np.int64, what="timestamp in ns")
 
 def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """state_groundtruth_estimate0/data.csv -> (timestamps int64 ns, T_wb float64 [N, 4, 4])."""
