@@ -76,18 +76,26 @@ class FrameAnchors:
         rel = torch.stack([e.rel for e in self.entries])
         return ts, se3_mul(kf_poses.double().cpu()[anchors], rel)
 
-    def refill(self, kf_poses: torch.Tensor, kf_disps: torch.Tensor, intr: torch.Tensor, iters: int = 4) -> int:
-        """Re-estimate the relative pose of every non-keyframe that still has correspondences. Returns the count."""
+    @staticmethod
+    def refine(e: _Entry, init_wc: torch.Tensor, kf_pose: torch.Tensor, kf_disp: torch.Tensor, intr: torch.Tensor,
+               iters: int = 4) -> bool:
+        """Motion-only BA of entry ``e`` against its anchor keyframe (pose ``kf_pose``, depth ``kf_disp``),
+        starting from ``init_wc``; stores the new relative pose. False (unchanged) when the result is not finite."""
         from .geometry.ba import motion_only_ba
 
+        t_a = kf_pose.double()
+        pose, _cost = motion_only_ba(init_wc.to(t_a.device), t_a, kf_disp, intr, e.target, e.weight, iters=iters)
+        if not bool(torch.isfinite(pose).all()):
+            return False
+        e.rel = se3_mul(se3_inv(t_a.cpu()), pose.double().cpu())
+        return True
+
+    def refill(self, kf_poses: torch.Tensor, kf_disps: torch.Tensor, intr: torch.Tensor, iters: int = 4) -> int:
+        """Re-estimate the relative pose of every non-keyframe that still has correspondences. Returns the count."""
         n = 0
         for e in self.entries:
             if e.is_keyframe or e.target is None or e.anchor >= kf_poses.shape[0]:
                 continue
-            t_a = kf_poses[e.anchor].double()
-            init = se3_mul(t_a.cpu(), e.rel).to(kf_poses.device)
-            pose, _cost = motion_only_ba(init, t_a, kf_disps[e.anchor], intr, e.target, e.weight, iters=iters)
-            if torch.isfinite(pose).all():
-                e.rel = se3_mul(se3_inv(t_a.cpu()), pose.double().cpu())
-                n += 1
+            init = se3_mul(kf_poses[e.anchor].double().cpu(), e.rel)
+            n += self.refine(e, init, kf_poses[e.anchor], kf_disps[e.anchor], intr, iters)
         return n

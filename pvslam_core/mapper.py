@@ -230,8 +230,6 @@ class Mapper:
     # ------------------------------------------------------------------------------------ pose filling --
     def _fill_pending(self, a: int) -> None:
         """Motion-only BA for the non-keyframes anchored at keyframe ``a`` (its depth is refined by now)."""
-        from .geometry.ba import motion_only_ba
-
         pend = [e for e in self.anchors.pending(a) if e.target is not None]
         if not pend:
             return
@@ -242,10 +240,7 @@ class Mapper:
         for e in pend:
             alpha = 0.0 if ts_b <= ts_a else (e.timestamp - ts_a) / (ts_b - ts_a)
             init = se3_interpolate(t_a.cpu(), nxt, torch.tensor(alpha, dtype=torch.float64))
-            pose, _ = motion_only_ba(init.to(t_a.device), t_a, self.graph.disps[a], self.graph.intrinsics,
-                                     e.target, e.weight, iters=4)
-            if torch.isfinite(pose).all():
-                e.rel = se3_mul(se3_inv(t_a.cpu()), pose.double().cpu())
+            self.anchors.refine(e, init, t_a, self.graph.disps[a], self.graph.intrinsics)
 
     # -------------------------------------------------------------------------------------- pruning --
     def _remove_redundant(self, k: int) -> None:
