@@ -87,7 +87,7 @@ def section_accuracy(out: Path, quick: bool) -> dict:
     }
     for name, r in runs.items():
         lp = r.metrics.get("loops", {})
-        print(f"  {name:<22} ATE {fmt_pct(r)}  loops {lp.get('detected', 0)} (P {lp.get('precision', float('nan')):.2f} "
+        print(f"  {name:<22} ATE {fmt_pct(r)}  loops {lp.get('num_detected', 0)} (P {lp.get('precision', float('nan')):.2f} "
               f"R {lp.get('recall', float('nan')):.2f})  {r.metrics['timing']['fps']:.1f} frames/s")
     RESULTS["accuracy"] = {k: r.metrics for k, r in runs.items()}
     full = pct(runs["online_ba+loop"])

@@ -37,7 +37,7 @@ def summary_lines(result: RunResult) -> list[str]:
         lines.append(f"RPE trans RMSE: {_fmt(_get(m, 'rpe', 'trans_rmse'))}  rot RMSE: {_fmt(_get(m, 'rpe', 'rot_rmse'), '.3f')} deg")
     if "loops" in m:
         lp = m["loops"]
-        lines.append(f"loops: {lp.get('detected', len(result.loops))} detected  precision {_fmt(lp.get('precision'), '.2f')}  "
+        lines.append(f"loops: {lp.get('num_detected', len(result.loops))} detected  precision {_fmt(lp.get('precision'), '.2f')}  "
                      f"recall {_fmt(lp.get('recall'), '.2f')}")
     if "panoptic" in m:
         p = m["panoptic"]

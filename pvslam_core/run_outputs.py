@@ -132,13 +132,4 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
         align=ecfg.align, rpe_delta=ecfg.rpe_delta, loop_tolerance=ecfg.loop_tolerance,
         vpq_ks=tuple(ecfg.vpq_ks), plots=pcfg.outputs.plots,
     )
-    if "ate" in out:
-        out["ate"]["align"] = ecfg.align
-        MetricsFile(run_dir / "metrics.json").update({"ate": out["ate"]})
-    if "loops" in out and isinstance(out["loops"], dict):
-        import json
-
-        n = len(json.loads((run_dir / "loops.json").read_text()).get("loops", []))
-        out["loops"]["detected"] = n
-        MetricsFile(run_dir / "metrics.json").update({"loops": out["loops"]})
     return {"timing": timing, **out}
