@@ -1,14 +1,23 @@
-"""Dense BA benchmark: time per Gauss-Newton iteration as keyframes / edges / pixels grow, and a side-by-side
-with ``scipy.optimize.least_squares`` (trf + jac_sparsity) on the same synthetic problem.
+"""Dense BA benchmark: time per Gauss-Newton iteration as keyframes / edges / pixels grow, a side-by-side
+with ``scipy.optimize.least_squares`` (trf + jac_sparsity) on the same synthetic problem, and the peak memory of
+one large global-BA-sized problem with chunked vs unchunked linearisation (``max_chunk_pixels``).
 
-    python bench/bench_ba.py [--device cpu|cuda] [--threads N] [--quick]
+    python bench/bench_ba.py [--device cpu|cuda] [--threads N] [--quick] [--mem-keyframes N] [--no-memory]
 
-Prints two tables (and writes them as markdown with ``--out FILE``).  Whole run: well under 2 minutes on CPU.
+Prints three tables (and writes them as markdown with ``--out FILE``).  Whole run: about 2 minutes on CPU.
+The memory table runs each configuration in a fresh subprocess (peak RSS = ``ru_maxrss`` of that process).
 """
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
 import time
+from dataclasses import fields
 
 import numpy as np
 import torch
@@ -16,7 +25,7 @@ import torch
 from pvslam_core.geometry.ba import dense_ba, weighted_cost
 from pvslam_core.geometry.lie import se3_exp, se3_mul
 from pvslam_core.geometry.projective import edge_transforms, project_points
-from pvslam_core.geometry.testing import make_problem, perturb
+from pvslam_core.geometry.testing import SyntheticBAProblem, make_problem, perturb
 
 
 def _sync(device):
@@ -112,6 +121,99 @@ def scipy_comparison(n: int = 5, h: int = 15, w: int = 20, iters: int = 20) -> d
             "ba_s": t_ba, "ba_iters": rep.iterations, "ba_cost": cost_ba, "cost_start": rep.cost_before}
 
 
+# ----------------------------------------------------------------------------------------------- memory
+NO_CHUNKING = 10**12  # max_chunk_pixels larger than any problem: one chunk, every per-pixel tensor at once
+
+
+def _rss_mb() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / 2**20 if sys.platform == "darwin" else r / 1024.0  # bytes on macOS, KiB on Linux
+
+
+def _n_chunks(pr: SyntheticBAProblem, free: torch.Tensor, mcp: int) -> int:
+    """Chunks dense_ba forms for this problem (default depth_free: every source keyframe of an edge)."""
+    from pvslam_core.geometry.ba_schur import plan_chunks
+
+    n = pr.poses.shape[0]
+    pose_map = torch.full((n,), -1, dtype=torch.int64)
+    pose_map[free] = torch.arange(int(free.sum()))
+    src = torch.unique(pr.ii)
+    src_map = torch.full((n,), -1, dtype=torch.int64)
+    src_map[src] = torch.arange(len(src))
+    h, w = pr.shape
+    return len(plan_chunks(pr.ii, pr.jj, pose_map, src_map[pr.ii], len(src), int(free.sum()), h * w, mcp))
+
+
+def _memory_make(path: str, n: int, radius: int) -> None:
+    """Subprocess body: build and save the large problem (its own peak RSS stays out of the measured processes)."""
+    pr = make_problem(n=n, h=30, w=40, seed=0, noise=0.2, radius=radius, trajectory="loop")
+    p0, d0 = perturb(pr, fixed=(0, 1))
+    free = torch.ones(n, dtype=torch.bool)
+    free[:2] = False
+    torch.save({"problem": {f.name: getattr(pr, f.name) for f in fields(pr)}, "p0": p0, "d0": d0, "free": free},
+               path)
+
+
+def _memory_child(path: str, mcp: int, iters: int, reps: int) -> None:
+    """Subprocess body: load the problem, warm up on a tiny one, run dense_ba; print one JSON line."""
+    data = torch.load(path)
+    pr = SyntheticBAProblem(**data["problem"])
+    p0, d0, free = data["p0"], data["d0"], data["free"]
+    small = make_problem(n=4)
+    dense_ba(small.graph(), small.obs(), torch.tensor([False, True, True, True]), iters=1, max_chunk_pixels=mcp)
+    obs = pr.obs()
+    base = _rss_mb()
+    times, rep = [], None
+    for _ in range(reps):
+        g = pr.graph(p0, d0)
+        t = time.perf_counter()
+        rep = dense_ba(g, obs, free, iters=iters, max_chunk_pixels=mcp)
+        times.append((time.perf_counter() - t) / iters)
+        del g
+    h, w = pr.shape
+    print(json.dumps({"base_mb": base, "peak_mb": _rss_mb(), "s_per_iter": min(times), "cost": rep.cost_after,
+                      "rejected": rep.rejected, "chunks": _n_chunks(pr, free, mcp), "edges": len(pr.ii),
+                      "pixels": h * w}), flush=True)
+
+
+def memory_comparison(n: int = 400, radius: int = 3, iters: int = 2, reps: int = 2, threads: int = 0,
+                      budgets=(None, 500_000, NO_CHUNKING)) -> dict:
+    """Peak RSS and time per iteration (best of ``reps`` runs of ``iters``) of one large 30x40 problem (a loop of
+    ``n`` keyframes, edges ``|i - j| <= radius`` both ways), each ``max_chunk_pixels`` in ``budgets`` (None:
+    dense_ba's default) in a fresh process.
+
+    A child's ``ru_maxrss`` starts at its parent's peak RSS (Linux carries the high-water mark over fork/exec), so
+    the problem is built in a subprocess too and ``parent_mb`` (this process's peak at launch) is reported: it
+    must stay below the children's "before BA" RSS for the table to be meaningful."""
+    import inspect
+
+    default = inspect.signature(dense_ba).parameters["max_chunk_pixels"].default
+    env = dict(os.environ)
+    if threads:
+        env["OMP_NUM_THREADS"] = str(threads)
+    me = [sys.executable, os.path.abspath(__file__), "--threads", str(threads)]
+
+    def child(args):
+        res = subprocess.run(me + args, capture_output=True, text=True, env=env)
+        if res.returncode != 0:
+            raise RuntimeError(f"bench child {args[:2]} failed ({res.returncode}):\n{res.stderr[-2000:]}")
+        return res.stdout
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "problem.pt")
+        child(["--memory-make", path, "--mem-keyframes", str(n), "--mem-radius", str(radius)])
+        for mcp in budgets:
+            mcp = default if mcp is None else int(mcp)
+            r = json.loads(child(["--memory-child", path, "--mcp", str(mcp), "--mem-iters", str(iters),
+                                  "--mem-reps", str(reps)]).strip().splitlines()[-1])
+            r["mcp"], r["is_default"] = mcp, mcp == default
+            rows.append(r)
+    E, P = rows[0]["edges"], rows[0]["pixels"]
+    return {"keyframes": n, "free": n - 2, "edges": E, "pixels": P, "edge_px": E * P, "rows": rows,
+            "parent_mb": _rss_mb()}
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
@@ -119,10 +221,27 @@ def main(argv=None) -> None:
     ap.add_argument("--dtype", default="auto", choices=["auto", "float32", "float64"])
     ap.add_argument("--quick", action="store_true", help="fewer sizes")
     ap.add_argument("--out", default="", help="also write the tables as markdown to this file")
+    ap.add_argument("--mem-keyframes", type=int, default=400, help="keyframes of the memory problem (radius 3: "
+                    "about 6 edges per keyframe)")
+    ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory table")
+    ap.add_argument("--mem-radius", type=int, default=3, help=argparse.SUPPRESS)
+    ap.add_argument("--memory-make", default="", help=argparse.SUPPRESS)
+    ap.add_argument("--memory-child", default="", help=argparse.SUPPRESS)
+    ap.add_argument("--mcp", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--mem-iters", type=int, default=2, help=argparse.SUPPRESS)
+    ap.add_argument("--mem-reps", type=int, default=2, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.memory_make:
+        _memory_make(args.memory_make, args.mem_keyframes, args.mem_radius)
+        return
+    if args.memory_child:
+        _memory_child(args.memory_child, args.mcp, args.mem_iters, args.mem_reps)
+        return
     dtype = {"auto": None, "float32": torch.float32, "float64": torch.float64}[args.dtype]
+    if args.device == "cpu" and not args.no_memory:  # measured first (printed last): this process is still small
+        m = memory_comparison(n=args.mem_keyframes, radius=args.mem_radius, threads=args.threads)
     lines = []
 
     def emit(s=""):
@@ -157,6 +276,24 @@ def main(argv=None) -> None:
         rel = abs(c["ba_cost"] - c["scipy_cost"]) / max(c["scipy_cost"], 1e-12)
         emit()
         emit(f"relative final-cost difference: {rel:.2e}")
+    if args.device == "cpu" and not args.no_memory:
+        emit()
+        emit(f"## Peak memory: one large problem ({m['keyframes']} keyframes, {m['free']} free poses, {m['edges']} "
+             f"edges, 30x40, {m['edge_px']} edge-pixels), each setting in a fresh process (peak RSS: ru_maxrss; "
+             f"time: best of 2 runs of 2 iterations)")
+        emit()
+        emit("| max_chunk_pixels | chunks | peak RSS MB | RSS before BA MB | BA peak above it MB | s / iteration | "
+             "final cost |")
+        emit("|---:|---:|---:|---:|---:|---:|---:|")
+        for r in m["rows"]:
+            name = "no chunking" if r["mcp"] >= NO_CHUNKING else f"{r['mcp']:,}"
+            name += " (default)" if r["is_default"] else ""
+            emit(f"| {name} | {r['chunks']} | {r['peak_mb']:.0f} | {r['base_mb']:.0f} | "
+                 f"{r['peak_mb'] - r['base_mb']:.0f} | {r['s_per_iter']:.3f} | {r['cost']:.2f}"
+                 f"{' (rejected)' if r['rejected'] else ''} |")
+        if m["parent_mb"] >= min(r["base_mb"] for r in m["rows"]):
+            emit()
+            emit(f"(the launching process peaked at {m['parent_mb']:.0f} MB, which floors the children's ru_maxrss)")
     if args.out:
         with open(args.out, "w") as fh:
             fh.write("\n".join(lines) + "\n")

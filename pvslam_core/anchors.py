@@ -32,8 +32,9 @@ IDENTITY = torch.tensor([0, 0, 0, 0, 0, 0, 1], dtype=torch.float64)
 
 
 class FrameAnchors:
-    def __init__(self) -> None:
+    def __init__(self, robust: Optional[str] = None, robust_scale: float = 1.0) -> None:
         self.entries: list[_Entry] = []
+        self.robust, self.robust_scale = robust, robust_scale  # IRLS kernel of the motion-only BA
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -76,15 +77,15 @@ class FrameAnchors:
         rel = torch.stack([e.rel for e in self.entries])
         return ts, se3_mul(kf_poses.double().cpu()[anchors], rel)
 
-    @staticmethod
-    def refine(e: _Entry, init_wc: torch.Tensor, kf_pose: torch.Tensor, kf_disp: torch.Tensor, intr: torch.Tensor,
+    def refine(self, e: _Entry, init_wc: torch.Tensor, kf_pose: torch.Tensor, kf_disp: torch.Tensor, intr: torch.Tensor,
                iters: int = 4) -> bool:
         """Motion-only BA of entry ``e`` against its anchor keyframe (pose ``kf_pose``, depth ``kf_disp``),
         starting from ``init_wc``; stores the new relative pose. False (unchanged) when the result is not finite."""
         from .geometry.ba import motion_only_ba
 
         t_a = kf_pose.double()
-        pose, _cost = motion_only_ba(init_wc.to(t_a.device), t_a, kf_disp, intr, e.target, e.weight, iters=iters)
+        pose, _cost = motion_only_ba(init_wc.to(t_a.device), t_a, kf_disp, intr, e.target, e.weight, iters=iters,
+                                     robust=self.robust, robust_scale=self.robust_scale)
         if not bool(torch.isfinite(pose).all()):
             return False
         e.rel = se3_mul(se3_inv(t_a.cpu()), pose.double().cpu())

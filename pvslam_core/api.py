@@ -10,15 +10,16 @@ import json
 from pathlib import Path
 from typing import Any, Optional, Union
 
-from .config import ResolvedConfig, load_ablation, load_config, _normalise_overrides
+from .config import PipelineConfig, ResolvedConfig, load_ablation, load_config, _normalise_overrides
 from .types import RunResult
 
-ConfigLike = Union[None, str, Path, ResolvedConfig]
+ConfigLike = Union[None, str, Path, dict, PipelineConfig, ResolvedConfig]
 
 
 def run_config(config: ConfigLike = None, overrides=None, run_dir: Optional[Union[str, Path]] = None,
                registry=None) -> RunResult:
-    """Run one pipeline. ``config`` is a TOML/JSON path, a :class:`ResolvedConfig`, or None (built-in default)."""
+    """Run one pipeline. ``config`` is a TOML/JSON path, a dict shaped like the TOML (``{"dataset": {"plugin":
+    "kitti", ...}, ...}``), a :class:`PipelineConfig`, a :class:`ResolvedConfig`, or None (built-in default)."""
     from .pipeline import run
 
     if isinstance(config, ResolvedConfig):

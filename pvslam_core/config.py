@@ -96,6 +96,10 @@ class GraphSection(PluginConfig):
         description="reject a loop whose two keyframes' current orientations differ by more than this (look-alike "
                     "places seen from opposite directions); rotation drift is far smaller than this")
     bidirectional: bool = Field(True, description="add edges in both directions")
+    motion_robust: Optional[Literal["none", "huber", "cauchy"]] = Field(
+        "cauchy", description="robust kernel of the motion-only BA that places non-keyframes and guesses new "
+        "keyframe poses ('none': least squares)")
+    motion_robust_scale: float = Field(1.0, gt=0, description="its scale in BA-resolution pixels")
 
 
 class OutputsSection(PluginConfig):
@@ -289,13 +293,18 @@ def resolve(pipeline: PipelineConfig, registry=None, source: str = "<config>") -
 
 
 def load_config(
-    path: str | Path | None = None,
+    path: "str | Path | dict[str, Any] | PipelineConfig | None" = None,
     overrides: Optional[list[str] | dict[str, Any]] = None,
     registry=None,
 ) -> ResolvedConfig:
-    """Load a pipeline TOML (or a resolved ``config.json`` from a run directory), apply overrides, resolve."""
+    """Load a pipeline TOML (or a resolved ``config.json`` from a run directory, a raw dict with the TOML's
+    structure, or a :class:`PipelineConfig`), apply overrides, resolve."""
     raw: dict[str, Any] = {}
     source = "<defaults>"
+    if isinstance(path, PipelineConfig):
+        path = path.model_dump(mode="json")
+    if isinstance(path, dict):  # a raw config dict, as a TOML file would give
+        raw, source, path = dict(path), "<dict>", None
     if path is not None:
         source = str(path)
         if str(path).endswith(".json"):

@@ -32,7 +32,7 @@ class Mapper:
         intr = info.intrinsics.scaled(1.0 / ds)
         self.ba_shape = (info.intrinsics.height // ds, info.intrinsics.width // ds)
         self.graph = FrameGraph(self.ba_shape[0], self.ba_shape[1], intr.vector(torch.float32, device), device=device)
-        self.anchors = FrameAnchors()
+        self.anchors = FrameAnchors(self.cfg.motion_robust, self.cfg.motion_robust_scale)
         self.initialized = False
         self.fragment_start = 0  # first keyframe of the current map fragment (after a re-initialisation)
         self.loops: list[LoopCandidate] = []  # accepted loops, as input-frame indices in (i, j)
@@ -108,7 +108,7 @@ class Mapper:
 
         init = se3_mul(t_a.cpu(), self.anchors.last_rel()).to(t_a.device)
         pose, _ = motion_only_ba(init, t_a, self.graph.disps[a], self.graph.intrinsics, track.target, track.weight,
-                                 iters=4)
+                                 iters=4, robust=self.cfg.motion_robust, robust_scale=self.cfg.motion_robust_scale)
         return pose.double().cpu() if torch.isfinite(pose).all() else t_a.cpu().clone()
 
     def _warped_depth(self, a: int, pose_k: torch.Tensor) -> Optional[torch.Tensor]:

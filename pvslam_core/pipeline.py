@@ -98,30 +98,42 @@ class Pipeline:
         t_start = time.perf_counter()
         n_frames = 0
         frame_seconds: list[float] = []
+        stage = dict.fromkeys(("read", "segment", "map", "vps", "outputs", "finalize"), 0.0)  # seconds per stage
         try:
             with _progress(total, self.pcfg.run.progress, "pvslam") as bar:
                 t_prev = time.perf_counter()
                 for frame in self.dataset:
                     if n_frames >= total:
                         break
+                    t0 = time.perf_counter()
+                    stage["read"] += t0 - t_prev
                     seg = self.segmenter.segment(frame) if self.segmenter is not None else None
+                    t1 = time.perf_counter()
                     new_kf = mapper.process(frame, seg)
+                    t2 = time.perf_counter()
                     if self.vps is not None and seg is not None:
                         vps_state = self.vps.update(vps_state, frame, seg, MotionCue())
-                        if outputs is not None:
-                            outputs.panoptic(frame, vps_state.panoptic)
+                    t3 = time.perf_counter()
                     if outputs is not None:
+                        if vps_state is not None and self.vps is not None and seg is not None:
+                            outputs.panoptic(frame, vps_state.panoptic)
                         outputs.frame(frame, seg)
                         if new_kf and mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
                             outputs.checkpoint(mapper)
                     n_frames += 1
                     now = time.perf_counter()
+                    stage["segment"] += t1 - t0
+                    stage["map"] += t2 - t1
+                    stage["vps"] += t3 - t2
+                    stage["outputs"] += now - t3
                     frame_seconds.append(now - t_prev)
                     t_prev = now
                     bar.update(1)
                     if n_frames % 50 == 0:
                         bar.set_postfix(kf=mapper.graph.n, loops=len(mapper.loops))
+            t_fin = time.perf_counter()
             mapper.finalize()
+            stage["finalize"] = time.perf_counter() - t_fin
         except BaseException as exc:  # keep what was written, then re-raise (Ctrl-C included)
             LOG.error("run stopped after %d frames: %s: %s", n_frames, type(exc).__name__, exc)
             if outputs is not None:
@@ -140,6 +152,7 @@ class Pipeline:
             "fps": n_frames / elapsed if elapsed > 0 else float("nan"),
             "tracking_failures": mapper.failures,
             "reinitialisations": mapper.reinits,
+            "stage_seconds": {k: round(v, 3) for k, v in stage.items()},  # read = dataset iteration
         }
         metrics: dict[str, Any] = {"timing": timing}
         if outputs is not None:

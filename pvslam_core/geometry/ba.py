@@ -20,6 +20,17 @@ edges), LM-damped ``S_kk += ep + lm S_kk`` and solved in float64: dense Cholesky
 back-substituted ``dd = C^-1 (w - E^T dxi)`` and clamped to ``>= 1e-3``.  Per-iteration cost is linear in
 edges x pixels plus the small dense ``6F x 6F`` pose solve.
 
+Chunking (:mod:`.ba_schur`).  ``C`` is diagonal per source keyframe, so ``E C^-1 E^T`` only couples edges that
+share a source and both the Schur complement and the back-substitution split exactly over sources.  Each
+iteration linearises the edges in chunks of whole sources - at most ``max_chunk_pixels`` edge-pixels (default
+2M), a source with more edges forms a chunk alone - then in chunks of fixed-depth edges (split by edge): a chunk's
+residuals, Jacobians and ``E^T`` rows exist only while it adds its ``6 x 6`` blocks to ``S``, ``b`` and its
+sources' ``C^-1``, ``w`` (``[Ns, P]``) to the per-source arrays.  After the pose solve the depths are
+back-substituted chunk by chunk: the last (largest) chunk keeps its ``E^T`` for this, the others recompute it at
+the same linearisation point.  Peak memory is therefore set by the chunk budget (about 130-250 bytes per
+edge-pixel of one chunk at float32), not by the number of edges; a problem that fits one chunk is linearised
+once, as without chunking.
+
 Gauge.  Poses with ``free = False`` do not enter the system.  The caller fixes at least one pose (keyframe 0);
 for monocular problems the remaining scale direction (all free translations and all depths scaled together) is
 *not* fixed explicitly: it is held by the LM damping (``ep``, ``lm``) and by the depth damping ``eta``, so it
@@ -27,8 +38,9 @@ only drifts as far as the data push it - exactly DROID-SLAM's behaviour.  Fixing
 fixes it exactly.
 
 Safety.  Inputs and every update are checked; any NaN/Inf or a failed factorisation (after two retries with
-10x / 100x damping) keeps the previous estimate (the graph is written only after the last iteration), sets ``report.rejected`` with a message and logs once per
-distinct message on the ``pvslam.ba`` logger.  Nothing non-finite is ever written to the graph.
+10x / 100x damping) keeps the previous estimate (the graph is written only after the last iteration), sets
+``report.rejected`` with a message and logs once per distinct message on the ``pvslam.ba`` logger.  Nothing
+non-finite is ever written to the graph.
 """
 from __future__ import annotations
 
@@ -40,6 +52,7 @@ from typing import TYPE_CHECKING, Optional
 import torch
 
 from ..types import EdgeObservations, OptimizerReport
+from .ba_schur import assemble_chunk, backsub_chunk, depth_rows, plan_chunks
 from .lie import quat_to_rotmat, se3_exp, se3_inv, se3_mul
 from .projective import project_points
 
@@ -172,6 +185,11 @@ def _flat_obs(obs: EdgeObservations, dtype: torch.dtype) -> tuple[torch.Tensor, 
     return obs.target.reshape(E, 2, -1).to(dtype), obs.weight.reshape(E, 2, -1).to(dtype)
 
 
+def _chunk_obs(target: torch.Tensor, conf: torch.Tensor, idx, dtype: torch.dtype):
+    """``target, conf [Ec, 2, P]`` of one chunk of edges (``conf`` clamped to >= 0)."""
+    return target[idx].to(dtype), conf[idx].to(dtype).clamp(min=0.0)
+
+
 def _report_reject(report: OptimizerReport, msg: str) -> OptimizerReport:
     report.rejected = True
     report.message = msg
@@ -193,6 +211,7 @@ def dense_ba(
     robust_scale: float = 2.0,
     weight_scale: float = WEIGHT_SCALE,
     dtype: Optional[torch.dtype] = None,
+    max_chunk_pixels: int = 500_000,
 ) -> OptimizerReport:
     """Run ``iters`` Gauss-Newton/LM iterations of dense BA on ``graph`` in place (see the module docstring).
 
@@ -201,7 +220,8 @@ def dense_ba(
     ``0.2 * obs.eta + 1e-7``.  ``robust``: None, ``'huber'`` or ``'cauchy'`` IRLS on the 2D residual with
     ``robust_scale`` pixels.  ``dtype``: per-pixel arithmetic (default float32 - the graph stores float32
     disparities anyway, and noise-free problems still converge to ~1e-7; the reduced pose system, the pose
-    updates and the poses are always float64).
+    updates and the poses are always float64).  ``max_chunk_pixels``: edge-pixels linearised at once (the
+    per-pixel temporaries of one chunk of whole sources; a source with more edge-pixels is a chunk of its own).
     """
     N = graph.n
     h, w = graph.ba_shape
@@ -232,8 +252,8 @@ def dense_ba(
         if not _all_finite(t):
             return _report_reject(report, f"dense_ba: non-finite values in {name}; estimate left unchanged")
     intr = graph.intrinsics
-    target, conf = _flat_obs(obs, dtype)
-    target, conf = target.to(dev), conf.to(dev).clamp(min=0.0)
+    target_all = obs.target.reshape(E, 2, P).to(dev)  # views: chunks are cast / clamped when used
+    conf_all = obs.weight.reshape(E, 2, P).to(dev)
     if obs.eta is not None:
         eta_map = (0.2 * obs.eta.to(dev, dtype) + 1e-7).reshape(N, P)
     else:
@@ -259,109 +279,72 @@ def dense_ba(
 
     G = se3_inv(graph.poses)  # world-to-camera, updated by left retraction
     d = graph.disps.reshape(N, P).to(dtype, copy=True)  # the graph itself is written only at the end
-    pi_, pj_ = pose_map[ii], pose_map[jj]
-    es = src_map[ii]  # depth-source slot of each edge (-1: depth fixed)
-    e_has_src = es >= 0
-
-    # Edges whose source depth is an unknown, grouped by source into a padded [Ns, D] layout (D = max edges of one
-    # source): the Schur complement then needs one batched matmul over sources, and a list of (source, a, b) pairs.
-    e_src = torch.nonzero(e_has_src).squeeze(1)
-    order = e_src[torch.argsort(es[e_src], stable=True)]
-    counts = torch.bincount(es[order], minlength=Ns) if Ns > 0 else torch.zeros(0, dtype=torch.int64, device=dev)
-    D = int(counts.max()) if len(order) else 0
-    starts = torch.cumsum(counts, 0) - counts
-    slot_of = torch.arange(len(order), device=dev) - starts[es[order]]  # position of each edge in its group
-    pad_pos = es[order] * D + slot_of  # row of each edge in the padded [Ns * D] layout
-    ga, gb = torch.meshgrid(torch.arange(D, device=dev), torch.arange(D, device=dev), indexing="ij")
-    pair_ok = (ga.unsqueeze(0) < counts.view(-1, 1, 1)) & (gb.unsqueeze(0) < counts.view(-1, 1, 1))  # [Ns, D, D]
-    pk_src, psa, psb = torch.nonzero(pair_ok, as_tuple=True)
-    grid_edge = torch.full((max(Ns * D, 1),), -1, dtype=torch.int64, device=dev)
-    grid_edge[pad_pos] = order
-    pa, pb = grid_edge[pk_src * D + psa], grid_edge[pk_src * D + psb]  # edge ids of each pair (same source)
-    pk, pja, pjb = pi_[pa], pj_[pa], pj_[pb]
-
-    # scatter plans (fixed over the iterations): which blocks land where in the [F*F, 36] pose matrix / [F, 6] rhs
-    def plan(terms):
-        sels, dests = [], []
-        for r_, c_ in terms:
-            sel = torch.nonzero((r_ >= 0) & (c_ >= 0)).squeeze(1)
-            sels.append(sel)
-            dests.append(r_[sel] * F + c_[sel])
-        return sels, torch.cat(dests)
-
-    H_terms = [(pi_, pi_), (pj_, pj_), (pi_, pj_), (pj_, pi_)]
-    if Ns > 0:
-        H_terms += [(pja, pjb), (pk, pjb), (pja, pk), (pk, pk)]
-    H_sel, H_dest = plan(H_terms)
-    zero_col = torch.zeros_like(pi_)
-    v_sel, v_dest = plan([(pj_, zero_col), (pi_, zero_col)])
-    v_dest = torch.div(v_dest, F, rounding_mode="floor") if F > 0 else v_dest
+    # chunks of whole sources (then of fixed-depth edges) with their static scatter plans (module docstring)
+    chunks = plan_chunks(ii, jj, pose_map, src_map[ii], Ns, F, P, max_chunk_pixels)
+    cached = _chunk_obs(target_all, conf_all, chunks[0].idx, dtype) if len(chunks) == 1 else None
     sparse = dev.type == "cpu" and F > SPARSE_MIN_POSES
+
+    def linearise(ch, jac):
+        """Residuals, projection output, per-pixel weights ``wu, wv`` and ``conf`` of one chunk."""
+        tgt, cf = cached if cached is not None else _chunk_obs(target_all, conf_all, ch.idx, dtype)
+        ru, rv, out = _residuals(G, d, ch.ii, ch.jj, tgt, intr, h, w, min_depth, jac)
+        if not jac:
+            return ru, rv, out, None, None, cf
+        del out["u"], out["v"], out["z"]
+        valid = out["valid"].to(dtype)
+        rw = _robust_weights(ru, rv, robust, robust_scale)
+        vw = valid * weight_scale if rw is None else valid * rw * weight_scale
+        return ru, rv, out, cf[:, 0] * vw, cf[:, 1] * vw, cf
 
     cost0 = None
     problems: list[str] = []
     for it in range(max(0, int(iters))):
-        ru, rv, out = _residuals(G, d, ii, jj, target, intr, h, w, min_depth, "parts")
-        valid = out["valid"].to(dtype)
-        if cost0 is None:
-            cost0 = _cost(conf, valid, ru, rv)
-        rw = _robust_weights(ru, rv, robust, robust_scale)
-        vw = valid * weight_scale if rw is None else valid * rw * weight_scale
-        wu, wv = conf[:, 0] * vw, conf[:, 1] * vw  # [E, P]
-        JuT, JvT, Jdu, Jdv = out["JuT"], out["JvT"], out["Jdu"], out["Jdv"]  # [E, 6, P] x2, [E, P] x2
-        Ad = out["Ad"].double()  # [E, 6, 6];  Ji = -Jj Ad is never formed
-        AdT = Ad.transpose(1, 2)
-        # ---- pose-pose blocks and pose gradients (per edge)
-        Au, Av = JuT * wu.unsqueeze(1), JvT * wv.unsqueeze(1)  # W J^T
-        Hjj = (torch.bmm(Au, JuT.transpose(1, 2)) + torch.bmm(Av, JvT.transpose(1, 2))).double()
-        vj = (torch.bmm(Au, ru.unsqueeze(-1)) + torch.bmm(Av, rv.unsqueeze(-1))).squeeze(-1).double()
-        Hij = -torch.bmm(AdT, Hjj)
-        Hii = -torch.bmm(Hij, Ad)
-        H_blocks = [Hii, Hjj, Hij, Hij.transpose(1, 2)]
-
-        # ---- depth part: C (diagonal), w, and the Schur complement over pairs of edges sharing a source
-        dd = torch.zeros(Ns, P, dtype=dtype, device=dev)
-        q = vj  # reduced gradient of pose jj per edge (that of pose ii is -Ad^T q)
-        if Ns > 0:
-            bu, bv = wu * Jdu, wv * Jdv
-            C = eta_map[src].clone()
-            C.index_add_(0, es[order], (bu * Jdu + bv * Jdv)[order])
-            wd = torch.zeros(Ns, P, dtype=dtype, device=dev)
-            wd.index_add_(0, es[order], (bu * ru + bv * rv)[order])
-            Cinv = 1.0 / C.clamp(min=1e-12)
-            EjT = Au[order] * Jdu[order].unsqueeze(1) + Av[order] * Jdv[order].unsqueeze(1)  # [Es, 6, P]
-            B = torch.zeros(Ns * D, 6, P, dtype=dtype, device=dev)
-            B[pad_pos] = EjT
-            B = B.view(Ns, D * 6, P)
-            Bc = B * Cinv.unsqueeze(1)  # C^-1 applied
-            if F > 0:
-                # g_e = sum_p Ej C^-1 w:  reduced gradients v[jj] -= g, v[ii] += Ad^T g
-                g_pad = torch.bmm(Bc, wd.unsqueeze(-1)).view(Ns * D, 6).double()
-                gj = torch.zeros(E, 6, dtype=torch.float64, device=dev)
-                gj[order] = g_pad[pad_pos]
-                q = vj - gj
-                # M_ab = sum_p Ej_a C^-1 Ej_b^T for all pairs of edges of one source, as one batched matmul
-                M_all = torch.bmm(Bc, B.transpose(1, 2)).view(Ns, D, 6, D, 6).permute(0, 1, 3, 2, 4)
-                M = M_all[pk_src, psa, psb].double()  # [pairs, 6, 6]
-                AdTM = torch.bmm(AdT[pa], M)
-                H_blocks += [-M, AdTM, torch.bmm(M, Ad[pb]), -torch.bmm(AdTM, Ad[pb])]
+        # ---- assemble the reduced pose system chunk by chunk; per-pixel temporaries live for one chunk only
         v = torch.zeros(F, 6, dtype=torch.float64, device=dev)
+        H = torch.zeros(F * F, 36, dtype=torch.float64, device=dev) if F > 0 and not sparse else None
+        sp_dest, sp_vals = [], []
+        Cinv = torch.zeros(Ns, P, dtype=dtype, device=dev)
+        wd = torch.zeros(Ns, P, dtype=dtype, device=dev)
+        kept = None  # (chunk, B, Ad) of the last chunk, reused by the back-substitution
+        cost_it = 0.0
+        for ci, ch in enumerate(chunks):
+            ru, rv, out, wu, wv, cf = linearise(ch, "parts")
+            if cost0 is None:
+                cost_it += _cost(cf, out["valid"], ru, rv)
+            blocks, q, Ad, Ci, wdc, B = assemble_chunk(ch, ru, rv, wu, wv, out, eta_map[src[ch.s0:ch.s1]], F,
+                                                       want_B=ci == len(chunks) - 1)
+            del ru, rv, out, wu, wv, cf
+            if ch.ns > 0:
+                Cinv[ch.s0:ch.s1], wd[ch.s0:ch.s1] = Ci, wdc
+            if B is not None:
+                kept = (ch, B, Ad)
+            if F > 0:
+                qi = -torch.bmm(Ad.transpose(1, 2), q.unsqueeze(-1)).squeeze(-1)
+                v.index_add_(0, ch.v_dest, torch.cat([q[ch.v_sel[0]], qi[ch.v_sel[1]]]))
+                vals = torch.cat([blk[sel] for blk, sel in zip(blocks, ch.H_sel)])  # [nblocks, 6, 6]
+                if sparse:
+                    sp_dest.append(ch.H_dest)
+                    sp_vals.append(vals)
+                else:
+                    H.index_add_(0, ch.H_dest, vals.reshape(-1, 36))
+            del blocks, q, Ad, B
+        if cost0 is None:
+            cost0 = cost_it
         dxi = torch.zeros(F, 6, dtype=torch.float64, device=dev)
         if F > 0:
-            qi = -torch.bmm(AdT, q.unsqueeze(-1)).squeeze(-1)
-            v.index_add_(0, v_dest, torch.cat([q[v_sel[0]], qi[v_sel[1]]]))
-            vals = torch.cat([blk[sel] for blk, sel in zip(H_blocks, H_sel)])  # [nblocks, 6, 6]
             b = v.reshape(-1)
             solved = False
             # ---- solve the reduced pose system (LM-damped; 10x / 100x more damping if it fails)
             if sparse:
-                Hs = sparse_block_matrix(torch.div(H_dest, F, rounding_mode="floor"), H_dest % F, vals, F)
+                H_dest = torch.cat(sp_dest)
+                Hs = sparse_block_matrix(torch.div(H_dest, F, rounding_mode="floor"), H_dest % F,
+                                         torch.cat(sp_vals), F)
+                del sp_vals, H_dest
                 diag = torch.from_numpy(Hs.diagonal()).to(dev, torch.float64)
             else:
-                H = torch.zeros(F * F, 36, dtype=torch.float64, device=dev)
-                H.index_add_(0, H_dest, vals.reshape(-1, 36))
                 S = H.reshape(F, F, 6, 6).permute(0, 2, 1, 3).reshape(6 * F, 6 * F)
                 S = 0.5 * (S + S.T)
+                del H
                 diag = torch.diagonal(S).clone()
             for boost in (1.0, 10.0, 100.0):
                 damp = ep * boost + lm * boost * diag
@@ -377,17 +360,25 @@ def dense_ba(
                 report.cost_before = report.cost_after = cost0 if cost0 is not None else float("nan")
                 return _report_reject(report, f"dense_ba: pose system not positive definite even with 100x damping "
                                               f"(iteration {it}); previous estimate kept")
-        # ---- back-substitute depths: dd = C^-1 (w - sum_e Ej (dxi_jj - Ad dxi_ii))
-        if Ns > 0:
-            rhs = wd.clone()
-            if F > 0 and D > 0:
-                xi_full = torch.zeros(N, 6, dtype=torch.float64, device=dev)
-                xi_full[free_idx] = dxi
-                y = xi_full[jj] - torch.bmm(Ad, xi_full[ii].unsqueeze(-1)).squeeze(-1)  # [E, 6]
-                y_pad = torch.zeros(Ns * D, 6, dtype=dtype, device=dev)
-                y_pad[pad_pos] = y[order].to(dtype)
-                rhs = rhs - torch.bmm(y_pad.view(Ns, 1, D * 6), B).squeeze(1)
-            dd = Cinv * rhs
+        # ---- back-substitute depths per source: dd = C^-1 (w - sum_e Ej (dxi_jj - Ad dxi_ii))
+        dd = Cinv * wd
+        if Ns > 0 and F > 0:
+            xi_full = torch.zeros(N, 6, dtype=torch.float64, device=dev)
+            xi_full[free_idx] = dxi
+            done = None
+            if kept is not None:
+                (done, B, Ad), kept = kept, None
+                s_ = slice(done.s0, done.s1)
+                dd[s_] = backsub_chunk(done, B, Ad, xi_full, Cinv[s_], wd[s_])
+                B = Ad = None
+            for ch in chunks:  # the other chunks: E^T recomputed at the same linearisation point
+                if ch.ns > 0 and ch is not done:
+                    s_, m = slice(ch.s0, ch.s1), ch.n_src
+                    _, _, out, wu, wv, _ = linearise(ch, "parts")
+                    B = depth_rows(ch, out["JuT"], out["JvT"], wu[:m] * out["Jdu"][:m], wv[:m] * out["Jdv"][:m],
+                                   Cinv[s_].sqrt())
+                    dd[s_] = backsub_chunk(ch, B, out["Ad"].double(), xi_full, Cinv[s_], wd[s_])
+                    del out, wu, wv, B
         if not (_all_finite(dxi) and _all_finite(dd)):
             report.iterations = it
             report.cost_before = report.cost_after = cost0 if cost0 is not None else float("nan")
@@ -398,8 +389,11 @@ def dense_ba(
             d[src] = (d[src] + dd).clamp(min=DISP_MIN)
         report.iterations = it + 1
 
-    ru, rv, out = _residuals(G, d, ii, jj, target, intr, h, w, min_depth, False)
-    cost1 = _cost(conf, out["valid"], ru, rv)
+    cost1 = 0.0
+    for ch in chunks:
+        ru, rv, out, _, _, cf = linearise(ch, False)
+        cost1 += _cost(cf, out["valid"], ru, rv)
+        del ru, rv, out, cf
     if cost0 is None:
         cost0 = cost1
     report.cost_before, report.cost_after = cost0, cost1
@@ -429,11 +423,14 @@ def motion_only_ba(
     ep: float = 0.1,
     min_depth: float = 0.2,
     weight_scale: float = WEIGHT_SCALE,
+    robust: Optional[str] = None,
+    robust_scale: float = 2.0,
 ) -> tuple[torch.Tensor, float]:
     """Estimate the pose ``T_wc [7]`` of a new frame from flow targets of a fixed reference keyframe.
 
     ``target [2, h, w]``: positions in the new frame of the keyframe's pixels; ``weight [2, h, w]`` their
-    confidences.  Returns ``(pose_wc float64 [7], final cost)`` with the cost as in :func:`dense_ba`.  On
+    confidences.  ``robust``/``robust_scale``: IRLS kernel as in :func:`dense_ba`.  Returns
+    ``(pose_wc float64 [7], final cost)`` with the cost as in :func:`dense_ba` (no robust re-weighting).  On
     non-finite input or update the initial pose is returned (cost NaN if it could not be evaluated).
     """
     dev = kf_disp.device
@@ -462,6 +459,9 @@ def motion_only_ba(
     for _ in range(max(0, int(iters))):
         r, out = evaluate(G, True)
         cw = conf * out["valid"].unsqueeze(-1)
+        rw = _robust_weights(r[..., 0], r[..., 1], robust, robust_scale)  # [1, P] or None
+        if rw is not None:
+            cw = cw * rw.unsqueeze(-1)
         W = (cw * weight_scale).reshape(-1, 1)
         J = out["Jj"].reshape(-1, 6)
         Hm = (J * W).T @ J

@@ -154,3 +154,19 @@ def test_ablation_errors_name_the_variant(tmp_path):
     p.write_text('[[variant]]\nname = "t"\n[variant.loop]\nplugin = "none"\n')
     with pytest.raises(ConfigError, match="one-level dotted keys"):
         load_ablation(p)
+
+
+def test_dict_and_model_configs_resolve_like_toml(tmp_path):
+    """The imported API takes a TOML-shaped dict or a PipelineConfig too; typos still fail with the key path."""
+    from pvslam_core.config import PipelineConfig
+
+    p = tmp_path / "c.toml"
+    p.write_text('[graph]\nwarmup = 7\n[loop]\nplugin = "none"\n')
+    from_file = load_config(p)
+    from_dict = load_config({"graph": {"warmup": 7}, "loop": {"plugin": "none"}})
+    from_model = load_config(from_dict.pipeline)
+    assert from_dict.pipeline == from_file.pipeline == from_model.pipeline
+    with pytest.raises(ConfigError, match="graph.warmupp"):
+        load_config({"graph": {"warmupp": 7}})
+    assert load_config({"loop": {"plugin": "none"}}, overrides=["graph.warmup=9"]).pipeline.graph.warmup == 9
+    assert isinstance(from_model.pipeline, PipelineConfig)

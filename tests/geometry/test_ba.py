@@ -144,6 +144,26 @@ def test_motion_only_ba(problem):
     assert torch.equal(pose2, start) and cost2 != cost2
 
 
+def test_motion_only_ba_robust_kernel_rejects_gross_outliers(problem):
+    """A quarter of the targets shifted by 15 px: least squares is pulled off, the Cauchy kernel is not."""
+    pr = problem
+    k, new = 2, 3
+    e = int(torch.nonzero((pr.ii == k) & (pr.jj == new))[0])
+    start = se3_mul(pr.poses[new], se3_exp(torch.tensor([0.02, -0.01, 0.01, 0.01, -0.01, 0.01], dtype=torch.float64)))
+    bad = pr.target[e].clone()
+    gen = torch.Generator().manual_seed(0)
+    out = torch.rand(bad.shape[-2:], generator=gen) < 0.25
+    bad[0][out] += 15.0
+    kw = dict(iters=15, lm=1e-5, ep=1e-4)
+    plain, _ = motion_only_ba(start, pr.poses[k], pr.disps[k], pr.intr, bad, pr.weight[e], **kw)
+    robust, _ = motion_only_ba(start, pr.poses[k], pr.disps[k], pr.intr, bad, pr.weight[e], robust="cauchy",
+                               robust_scale=1.0, **kw)
+    et_plain, _ = pose_err(pr.poses[new][None], plain[None])
+    et_rob, er_rob = pose_err(pr.poses[new][None], robust[None])
+    assert et_plain > 1e-2
+    assert et_rob < 0.05 * et_plain and er_rob < 1e-3
+
+
 def test_float32_path_matches(problem):
     pr = problem
     p0, d0 = perturb(pr, fixed=(0, 1))

@@ -3,7 +3,7 @@ closure (Sim(3) pose graph + relaxed loop BA) on top of :mod:`pvslam_core.geomet
 from __future__ import annotations
 
 import logging
-from typing import Callable, Optional
+from typing import Callable, Literal, Optional
 
 import torch
 from pydantic import Field
@@ -29,8 +29,12 @@ class BAConfigBase(PluginConfig):
                        "with exact flow on 150 driving-loop frames 1e-3 left 0.88 % ATE (depths never converge in "
                        "the window), 1e-5 gave 0.007 %")
     min_depth: float = Field(0.2, gt=0, description="points with relative depth z_j/z_i below this get zero weight")
-    robust: Optional[str] = Field(None, description="robust kernel on the 2D residual: null, 'huber' or 'cauchy'")
-    robust_scale: float = Field(2.0, gt=0, description="robust kernel scale in BA-resolution pixels")
+    robust: Optional[Literal["none", "huber", "cauchy"]] = Field(
+        "cauchy", description="robust (IRLS) kernel on the 2D residual: 'none', 'huber' or 'cauchy'. Classical flow has "
+        "gross outliers (road, occlusions) that the confidences miss; on the 488-frame driving loop (online BA + "
+        "loop closure, one observe round per keyframe) least squares gave 11.5 % ATE, Huber(1 px) 5.7 %, "
+        "Cauchy(1 px) 0.17-0.19 %")
+    robust_scale: float = Field(1.0, gt=0, description="robust kernel scale in BA-resolution pixels")
     loop_window: int = Field(0, ge=0, description="loop BA frees keyframes newer than n - loop_window (0: from the "
                              "oldest loop keyframe on, i.e. the window spans the loop)")
     loop_iters: int = Field(8, ge=0, description="Gauss-Newton iterations of the relaxed loop BA")

@@ -131,8 +131,19 @@ class FlowFrontendConfig(PluginConfig):
     # --- dynamic masking (panoptic-aware confidence) --------------------------------------------------------
     dynamic_masking: bool = Field(
         True,
-        description="Second observe round per keyframe: pixels whose target disagrees with the reprojection under "
-        "the current estimate are dynamic; segment vote; PV-SLAM eq. 4 weights. Sets iterations = 2.",
+        description="From an edge's second observation on, pixels whose target disagrees with the reprojection under "
+        "the current estimate are dynamic; segment vote; PV-SLAM eq. 4 weights.",
+    )
+    rounds: int = Field(
+        1, ge=1, le=4,
+        description="observe -> BA rounds per new keyframe (the pipeline's `iterations`). With 1, a new edge's "
+        "dynamic mask is first applied at the next keyframe's BA (edges stay in the window for several keyframes); "
+        "2 applies it at once at twice the BA cost.",
+    )
+    dynamic_updates: int = Field(
+        3, ge=1,
+        description="Re-estimate an edge's dynamic mask on this many of its observations after the first (each "
+        "re-estimate reprojects the edge); later observations keep the last mask.",
     )
     dynamic_thresh: float = Field(
         1.0, gt=0.0, description="Reprojection residual (BA px) above which a pixel is dynamic."

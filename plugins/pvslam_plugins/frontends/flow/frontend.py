@@ -20,8 +20,8 @@ flow exceeds ``keyframe_thresh`` BA px or fewer than ``keyframe_min_coverage`` o
 tracking failure on a blank frame (intensity std) or when more than ``max_fb_fail_fraction`` of the pixels fail
 the forward-backward check (sudden jump).  A repeated frame is not a failure (zero flow, no keyframe).
 
-Rounds per new keyframe (``iterations``): 1 without dynamic masking; 2 with it.  On an edge's first ``observe``
-the weight is the confidence only; on later calls (after at least one BA round) pixels whose observed target
+Rounds per new keyframe (``iterations`` = ``rounds``, default 1).  On an edge's first ``observe`` the weight is the
+confidence only; on its next ``dynamic_updates`` calls (after at least one BA round) pixels whose observed target
 disagrees with the reprojection under the current estimate by more than ``dynamic_thresh`` BA px (and 3x the
 edge's median residual) are dynamic, the mask is voted over (thing) segments, and the weight follows PV-SLAM
 eq. 4 with the paper convention (static -> c, dynamic -> ~ c e^-eta; see :mod:`pvslam_core.confidence`).  This
@@ -81,7 +81,7 @@ class FlowFrontend(Frontend):
     def __init__(self, config: Optional[FlowFrontendConfig] = None, device: Any = "cpu", reproject_fn=None):
         self.cfg = config or FlowFrontendConfig()
         self.device = torch.device(device)
-        self.iterations = 2 if self.cfg.dynamic_masking else 1
+        self.iterations = self.cfg.rounds
         dis_kw = dict(
             gradient_descent_iterations=self.cfg.gradient_descent_iterations,
             variational_refinement_iterations=self.cfg.variational_refinement_iterations,
@@ -297,7 +297,7 @@ class FlowFrontend(Frontend):
         target = torch.stack([en.target for en in entries]).to(dev)
         conf = torch.stack([en.conf for en in entries]).to(dev)
         if self.cfg.dynamic_masking:
-            need = [e for e, en in enumerate(entries) if en.rounds >= 1]
+            need = [e for e, en in enumerate(entries) if 1 <= en.rounds <= self.cfg.dynamic_updates]
             if need:
                 self._update_dynamic(graph, ii, jj, need, entries, target)
             zeros = torch.zeros(h, w)

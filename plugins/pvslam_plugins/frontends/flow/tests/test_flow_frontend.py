@@ -255,7 +255,7 @@ def _moving_patch_scene(convention, with_seg):
     seg1 = S.patch_segmentation(x0 + int(dx) + 24, y0 + 10, 72, 96) if with_seg else None
     g = _graph([0.0, dx])
     fe = _frontend(convention=convention, preset="medium")  # a flow that tracks the object itself
-    assert fe.iterations == 2
+    assert fe.iterations == 1  # one round per keyframe; masks apply from an edge's second observation
     fe.add_keyframe(0, S.frame(i0, 0), seg0)
     fe.add_keyframe(1, S.frame(i1, 1), seg1)
     ii, jj = torch.tensor([0, 1]), torch.tensor([1, 0])
@@ -312,7 +312,8 @@ def test_registered_plugin(monkeypatch):
     spec = reg.get("frontend", "flow")
     cfg = spec.config_model(preset="medium", flow_scale=1.0)
     fe = spec.factory(cfg, type("Ctx", (), {"device": torch.device("cpu")})())
-    assert isinstance(fe, FlowFrontend) and fe.iterations == 2
+    assert isinstance(fe, FlowFrontend) and fe.iterations == 1
+    assert spec.factory(spec.config_model(rounds=2), type("Ctx", (), {"device": torch.device("cpu")})()).iterations == 2
     with pytest.raises(Exception):
         spec.config_model(flow_scale=0.3)
     with pytest.raises(Exception):
@@ -327,3 +328,19 @@ def test_memory_per_keyframe_bounded():
         fe.add_keyframe(k, S.frame(S.shifted(big, 3.0 * k), k), S.patch_segmentation(10, 10, 20, 20))
     per_kf = fe.memory_bytes() / 5
     assert per_kf < 200_000, per_kf
+
+
+def test_dynamic_mask_reestimated_only_dynamic_updates_times(monkeypatch):
+    """Each edge's mask is re-estimated on its 2nd .. (1 + dynamic_updates)-th observation, then kept."""
+    big = S.texture("astronaut")
+    g = _graph([0.0, 16.0])
+    fe = _frontend(dynamic_updates=2)
+    fe.add_keyframe(0, S.frame(S.base(big), 0), None)
+    fe.add_keyframe(1, S.frame(S.shifted(big, 16.0), 1), None)
+    calls = []
+    orig = fe._update_dynamic
+    monkeypatch.setattr(fe, "_update_dynamic", lambda *a, **k: (calls.append(list(a[3])), orig(*a, **k)))
+    ii, jj = torch.tensor([0, 1]), torch.tensor([1, 0])
+    for _ in range(5):
+        fe.observe(g, ii, jj)
+    assert calls == [[0, 1], [0, 1]]

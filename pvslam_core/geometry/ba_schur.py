@@ -1,0 +1,203 @@
+"""Chunked Schur-complement assembly for :func:`pvslam_core.geometry.ba.dense_ba`.
+
+The depth unknowns of one *source* keyframe (the ``ii`` of its edges) couple only the edges of that source, so
+the reduced pose system ``S = B - E C^-1 E^T`` is a sum of independent per-source contributions and the
+back-substitution ``dd = C^-1 (w - E^T dxi)`` is per source as well.  :func:`plan_chunks` groups the edges into
+chunks of whole sources (consecutive depth slots, at most ``max_chunk_pixels`` edge-pixels per chunk unless
+one source alone is larger) followed by chunks of fixed-depth edges (split by edge); every chunk carries its
+static index plans (padded per-source layout, pairs of edges sharing a source, scatter destinations in the
+``[F*F, 36]`` pose matrix and the ``[F, 6]`` rhs).  :func:`assemble_chunk` turns one chunk's linearisation into
+its pose blocks, reduced gradients and per-source ``C^-1``, ``w``; :func:`depth_rows` / :func:`backsub_chunk`
+recover the depth increments of a chunk.  Nothing here loops over edges or pixels.
+"""
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+from typing import Optional, Union
+
+import torch
+
+__all__ = ["Chunk", "plan_chunks", "assemble_chunk", "depth_rows", "backsub_chunk"]
+
+
+@dataclass
+class Chunk:
+    """One chunk of edges: the first ``n_src`` have their source depth unknown (grouped by source, depth slots
+    ``[s0, s1)``), the rest have a fixed source depth."""
+
+    idx: Union[slice, torch.Tensor]  # rows of the chunk's edges in the [E, ...] edge arrays
+    ii: torch.Tensor
+    jj: torch.Tensor
+    n_src: int  # edges with an unknown source depth (the first ones of the chunk)
+    s0: int
+    s1: int
+    D: int  # max edges of one source in this chunk (padded layout [ns, D])
+    ls: Optional[torch.Tensor]  # local depth slot of each source edge
+    pad_pos: Optional[torch.Tensor]  # row of each source edge in the padded [ns * D] layout (None: identity)
+    pk_src: Optional[torch.Tensor]  # pairs of edges (a, b) sharing a source: local source, slots, edge rows
+    psa: Optional[torch.Tensor]
+    psb: Optional[torch.Tensor]
+    pa: Optional[torch.Tensor]
+    pb: Optional[torch.Tensor]
+    H_sel: list
+    H_dest: Optional[torch.Tensor]
+    v_sel: list
+    v_dest: Optional[torch.Tensor]
+
+    @property
+    def ns(self) -> int:
+        return self.s1 - self.s0
+
+
+def _plan(terms, F: int):
+    """Entries with both block indices >= 0 of each ``(row, col)`` term, and their rows in ``[F * F]``."""
+    sels, dests = [], []
+    for r_, c_ in terms:
+        sel = torch.nonzero((r_ >= 0) & (c_ >= 0)).squeeze(1)
+        sels.append(sel)
+        dests.append(r_[sel] * F + c_[sel])
+    return sels, torch.cat(dests)
+
+
+def plan_chunks(ii: torch.Tensor, jj: torch.Tensor, pose_map: torch.Tensor, es: torch.Tensor, Ns: int, F: int,
+                P: int, max_chunk_pixels: int) -> list[Chunk]:
+    """Split the edges into chunks of at most ``max_chunk_pixels // P`` edges (whole sources; a source with more
+    edges is a chunk of its own).  ``es``: depth slot of each edge's source (-1: fixed depth), ``pose_map``:
+    free-pose slot of each keyframe (-1: fixed).  Chunks with fixed-depth edges only come first."""
+    dev = ii.device
+    E = int(ii.shape[0])
+    has = es >= 0
+    e_src = torch.nonzero(has).squeeze(1)
+    order = e_src[torch.argsort(es[e_src], stable=True)]
+    perm = torch.cat([order, torch.nonzero(~has).squeeze(1)])
+    counts = torch.bincount(es[order], minlength=Ns) if Ns > 0 else torch.zeros(0, dtype=torch.int64, device=dev)
+    # units: one per source (its edges), then one per fixed-depth edge; cum[u] = edges before unit u
+    cum = [0] + torch.cumsum(torch.cat([counts, torch.ones(E - len(order), dtype=torch.int64, device=dev)]),
+                             0).tolist()
+    U, budget = len(cum) - 1, max(1, int(max_chunk_pixels) // max(P, 1))
+    chunks: list[Chunk] = []
+    u0 = 0
+    while u0 < U:
+        u1 = max(bisect.bisect_right(cum, cum[u0] + budget) - 1, u0 + 1)
+        chunks.append(_make_chunk(ii, jj, pose_map, es, counts, perm, cum, u0, u1, Ns, F))
+        u0 = u1
+    # fixed-depth chunks first, the largest source chunk last (its E^T is kept for the back-substitution)
+    return [c for c in chunks if c.ns == 0] + sorted((c for c in chunks if c.ns > 0), key=lambda c: c.n_src)
+
+
+def _make_chunk(ii, jj, pose_map, es, counts, perm, cum, u0, u1, Ns, F) -> Chunk:
+    dev = ii.device
+    e0, e1 = cum[u0], cum[u1]
+    s0, s1 = min(u0, Ns), min(u1, Ns)
+    n_src = cum[s1] - cum[s0]
+    ce = perm[e0:e1]
+    n = e1 - e0
+    contiguous = bool((ce == torch.arange(int(ce[0]), int(ce[0]) + n, device=dev)).all())
+    idx = slice(int(ce[0]), int(ce[0]) + n) if contiguous else ce
+    ii_c, jj_c = ii[idx], jj[idx]
+    pi_c, pj_c = pose_map[ii_c], pose_map[jj_c]
+    ns = s1 - s0
+    D, ls, pad_pos, pk_src, psa, psb, pa, pb = 0, None, None, None, None, None, None, None
+    pair_terms = []
+    if ns > 0:
+        cnt = counts[s0:s1]
+        D = int(cnt.max())
+        ls = es[ce[:n_src]] - s0
+        starts = torch.cumsum(cnt, 0) - cnt
+        pos = ls * D + (torch.arange(n_src, device=dev) - starts[ls])  # row in the padded [ns * D] layout
+        pad_pos = None if n_src == ns * D else pos
+        ga, gb = torch.meshgrid(torch.arange(D, device=dev), torch.arange(D, device=dev), indexing="ij")
+        ok = (ga.unsqueeze(0) < cnt.view(-1, 1, 1)) & (gb.unsqueeze(0) < cnt.view(-1, 1, 1))  # [ns, D, D]
+        pk_src, psa, psb = torch.nonzero(ok, as_tuple=True)
+        grid = torch.full((ns * D,), -1, dtype=torch.int64, device=dev)
+        grid[pos] = torch.arange(n_src, device=dev)
+        pa, pb = grid[pk_src * D + psa], grid[pk_src * D + psb]  # chunk rows of each pair's edges
+        pk, pja, pjb = pi_c[pa], pj_c[pa], pj_c[pb]
+        pair_terms = [(pja, pjb), (pk, pjb), (pja, pk), (pk, pk)]
+    H_sel, H_dest, v_sel, v_dest = [], None, [], None
+    if F > 0:
+        H_sel, H_dest = _plan([(pi_c, pi_c), (pj_c, pj_c), (pi_c, pj_c), (pj_c, pi_c)] + pair_terms, F)
+        zero = torch.zeros_like(pi_c)
+        v_sel, v_dest = _plan([(pj_c, zero), (pi_c, zero)], F)
+        v_dest = torch.div(v_dest, F, rounding_mode="floor")
+    return Chunk(idx, ii_c, jj_c, n_src, s0, s1, D, ls, pad_pos, pk_src, psa, psb, pa, pb, H_sel, H_dest,
+                 v_sel, v_dest)
+
+
+def depth_rows(ch: Chunk, JuT, JvT, bu, bv, sC) -> torch.Tensor:
+    """``E^T C^-1/2``: the depth rows of the chunk's source edges, scaled by ``sC = C^-1/2 [ns, P]``, in the padded
+    layout ``B [ns, D * 6, P]`` (row ``6 a + k`` of source ``s``: pose coordinate ``k`` of its edge slot ``a``).
+    ``bu, bv = w Jd [n_src, P]``."""
+    m = ch.n_src
+    s = sC[ch.ls]
+    rows = JuT[:m] * (bu * s).unsqueeze(1)
+    rows.addcmul_(JvT[:m], (bv * s).unsqueeze(1))
+    P = rows.shape[-1]
+    if ch.pad_pos is None:
+        return rows.view(ch.ns, ch.D * 6, P)
+    B = torch.zeros(ch.ns * ch.D, 6, P, dtype=rows.dtype, device=rows.device)
+    B[ch.pad_pos] = rows
+    return B.view(ch.ns, ch.D * 6, P)
+
+
+def assemble_chunk(ch: Chunk, ru, rv, wu, wv, out, eta_c, F: int, want_B: bool):
+    """One chunk's contribution: ``(blocks, q, Ad, Cinv, wd, B)``.
+
+    ``blocks``: float64 ``6 x 6`` blocks aligned with ``ch.H_sel``; ``q [Ec, 6]``: reduced gradient of pose ``jj``
+    of each edge (that of ``ii`` is ``-Ad^T q``); ``Cinv, wd [ns, P]``: inverse depth diagonal and depth gradient
+    of the chunk's sources (None without sources); ``B``: :func:`depth_rows` (only with ``want_B``).  The
+    Jacobians in ``out`` are scaled in place (by ``sqrt(w)``): ``out`` is spent afterwards."""
+    JuT, JvT, Jdu, Jdv = out["JuT"], out["JvT"], out["Jdu"], out["Jdv"]  # [Ec, 6, P] x2, [Ec, P] x2
+    Ad = out["Ad"].double()  # [Ec, 6, 6];  Ji = -Jj Ad is never formed
+    AdT = Ad.transpose(1, 2)
+    blocks, q, Cinv, wd, B = [], None, None, None, None
+    m = ch.n_src
+    if ch.ns > 0:
+        bu, bv = wu[:m] * Jdu[:m], wv[:m] * Jdv[:m]
+        C = eta_c.clone()
+        C.index_add_(0, ch.ls, bu * Jdu[:m] + bv * Jdv[:m])
+        wd = torch.zeros_like(C)
+        wd.index_add_(0, ch.ls, bu * ru[:m] + bv * rv[:m])
+        Cinv = 1.0 / C.clamp(min=1e-12)
+        del C
+        if F > 0:
+            sC = Cinv.sqrt()
+            B = depth_rows(ch, JuT, JvT, bu, bv, sC)
+        del bu, bv
+    if F > 0:
+        # pose-pose blocks and pose gradients: J^T W J with the rows scaled by sqrt(w) in place (no W J^T copy)
+        su, sv = wu.sqrt(), wv.sqrt()
+        JuT.mul_(su.unsqueeze(1))
+        JvT.mul_(sv.unsqueeze(1))
+        Hjj = (torch.bmm(JuT, JuT.transpose(1, 2)) + torch.bmm(JvT, JvT.transpose(1, 2))).double()
+        q = (torch.bmm(JuT, (su * ru).unsqueeze(-1)) + torch.bmm(JvT, (sv * rv).unsqueeze(-1))).squeeze(-1).double()
+        del su, sv
+        Hij = -torch.bmm(AdT, Hjj)
+        blocks = [-torch.bmm(Hij, Ad), Hjj, Hij, Hij.transpose(1, 2)]
+        if B is not None:
+            # g_e = sum_p Ej C^-1 w:  reduced gradients v[jj] -= g, v[ii] += Ad^T g
+            g = torch.bmm(B, (sC * wd).unsqueeze(-1)).view(ch.ns * ch.D, 6).double()
+            q = torch.cat([q[:m] - (g if ch.pad_pos is None else g[ch.pad_pos]), q[m:]])
+            # M_ab = sum_p Ej_a C^-1 Ej_b^T for all pairs of edges of one source, as one batched matmul
+            M_all = torch.bmm(B, B.transpose(1, 2)).view(ch.ns, ch.D, 6, ch.D, 6).permute(0, 1, 3, 2, 4)
+            M = M_all[ch.pk_src, ch.psa, ch.psb].double()  # [pairs, 6, 6]
+            del M_all
+            AdTM = torch.bmm(AdT[ch.pa], M)
+            Adb = Ad[ch.pb]
+            blocks += [-M, AdTM, torch.bmm(M, Adb), -torch.bmm(AdTM, Adb)]
+    return blocks, q, Ad, Cinv, wd, (B if want_B else None)
+
+
+def backsub_chunk(ch: Chunk, B: torch.Tensor, Ad: torch.Tensor, xi_full: torch.Tensor, Cinv: torch.Tensor,
+                  wd: torch.Tensor) -> torch.Tensor:
+    """Depth increments ``dd = C^-1 (w - sum_e Ej (dxi_jj - Ad dxi_ii))`` of the chunk's sources ``[ns, P]``
+    (``B``: :func:`depth_rows`, i.e. ``E^T C^-1/2``)."""
+    m = ch.n_src
+    y = xi_full[ch.jj[:m]] - torch.bmm(Ad[:m], xi_full[ch.ii[:m]].unsqueeze(-1)).squeeze(-1)  # [m, 6]
+    y = y.to(B.dtype)
+    if ch.pad_pos is not None:
+        y_pad = torch.zeros(ch.ns * ch.D, 6, dtype=B.dtype, device=B.device)
+        y_pad[ch.pad_pos] = y
+        y = y_pad
+    return Cinv * wd - Cinv.sqrt() * torch.bmm(y.view(ch.ns, 1, ch.D * 6), B).squeeze(1)
