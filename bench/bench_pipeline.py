@@ -64,6 +64,7 @@ def section_throughput(out: Path, quick: bool) -> None:
     fps = r.metrics["timing"]["fps"]
     print(f"  320x240 driving loop, {r.metrics['timing']['frames']} frames, {r.metrics['timing']['keyframes']} keyframes: "
           f"{fps:.1f} frames/s")
+    print("  seconds per stage:", json.dumps(r.metrics["timing"].get("stage_seconds", {})))
     RESULTS["fps_320x240"] = fps
     target("throughput 320x240", fps >= 30, f"{fps:.1f} frames/s", ">= 30 frames/s")
     seq_k = generate("driving_loop", 50 if quick else 100, width=1224, height=368)
@@ -81,6 +82,7 @@ def section_accuracy(out: Path, quick: bool) -> dict:
     common = [f'dataset.path="{seq.as_posix()}"', "outputs.ply=false"]
     runs = {
         "online_ba+loop": run(common, out),
+        "online_ba+loop (repeat)": run(common, out),
         "online_ba, no loop": run(common + ["loop.plugin=none"], out),
         "offline_ba+loop": run(common + ["optimizer.plugin=offline_ba"], out),
         "offline_ba, no loop": run(common + ["optimizer.plugin=offline_ba", "loop.plugin=none"], out),
@@ -90,7 +92,9 @@ def section_accuracy(out: Path, quick: bool) -> dict:
         print(f"  {name:<22} ATE {fmt_pct(r)}  loops {lp.get('num_detected', 0)} (P {lp.get('precision', float('nan')):.2f} "
               f"R {lp.get('recall', float('nan')):.2f})  {r.metrics['timing']['fps']:.1f} frames/s")
     RESULTS["accuracy"] = {k: r.metrics for k, r in runs.items()}
-    full = pct(runs["online_ba+loop"])
+    # The same config twice: last-bit differences (OpenCV kernels) grow through the BA, so runs differ; the
+    # targets use the worse of the two.
+    full = max(pct(runs["online_ba+loop"]), pct(runs["online_ba+loop (repeat)"]))
     target("ATE online BA + loop closure", full <= 0.5, f"{full:.3f} % of path", "<= 0.5 % of path length")
     target("loop closure on beats off", full < pct(runs["online_ba, no loop"]),
            f"{full:.3f} % vs {pct(runs['online_ba, no loop']):.3f} %", "on < off")

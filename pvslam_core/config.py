@@ -82,12 +82,18 @@ class GraphSection(PluginConfig):
 
     ba_downsample: int = Field(8, ge=1, description="BA resolution = image size / ba_downsample")
     warmup: int = Field(5, ge=2, description="keyframes collected before the map is initialised")
+    init_min_parallax_deg: float = Field(
+        0.5, gt=0, description="two-view initialisation needs at least this median parallax (degrees); KITTI 01's "
+        "highway frames give 0.7-0.8 deg between nearby keyframes (far, forward-looking points)")
+    init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe: the first "
+                            "keyframe with the newest, then with the next older ones (fast motion breaks the flow "
+                            "of the farthest pair)")
     neighbours: int = Field(3, ge=1, description="edges to the previous `neighbours` keyframes of each new keyframe")
     proximity_window: int = Field(25, ge=0, description="look back this many keyframes for proximity edges")
     proximity_thresh: float = Field(16.0, gt=0, description="max frame distance (BA px) for a proximity edge")
     proximity_nms: int = Field(1, ge=0, description="suppress proximity edges within this index distance of another")
-    max_proximity_edges: int = Field(4, ge=0, description="proximity edges added per new keyframe")
-    active_window: int = Field(16, ge=2, description="edges touching the last N keyframes are observed in each update")
+    max_proximity_edges: int = Field(2, ge=0, description="proximity edges added per new keyframe")
+    active_window: int = Field(10, ge=2, description="edges touching the last N keyframes are observed in each update")
     remove_redundant: bool = Field(True, description="drop a keyframe that is too close to its predecessor")
     redundant_thresh: float = Field(1.5, ge=0, description="frame distance (BA px) under which a keyframe is redundant")
     reinit_after: int = Field(4, ge=1, description="consecutive failed frames before the map is re-initialised")
@@ -95,6 +101,10 @@ class GraphSection(PluginConfig):
         60.0, gt=0, le=180,
         description="reject a loop whose two keyframes' current orientations differ by more than this (look-alike "
                     "places seen from opposite directions); rotation drift is far smaller than this")
+    loop_ba_min_gap: int = Field(
+        8, ge=0, description="a loop accepted fewer than this many keyframes after the last loop BA only adds its "
+        "edges (the window BA uses them); on repeated laps nearly every keyframe closes a loop and a loop BA each "
+        "made later frames 2x slower")
     bidirectional: bool = Field(True, description="add edges in both directions")
     motion_robust: Optional[Literal["none", "huber", "cauchy"]] = Field(
         "cauchy", description="robust kernel of the motion-only BA that places non-keyframes and guesses new "

@@ -42,6 +42,7 @@ def two_view_init(
     p1 = target.detach().cpu().double().numpy().reshape(2, -1).T  # [P, 2]
     good = (weight.detach().cpu().numpy().reshape(2, -1).min(0) > 0.5) & np.isfinite(p1).all(1)
     if good.sum() < min_inliers:
+        LOG.debug("two-view init: %d confident correspondences < %d", int(good.sum()), min_inliers)
         return None
     p0g, p1g = p0[good], p1[good]
     fx, fy, cx, cy = [float(v) for v in intr.detach().cpu()]
@@ -51,6 +52,7 @@ def two_view_init(
         return None
     n_in, R, t, mask2 = cv2.recoverPose(E, p0g, p1g, K, mask=mask.copy())
     if n_in < min_inliers:
+        LOG.debug("two-view init: %d inliers after the cheirality check < %d", n_in, min_inliers)
         return None
     inl = mask2.ravel() > 0
     P0 = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
@@ -67,6 +69,7 @@ def two_view_init(
         return None
     med_par = float(np.median(parallax[ok]))
     if med_par < min_parallax_deg:
+        LOG.debug("two-view init: median parallax %.2f deg < %.2f", med_par, min_parallax_deg)
         return None
     disp_pts = 1.0 / z[ok]
     scale = float(np.median(disp_pts))  # make the median inverse depth 1

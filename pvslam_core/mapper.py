@@ -42,6 +42,7 @@ class Mapper:
         self.reinits = 0
         self._consecutive_failures = 0
         self._loop_cands: list[LoopCandidate] = []
+        self._last_loop_ba: Optional[int] = None  # graph size at the last loop BA
 
     # ------------------------------------------------------------------------------------------ helpers --
     def _small(self, frame: Frame, seg: Optional[PanopticSegmentation]):
@@ -168,26 +169,33 @@ class Mapper:
         first = self.fragment_start
         if k - first + 1 < self.cfg.warmup:
             return
-        obs = self._observe(torch.tensor([first]), torch.tensor([k]))
-        init = two_view_init(obs.target[0], obs.weight[0], self.graph.intrinsics)
+        # The farthest pair first (most parallax); when its flow fails (fast motion: every frame a keyframe on a
+        # highway) nearer partners, down to `init_tries` pairs per keyframe.
+        init, m = None, k
+        for m in range(k, max(first, k - self.cfg.init_tries), -1):
+            obs = self._observe(torch.tensor([first]), torch.tensor([m]))
+            init = two_view_init(obs.target[0], obs.weight[0], self.graph.intrinsics,
+                                 min_parallax_deg=self.cfg.init_min_parallax_deg)
+            if init is not None:
+                break
         if init is None:
             LOG.debug("initialisation deferred at keyframe %d (too little parallax or too few inliers)", k)
             return
         t0 = self.graph.poses[first].double().cpu()
-        pose_k = se3_mul(t0, init.pose_wc)
+        pose_m = se3_mul(t0, init.pose_wc)
         ts = self.graph.timestamps.double().cpu()
-        span = float(ts[k] - ts[first]) or 1.0
+        span = float(ts[m] - ts[first]) or 1.0
         idx = torch.arange(first + 1, k + 1)
-        alpha = ((ts[idx] - ts[first]) / span).clamp(0, 1)
-        poses = se3_interpolate(t0.expand(len(idx), 7), pose_k.expand(len(idx), 7), alpha)
+        alpha = ((ts[idx] - ts[first]) / span).clamp(min=0)  # > 1 (constant-velocity extrapolation) after m
+        poses = se3_interpolate(t0.expand(len(idx), 7), pose_m.expand(len(idx), 7), alpha)
         self.graph.set_poses(idx, poses)
         disp0 = init.disp0.to(self.graph.disps.device)
         self.graph.set_disps(torch.tensor([first]), disp0[None])
         med = float(disp0.median())
         self.graph.set_disps(idx, torch.full((len(idx),) + tuple(self.ba_shape), med, device=self.graph.disps.device))
         self.initialized = True
-        LOG.info("map initialised with keyframes %d..%d (%d inliers, parallax %.2f deg)",
-                 first, k, init.inliers, init.parallax_deg)
+        LOG.info("map initialised with keyframes %d..%d (pair %d-%d: %d inliers, parallax %.2f deg)",
+                 first, k, first, m, init.inliers, init.parallax_deg)
         self._optimize_window(k, max(3, 2 * self.frontend.iterations))
         for a in range(first, k):
             self._fill_pending(a)
@@ -218,6 +226,14 @@ class Mapper:
         fi, fj = int(self.graph.frame_index[k]), int(self.graph.frame_index[best.j])
         LOG.info("loop closure: keyframe %d (frame %d) <-> keyframe %d (frame %d), score %.3f, %d inliers",
                  k, fi, best.j, fj, best.score, best.inliers)
+        self.loops.append(LoopCandidate(fi, fj, best.score, best.verified, best.inliers))
+        n = self.graph.n
+        if self._last_loop_ba is not None and 0 <= n - self._last_loop_ba < self.cfg.loop_ba_min_gap:
+            # along a revisit nearly every keyframe closes a loop: the first one's loop BA (+ pose graph) corrects
+            # the drift; later ones only add their edges, which the next window BAs include (they touch k)
+            LOG.debug("loop %d <-> %d: edges added; loop BA ran %d keyframes ago", k, best.j, n - self._last_loop_ba)
+            return
+        self._last_loop_ba = n
         a_ii, a_jj = active_edges(self.graph, k, self.cfg.active_window)
         ii_all = torch.cat([a_ii.cpu(), ii]).to(self.graph.ii.device)
         jj_all = torch.cat([a_jj.cpu(), jj]).to(self.graph.ii.device)
@@ -225,7 +241,6 @@ class Mapper:
         report = self.optimizer.loop(self.graph, self._observe(pair[0], pair[1]), [best])
         if report.rejected:
             LOG.warning("loop BA rejected: %s", report.message)
-        self.loops.append(LoopCandidate(fi, fj, best.score, best.verified, best.inliers))
 
     # ------------------------------------------------------------------------------------ pose filling --
     def _fill_pending(self, a: int) -> None:

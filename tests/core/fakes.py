@@ -10,9 +10,10 @@ import torch
 from pydantic import Field
 
 from pvslam_core.config_base import PluginConfig
-from pvslam_core.interfaces import DatasetReader, Frontend, Optimizer, Segmenter, VPSState, VPSHead
+from pvslam_core.interfaces import DatasetReader, Frontend, LoopDetector, Optimizer, Segmenter, VPSState, VPSHead
 from pvslam_core.registry import hookimpl
-from pvslam_core.types import (EdgeObservations, Frame, Intrinsics, OptimizerReport, PanopticSegmentation, Segment,
+from pvslam_core.types import (EdgeObservations, Frame, Intrinsics, LoopCandidate, OptimizerReport,
+                               PanopticSegmentation, Segment,
                                SequenceInfo, TrackResult)
 
 W, H, F = 64, 48, 40.0
@@ -58,6 +59,8 @@ class FakeSegmenter(Segmenter):
 
 class ExactFrontendConfig(PluginConfig):
     keyframe_every: int = Field(2, ge=1, description="every n-th frame is a keyframe")
+    max_pair_gap: int = Field(0, ge=0, description="edges between keyframes further apart than this get zero "
+                              "weight (a flow that breaks on fast motion); 0: no limit")
 
 
 class ExactFrontend(Frontend):
@@ -96,6 +99,8 @@ class ExactFrontend(Frontend):
         h, w = graph.ba_shape
         ds = H // h
         tw = [self._tw(self.kf_x[int(i)], self.kf_x[int(j)], ds) for i, j in zip(ii.tolist(), jj.tolist())]
+        gap = self.cfg.max_pair_gap
+        tw = [(t, w_ * 0 if gap and abs(i - j) > gap else w_) for (t, w_), i, j in zip(tw, ii.tolist(), jj.tolist())]
         return EdgeObservations(ii, jj, torch.stack([t for t, _ in tw]), torch.stack([w_ for _, w_ in tw]))
 
 
@@ -106,6 +111,8 @@ class RecordingOptimizerConfig(PluginConfig):
 class RecordingOptimizer(Optimizer):
     """Counts calls; leaves the graph alone (the framework tests do not test BA)."""
 
+    loop_calls = 0  # class-wide: the tests read it after a run
+
     def __init__(self):
         self.steps = 0
 
@@ -114,7 +121,22 @@ class RecordingOptimizer(Optimizer):
         return OptimizerReport(iterations=0, num_edges=int(obs.ii.numel()))
 
     def loop(self, graph, obs, loops):
+        RecordingOptimizer.loop_calls += 1
         return OptimizerReport()
+
+
+class EveryKeyframeLoopConfig(PluginConfig):
+    start: int = Field(4, ge=2, description="keyframes from this index on report a verified loop with keyframe 1")
+
+
+class EveryKeyframeLoop(LoopDetector):
+    """A revisit that never ends: every keyframe from ``start`` on closes a loop with keyframe 1."""
+
+    def __init__(self, cfg: EveryKeyframeLoopConfig):
+        self.cfg = cfg
+
+    def add_keyframe(self, k, frame):
+        return [LoopCandidate(k, 1, 0.99, verified=True, inliers=100)] if k >= self.cfg.start else []
 
 
 class PassVPSConfig(PluginConfig):
@@ -144,6 +166,11 @@ def register_frontends(register):
 @hookimpl
 def register_optimizers(register):
     register("recording", lambda c, ctx: RecordingOptimizer(), RecordingOptimizerConfig, description="test-only")
+
+
+@hookimpl
+def register_loop_detectors(register):
+    register("every_kf", lambda c, ctx: EveryKeyframeLoop(c), EveryKeyframeLoopConfig, description="test-only")
 
 
 @hookimpl

@@ -87,3 +87,30 @@ def test_failure_midway_keeps_what_was_written(tmp_path, fake_registry, monkeypa
     assert len(ts) == 8 and np.isfinite(poses).all()
     assert json.loads((run_dir / "metrics.json").read_text())["partial"] is True
     assert "corrupt image" in (run_dir / "log.txt").read_text()
+
+
+@pytest.mark.parametrize("tries, initialised", [(1, False), (3, True)])
+def test_initialisation_falls_back_to_a_nearer_pair(fake_registry, fake_config_file, tries, initialised):
+    """Fast motion: the flow from the first keyframe to the newest fails; a nearer partner still initialises."""
+    res = run_config(fake_config_file, registry=fake_registry,
+                     overrides=["frontend.max_pair_gap=1", f"graph.init_tries={tries}", "graph.warmup=3",
+                                "graph.init_min_parallax_deg=0.3"])
+    log = (__import__("pathlib").Path(res.run_dir) / "log.txt").read_text()
+    assert ("map initialised with keyframes 0..2 (pair 0-1" in log) == initialised, log
+    assert ("never initialised" in log) != initialised
+    if initialised:  # keyframe 2 was placed by constant-velocity extrapolation of the 0-1 motion
+        x = res.keyframe_poses[:3, 0].numpy()
+        assert x[1] != 0 and abs(x[2] - 2 * x[1]) < 1e-6 * abs(x[1]) + 1e-9
+
+
+@pytest.mark.parametrize("gap, expected", [(0, 8), (100, 1), (3, 3)])
+def test_loop_ba_not_rerun_along_one_revisit(fake_registry, fake_config_file, gap, expected):
+    """Every keyframe from the 4th reports a loop with keyframe 1; from keyframe 5 to 12 each adds new loop edges
+    (keyframe 4's are all there already). A loop BA runs only when the last one is graph.loop_ba_min_gap
+    keyframes old: gap 3 -> keyframes 5, 8 and 11."""
+    fakes.RecordingOptimizer.loop_calls = 0
+    res = run_config(fake_config_file, registry=fake_registry,
+                     overrides=['loop.plugin="every_kf"', f"graph.loop_ba_min_gap={gap}", "dataset.frames=26",
+                                "graph.warmup=3"])
+    assert len(res.loops) == 8  # every accepted loop is recorded (loops.json, loop metrics)
+    assert fakes.RecordingOptimizer.loop_calls == expected

@@ -70,6 +70,31 @@ def test_loop_and_finalize_fix_scale_drift(name, loop_problem):
     assert ate2 < 0.01 * ate0, (ate0, ate2)
 
 
+def test_pose_graph_not_rerun_along_one_revisit(loop_problem):
+    pr = loop_problem
+    n = pr.poses.shape[0]
+    for gap, gated in ((10, True), (0, False)):
+        g = pr.graph(*scale_drifted(pr, rate=0.96, yaw_drift=0.01))
+        opt = make("online_ba", pgo_min_gap=gap)
+        assert "sim3 pgo:" in opt.loop(g, pr.obs(), [LoopCandidate(n - 1, 0, 0.9)]).message
+        rep = opt.loop(g, pr.obs(), [LoopCandidate(n - 1, 0, 0.9)])
+        assert ("keyframes ago" in rep.message) == gated, rep.message  # (else: run, or skipped for no drift)
+        assert not rep.rejected
+
+
+def test_pose_graph_only_for_real_drift(loop_problem):
+    """A loop whose measurement agrees with the estimate leaves the pose graph out; a drifted one runs it."""
+    pr = loop_problem
+    n = pr.poses.shape[0]
+    g = pr.graph()  # exact poses and depths: no drift
+    opt = make("online_ba")
+    rep = opt.loop(g, pr.obs(), [LoopCandidate(n - 1, 0, 0.9)])
+    assert "sim3 pgo skipped (drift" in rep.message and opt.last_pgo["drift"] < 1e-3
+    g = pr.graph(*scale_drifted(pr, rate=0.96, yaw_drift=0.01))
+    rep = make("online_ba").loop(g, pr.obs(), [LoopCandidate(n - 1, 0, 0.9)])
+    assert "sim3 pgo:" in rep.message
+
+
 def test_loop_without_pgo_runs(loop_problem):
     pr = loop_problem
     g = pr.graph(*perturb(pr, fixed=(0,), rot=0.005, trans=0.01, disp_rel=0.05))

@@ -10,7 +10,7 @@ from pydantic import Field
 
 from pvslam_core.config_base import PluginConfig
 from pvslam_core.geometry.ba import dense_ba
-from pvslam_core.geometry.lie import sim3_from_se3
+from pvslam_core.geometry.lie import sim3_from_se3, sim3_inv, sim3_log, sim3_mul
 from pvslam_core.geometry.pose_graph import loop_relative_sim3, odometry_measurements, sim3_pose_graph
 from pvslam_core.interfaces import Optimizer
 from pvslam_core.types import EdgeObservations, LoopCandidate, OptimizerReport
@@ -42,6 +42,14 @@ class BAConfigBase(PluginConfig):
     loop_ep: float = Field(1e-2, ge=0, description="additive damping of the loop BA")
     sim3_pgo: bool = Field(True, description="run a Sim(3) pose-graph correction before the loop BA")
     pgo_iters: int = Field(25, ge=1, description="Levenberg-Marquardt iterations of the Sim(3) pose graph")
+    pgo_min_gap: int = Field(10, ge=0, description="skip the Sim(3) pose graph when it ran fewer than this many "
+                             "keyframes ago: the first loop of a revisit corrects the drift, the next detections "
+                             "along the same revisit only need their loop BA (the pose graph spans every keyframe, "
+                             "so running it per detection made long runs slow down)")
+    pgo_min_drift: float = Field(0.02, ge=0, description="run the Sim(3) pose graph only when a loop measurement "
+                                 "disagrees with the current estimate by more than this in |log scale|, rotation "
+                                 "(rad) or translation / median depth of the old keyframe; smaller drift is left to "
+                                 "the loop BA (on repeated laps the drift is corrected at the first revisit)")
     pgo_loop_weight: float = Field(10.0, gt=0, description="information weight of loop edges relative to "
                                    "odometry edges in the pose graph")
     pgo_min_pixels: int = Field(30, ge=1, description="minimum confidently matched pixels to trust a loop edge's "
@@ -77,6 +85,7 @@ class DenseBAOptimizer(Optimizer):
         self.config = config
         self.device = device
         self.last_pgo: dict = {}
+        self._pgo_at: Optional[int] = None  # graph size when the Sim(3) pose graph last ran
 
     # ------------------------------------------------------------------------------------------ helpers
     def _ba(self, graph, obs: EdgeObservations, free: torch.Tensor, iters: int, lm: float, ep: float,
@@ -115,7 +124,12 @@ class DenseBAOptimizer(Optimizer):
             return OptimizerReport(message="nothing to optimise")
         msg = ""
         if c.sim3_pgo and loops:
-            msg = self.sim3_correction(graph, obs, loops)
+            if self._pgo_at is not None and 0 <= n - self._pgo_at < c.pgo_min_gap:
+                msg = f"sim3 pgo skipped (ran {n - self._pgo_at} keyframes ago)"
+            else:
+                msg = self.sim3_correction(graph, obs, loops)
+                if self.last_pgo.get("applied"):
+                    self._pgo_at = n
         oldest = min((min(l.i, l.j) for l in loops), default=max(0, n - c.window))
         t0 = max(1, n - c.loop_window) if c.loop_window > 0 else max(1, oldest)
         touched = torch.zeros(n, dtype=torch.bool, device=graph.device)
@@ -142,6 +156,15 @@ class DenseBAOptimizer(Optimizer):
         return _merge(reports, "global BA")
 
     # ------------------------------------------------------------------------------------------ loop closure
+    @staticmethod
+    def _drift(S: torch.Tensor, a: int, b: int, Zab: torch.Tensor, disp_old: torch.Tensor) -> float:
+        """How far the current relative Sim3 ``S_a^-1 S_b`` is from the loop measurement ``Zab``: the largest of
+        |log scale|, the rotation angle (rad) and the translation difference over the old keyframe's median depth."""
+        r = sim3_log(sim3_mul(sim3_inv(Zab), sim3_mul(sim3_inv(S[a]), S[b])))  # [tau(3), phi(3), sigma]
+        d = disp_old[torch.isfinite(disp_old) & (disp_old > 0)]
+        depth = 1.0 / float(d.median()) if d.numel() else 1.0
+        return max(abs(float(r[6])), float(r[3:6].norm()), float(r[:3].norm()) / depth)
+
     def sim3_correction(self, graph, obs: EdgeObservations, loops: list[LoopCandidate]) -> str:
         """Sim(3) pose graph over all keyframes: odometry edges (k, k+1) with their current relative pose (scale 1)
         plus one edge per observed loop edge, measured by :func:`loop_relative_sim3` with the old keyframe fixed.
@@ -154,7 +177,7 @@ class DenseBAOptimizer(Optimizer):
         w = [torch.ones(len(ii), dtype=torch.float64, device=graph.device)]
         e_ii, e_jj, e_Z = [ii], [jj], [Z]
         oii, ojj = obs.ii.to(graph.device), obs.jj.to(graph.device)
-        used_loops = 0
+        used_loops, drift = 0, 0.0
         for l in loops:
             a_new, b_old = max(l.i, l.j), min(l.i, l.j)
             for a, b in ((b_old, a_new), (a_new, b_old)):  # prefer the old keyframe as the reference
@@ -169,11 +192,15 @@ class DenseBAOptimizer(Optimizer):
                 e_ii.append(torch.tensor([a], device=graph.device))
                 e_jj.append(torch.tensor([b], device=graph.device))
                 e_Z.append(Zab[None])
+                drift = max(drift, self._drift(S, a, b, Zab, disps[b_old]))
                 w.append(torch.full((1,), c.pgo_loop_weight, dtype=torch.float64, device=graph.device))
                 used_loops += 1
                 break
         if used_loops == 0:
             return "sim3 pgo skipped (no usable loop measurement)"
+        if drift < c.pgo_min_drift:
+            self.last_pgo = {"applied": False, "drift": drift}
+            return f"sim3 pgo skipped (drift {drift:.3g} < pgo_min_drift)"
         fixed = torch.zeros(n, dtype=torch.bool, device=graph.device)
         fixed[0] = True
         res = sim3_pose_graph(S, torch.cat(e_ii), torch.cat(e_jj), torch.cat(e_Z), fixed, torch.cat(w),
