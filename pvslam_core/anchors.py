@@ -77,18 +77,25 @@ class FrameAnchors:
         rel = torch.stack([e.rel for e in self.entries])
         return ts, se3_mul(kf_poses.double().cpu()[anchors], rel)
 
+    def motion_only(self, init_wc: torch.Tensor, kf_pose: torch.Tensor, kf_disp: torch.Tensor, intr: torch.Tensor,
+                    target: torch.Tensor, weight: torch.Tensor, iters: int = 4) -> Optional[torch.Tensor]:
+        """Pose ``T_wc`` (float64 [7], CPU) of a frame from flow targets of a keyframe (pose ``kf_pose``, depth
+        ``kf_disp``) by motion-only BA with this object's robust kernel, from ``init_wc``; None if not finite."""
+        from .geometry.ba import motion_only_ba
+
+        t_a = kf_pose.double()
+        pose, _cost = motion_only_ba(init_wc.to(t_a.device), t_a, kf_disp, intr, target, weight, iters=iters,
+                                     robust=self.robust, robust_scale=self.robust_scale)
+        return pose.double().cpu() if bool(torch.isfinite(pose).all()) else None
+
     def refine(self, e: _Entry, init_wc: torch.Tensor, kf_pose: torch.Tensor, kf_disp: torch.Tensor, intr: torch.Tensor,
                iters: int = 4) -> bool:
         """Motion-only BA of entry ``e`` against its anchor keyframe (pose ``kf_pose``, depth ``kf_disp``),
         starting from ``init_wc``; stores the new relative pose. False (unchanged) when the result is not finite."""
-        from .geometry.ba import motion_only_ba
-
-        t_a = kf_pose.double()
-        pose, _cost = motion_only_ba(init_wc.to(t_a.device), t_a, kf_disp, intr, e.target, e.weight, iters=iters,
-                                     robust=self.robust, robust_scale=self.robust_scale)
-        if not bool(torch.isfinite(pose).all()):
+        pose = self.motion_only(init_wc, kf_pose, kf_disp, intr, e.target, e.weight, iters)
+        if pose is None:
             return False
-        e.rel = se3_mul(se3_inv(t_a.cpu()), pose.double().cpu())
+        e.rel = se3_mul(se3_inv(kf_pose.double().cpu()), pose)
         return True
 
     def refill(self, kf_poses: torch.Tensor, kf_disps: torch.Tensor, intr: torch.Tensor, iters: int = 4) -> int:

@@ -13,8 +13,8 @@ import torch
 from .anchors import FrameAnchors
 from .config import PipelineConfig
 from .edges import active_edges, loop_edges, neighbour_edges, proximity_edges
-from .geometry.lie import se3_act, se3_interpolate, se3_inv, se3_mul
-from .geometry.projective import depth_to_points
+from .geometry.lie import se3_interpolate, se3_mul
+from .geometry.projective import edge_transforms, project_points
 from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph
 from .initializer import two_view_init
 from .types import Frame, LoopCandidate, PanopticSegmentation, SequenceInfo, TrackResult
@@ -105,31 +105,28 @@ class Mapper:
         t_a = self.graph.poses[a].double()
         if not self.initialized or track.target is None:
             return t_a.cpu().clone()
-        from .geometry.ba import motion_only_ba
-
-        init = se3_mul(t_a.cpu(), self.anchors.last_rel()).to(t_a.device)
-        pose, _ = motion_only_ba(init, t_a, self.graph.disps[a], self.graph.intrinsics, track.target, track.weight,
-                                 iters=4, robust=self.cfg.motion_robust, robust_scale=self.cfg.motion_robust_scale)
-        return pose.double().cpu() if torch.isfinite(pose).all() else t_a.cpu().clone()
+        init = se3_mul(t_a.cpu(), self.anchors.last_rel())
+        pose = self.anchors.motion_only(init, t_a, self.graph.disps[a], self.graph.intrinsics, track.target,
+                                        track.weight)
+        return pose if pose is not None else t_a.cpu().clone()
 
     def _warped_depth(self, a: int, pose_k: torch.Tensor) -> Optional[torch.Tensor]:
         """Inverse depth of a new keyframe at ``pose_k``: keyframe ``a``'s depth map moved into it (z-buffered
         splat at the BA resolution, holes filled with the median). A far better start for the BA than a constant."""
         h, w = self.ba_shape
         g = self.graph
-        pts_a = depth_to_points(g.disps[a].float(), g.intrinsics)  # [h, w, 3] in camera a
-        t_ka = se3_mul(se3_inv(pose_k.to(g.device).double()), g.poses[a].double())
-        pts = se3_act(t_ka.float(), pts_a.reshape(-1, 3))  # [P, 3] in camera k
-        fx, fy, cx, cy = g.intrinsics.tolist()
-        z = pts[:, 2]
-        ok = z > 1e-6
-        u = torch.round(fx * pts[:, 0] / z.clamp(min=1e-6) + cx)
-        v = torch.round(fy * pts[:, 1] / z.clamp(min=1e-6) + cy)
-        ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        poses = torch.stack([g.poses[a].double(), pose_k.to(g.device).double()])
+        R, t = edge_transforms(poses, torch.tensor([0]), torch.tensor([1]))  # camera a -> camera k
+        d_a = g.disps[a].float().reshape(1, -1)  # [1, P]
+        # homogeneous projection: Z = z_k * d_a, so the inverse depth in camera k is d_a / Z
+        out = project_points(R.float(), t.float(), d_a, g.intrinsics, h, w, min_depth=1e-6)
+        u, v = torch.round(out["u"][0]), torch.round(out["v"][0])
+        ok = out["valid"][0] & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         if int(ok.sum()) < 0.2 * h * w:
             return None
         idx = (v[ok] * w + u[ok]).long()
-        disp = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, 1.0 / z[ok], reduce="amax")
+        disp_k = d_a[0, ok] / out["z"][0, ok]
+        disp = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, disp_k, reduce="amax")
         hole = disp <= 0
         disp[hole] = disp[~hole].median()
         return disp.reshape(h, w)

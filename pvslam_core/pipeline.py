@@ -111,12 +111,14 @@ class Pipeline:
                     t1 = time.perf_counter()
                     new_kf = mapper.process(frame, seg)
                     t2 = time.perf_counter()
+                    panoptic = None  # this frame's temporally consistent panoptic segmentation
                     if self.vps is not None and seg is not None:
                         vps_state = self.vps.update(vps_state, frame, seg, MotionCue())
+                        panoptic = vps_state.panoptic
                     t3 = time.perf_counter()
                     if outputs is not None:
-                        if vps_state is not None and self.vps is not None and seg is not None:
-                            outputs.panoptic(frame, vps_state.panoptic)
+                        if panoptic is not None:
+                            outputs.panoptic(frame, panoptic)
                         outputs.frame(frame, seg)
                         if new_kf and mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
                             outputs.checkpoint(mapper)

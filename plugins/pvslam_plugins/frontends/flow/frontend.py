@@ -66,7 +66,6 @@ class _Edge:
     dynamic: Optional[torch.Tensor] = None  # float32 [h, w] latest dynamic mask
     rounds: int = 0  # how many times observe() returned this edge
     requested: bool = False  # asked for by observe() (else only computed alongside its reverse)
-    init: str = "zero"  # "zero" or "reprojection": how DIS was initialised
 
 
 def _default_reproject():
@@ -216,7 +215,7 @@ class FlowFrontend(Frontend):
                                        f"check (> {self.cfg.max_fb_fail_fraction:.0%}); sudden jump or cut?")
         coverage = 1.0 - fail_frac
         is_kf = mean_flow > self.cfg.keyframe_thresh or coverage < self.cfg.keyframe_min_coverage
-        self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": last_sid, "shape": (h, w),
+        self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": last_sid,
                          "fwd": (tf, wf), "bwd": back[:2]}
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
@@ -331,7 +330,6 @@ class FlowFrontend(Frontend):
         for (a, b) in plist:
             sa, sb = self._sids[a], self._sids[b]
             ga, gb = self._kfs[sa].gray, self._kfs[sb].gray
-            how = "zero"
             if (a, b) in inits:
                 init_f, init_b = inits[(a, b)]
                 fwd2, bwd2, _ = self._pair(self._dis, ga, gb, h, w, init_f, init_b)
@@ -342,12 +340,12 @@ class FlowFrontend(Frontend):
                     if not use:
                         fwd, bwd = fwd0, bwd0
                 if use:
-                    fwd, bwd, how = fwd2, bwd2, "reprojection"
+                    fwd, bwd = fwd2, bwd2
                     self.stats["reprojection_init_used"] += 1
             else:
                 fwd, bwd, _ = self._pair(self._dis, ga, gb, h, w)
-            self._edges[(sa, sb)] = _Edge(torch.from_numpy(fwd[0]), torch.from_numpy(fwd[1]), init=how)
-            self._edges[(sb, sa)] = _Edge(torch.from_numpy(bwd[0]), torch.from_numpy(bwd[1]), init=how)
+            self._edges[(sa, sb)] = _Edge(torch.from_numpy(fwd[0]), torch.from_numpy(fwd[1]))
+            self._edges[(sb, sa)] = _Edge(torch.from_numpy(bwd[0]), torch.from_numpy(bwd[1]))
             self.stats["edges_computed"] += 2
 
     def _reprojection_inits(self, graph, plist, h, w):
