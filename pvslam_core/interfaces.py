@@ -24,7 +24,7 @@ from .types import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .graph import FrameGraph
+    from .slam.graph import FrameGraph
 
 
 @dataclass

@@ -74,7 +74,7 @@ class Pipeline:
 
     # ------------------------------------------------------------------------------------------- run --
     def run(self) -> RunResult:
-        from .mapper import Mapper
+        from .slam.mapper import Mapper
         from .run_outputs import RunOutputs
 
         torch.manual_seed(self.pcfg.run.seed)

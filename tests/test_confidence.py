@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from pvslam_core.confidence import logit, observed_flow_weight, panoptic_aware_weight, segment_vote
+from pvslam_core.slam.confidence import logit, observed_flow_weight, panoptic_aware_weight, segment_vote
 
 
 def _sig(x):

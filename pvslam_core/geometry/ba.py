@@ -57,7 +57,7 @@ from .lie import quat_to_rotmat, se3_exp, se3_inv, se3_mul
 from .projective import project_points
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..graph import FrameGraph
+    from ..slam.graph import FrameGraph
 
 __all__ = ["dense_ba", "motion_only_ba", "weighted_cost", "DISP_MIN", "WEIGHT_SCALE"]
 

@@ -44,7 +44,7 @@ class SyntheticBAProblem:
         return EdgeObservations(self.ii[s].clone(), self.jj[s].clone(), self.target[s].clone(), self.weight[s].clone())
 
     def graph(self, poses: Optional[torch.Tensor] = None, disps: Optional[torch.Tensor] = None, device="cpu"):
-        from ..graph import FrameGraph
+        from ..slam.graph import FrameGraph
 
         h, w = self.shape
         g = FrameGraph(h, w, self.intr, device=device, capacity=4)

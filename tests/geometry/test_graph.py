@@ -1,7 +1,7 @@
 import torch
 
 from pvslam_core.geometry.lie import identity_se3
-from pvslam_core.graph import FrameGraph
+from pvslam_core.slam.graph import FrameGraph
 
 
 def _graph(n=5, cap=2):

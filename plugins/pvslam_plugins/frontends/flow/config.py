@@ -161,7 +161,7 @@ class FlowFrontendConfig(PluginConfig):
     )
     eta: float = Field(10.0, ge=0.0, description="PV-SLAM eq. 4 logit offset.")
     convention: Literal["paper", "pvo_code"] = Field(
-        "paper", description="Mask convention of eq. 4 (see pvslam_core.confidence); keep 'paper'."
+        "paper", description="Mask convention of eq. 4 (see pvslam_core.slam.confidence); keep 'paper'."
     )
     vote_thresh: float = Field(
         0.5, ge=0.0, le=1.0,

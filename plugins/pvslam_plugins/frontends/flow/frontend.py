@@ -24,7 +24,7 @@ Rounds per new keyframe (``iterations`` = ``rounds``, default 1).  On an edge's 
 confidence only; on its next ``dynamic_updates`` calls (after at least one BA round) pixels whose observed target
 disagrees with the reprojection under the current estimate by more than ``dynamic_thresh`` BA px (and 3x the
 edge's median residual) are dynamic, the mask is voted over (thing) segments, and the weight follows PV-SLAM
-eq. 4 with the paper convention (static -> c, dynamic -> ~ c e^-eta; see :mod:`pvslam_core.confidence`).  This
+eq. 4 with the paper convention (static -> c, dynamic -> ~ c e^-eta; see :mod:`pvslam_core.slam.confidence`).  This
 also rejects outlier flow on static scenes.
 
 ``initial_depth(k)``: a constant map equal to the median inverse depth of the previous keyframe (read from the
@@ -41,7 +41,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from pvslam_core.confidence import observed_flow_weight, segment_vote
+from pvslam_core.slam.confidence import observed_flow_weight, segment_vote
 from pvslam_core.interfaces import Frontend
 from pvslam_core.types import EdgeObservations, Frame, PanopticSegmentation, TrackResult
 

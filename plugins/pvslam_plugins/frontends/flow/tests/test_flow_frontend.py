@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from pvslam_core.confidence import observed_flow_weight
+from pvslam_core.slam.confidence import observed_flow_weight
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend, make_frontend
 
@@ -18,7 +18,7 @@ DISP = 0.5  # fronto-parallel plane at z = 2: a lateral camera translation tx sh
 def _graph(n_shifts_px):
     """A FrameGraph whose keyframes look at a fronto-parallel plane; keyframe k's image is shifted by
     ``n_shifts_px[k]`` full-res px (camera translated along -x)."""
-    from pvslam_core.graph import FrameGraph
+    from pvslam_core.slam.graph import FrameGraph
 
     intr = S.INTR.scaled(1 / 8).vector()
     g = FrameGraph(BA_H, BA_W, intr)

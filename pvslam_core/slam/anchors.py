@@ -13,7 +13,7 @@ from typing import Optional
 
 import torch
 
-from .geometry.lie import se3_inv, se3_mul
+from ..geometry.lie import se3_inv, se3_mul
 
 
 @dataclass
@@ -81,7 +81,7 @@ class FrameAnchors:
                     target: torch.Tensor, weight: torch.Tensor, iters: int = 4) -> Optional[torch.Tensor]:
         """Pose ``T_wc`` (float64 [7], CPU) of a frame from flow targets of a keyframe (pose ``kf_pose``, depth
         ``kf_disp``) by motion-only BA with this object's robust kernel, from ``init_wc``; None if not finite."""
-        from .geometry.ba import motion_only_ba
+        from ..geometry.ba import motion_only_ba
 
         t_a = kf_pose.double()
         pose, _cost = motion_only_ba(init_wc.to(t_a.device), t_a, kf_disp, intr, target, weight, iters=iters,

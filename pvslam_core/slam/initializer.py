@@ -13,7 +13,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .geometry.lie import se3_from_matrix
+from ..geometry.lie import se3_from_matrix
 
 LOG = logging.getLogger("pvslam.init")
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .config import GraphSection
+from ..config import GraphSection
 from .graph import FrameGraph
 
 

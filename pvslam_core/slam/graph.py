@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from .geometry.projective import frame_distance as _frame_distance
+from ..geometry.projective import frame_distance as _frame_distance
 
 EDGE_ODOMETRY = 0  # odometry / neighbourhood edge
 EDGE_PROXIMITY = 1

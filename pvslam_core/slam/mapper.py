@@ -11,13 +11,13 @@ from typing import Optional
 import torch
 
 from .anchors import FrameAnchors
-from .config import PipelineConfig
+from ..config import PipelineConfig
 from .edges import active_edges, loop_edges, neighbour_edges, proximity_edges
-from .geometry.lie import se3_interpolate, se3_mul
-from .geometry.projective import edge_transforms, project_points
+from ..geometry.lie import se3_interpolate, se3_mul
+from ..geometry.projective import edge_transforms, project_points
 from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph
 from .initializer import two_view_init
-from .types import Frame, LoopCandidate, PanopticSegmentation, SequenceInfo, TrackResult
+from ..types import Frame, LoopCandidate, PanopticSegmentation, SequenceInfo, TrackResult
 
 LOG = logging.getLogger("pvslam")
 
