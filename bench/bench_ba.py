@@ -113,7 +113,7 @@ def scipy_comparison(n: int = 5, h: int = 15, w: int = 20, iters: int = 20) -> d
     free[list(fixed)] = False
     obs = pr.obs()
     t, c0 = time.perf_counter(), time.process_time()
-    rep = dense_ba(g, obs, free, iters=iters, lm=1e-6, ep=1e-6, eta=1e-6)
+    rep = dense_ba(g, obs, free, iters=iters, lm=1e-6, ep=1e-6, depth_damping=1e-6)
     t_ba, c_ba = time.perf_counter() - t, time.process_time() - c0
     cost_ba = weighted_cost(g, obs)
     return {"keyframes": n, "edges": E, "pixels": P, "unknowns": nvar, "residuals": nres,

@@ -18,14 +18,21 @@ from __future__ import annotations
 
 import copy
 import json
-import tomllib
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, ClassVar, Literal, Optional
 
-from pydantic import BaseModel, Field, ValidationError, model_serializer, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_serializer, model_validator
 
 from .config_base import PluginConfig
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the same parser as the `tomli` package (a dependency there)
+    import tomli as tomllib
+
+LOG = logging.getLogger("pvslam.config")
 
 COMPONENTS = ("dataset", "segmenter", "frontend", "loop", "optimizer", "vps")
 OPTIONAL_COMPONENTS = ("segmenter", "loop", "vps")
@@ -76,6 +83,13 @@ class RunSection(PluginConfig):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level of log.txt")
     checkpoint_every: int = Field(20, ge=1, description="rewrite the trajectory files every N keyframes")
 
+    @field_validator("name")
+    @classmethod
+    def _one_folder_name(cls, v: str) -> str:
+        from .rundir import check_name  # the run directory is <output_dir>/<name>-<timestamp>: it must stay inside
+
+        return check_name(v)
+
 
 class GraphSection(PluginConfig):
     """Keyframe and edge policy of the frame graph (DROID-SLAM style; anchors 1.5)."""
@@ -97,14 +111,13 @@ class GraphSection(PluginConfig):
     remove_redundant: bool = Field(True, description="drop a keyframe that is too close to its predecessor")
     redundant_thresh: float = Field(1.5, ge=0, description="frame distance (BA px) under which a keyframe is redundant")
     reinit_after: int = Field(4, ge=1, description="consecutive failed frames before the map is re-initialised")
-    loop_max_rotation_deg: float = Field(
-        60.0, gt=0, le=180,
-        description="reject a loop whose two keyframes' current orientations differ by more than this (look-alike "
-                    "places seen from opposite directions); rotation drift is far smaller than this")
-    loop_ba_min_gap: int = Field(
-        8, ge=0, description="a loop accepted fewer than this many keyframes after the last loop BA only adds its "
-        "edges (the window BA uses them); on repeated laps nearly every keyframe closes a loop and a loop BA each "
-        "made later frames 2x slower")
+    max_active_edges: int = Field(
+        256, ge=8, description="cap on active edges: beyond it the oldest edges not touching the newest keyframe "
+        "retire (their last observations stay for the final BA). Edges also retire when they no longer touch the "
+        "last `active_window` keyframes, which normally keeps far fewer active")
+    max_edge_age: int = Field(
+        25, ge=1, description="an edge retires after taking part in this many optimisation rounds (DROID-SLAM's "
+        "frontend max_age)")
     bidirectional: bool = Field(True, description="add edges in both directions")
     motion_robust: Optional[Literal["none", "huber", "cauchy"]] = Field(
         "cauchy", description="robust kernel of the motion-only BA that places non-keyframes and guesses new "
@@ -112,13 +125,59 @@ class GraphSection(PluginConfig):
     motion_robust_scale: float = Field(1.0, gt=0, description="its scale in BA-resolution pixels")
 
 
+class LoopClosureSection(PluginConfig):
+    """Which loop candidates close a loop (the one loop policy; see :mod:`pvslam_core.slam.loops`)."""
+
+    accept_unverified: bool = Field(
+        True, description="accept candidates the detector did not verify geometrically (verified = None: a "
+        "retrieval-only detector, accepted on its similarity score); candidates that failed verification are never "
+        "accepted")
+    consecutive: int = Field(
+        1, ge=1, description="require candidates to the same place from this many consecutive keyframes (DPVO uses 3)")
+    consecutive_tolerance: int = Field(
+        3, ge=0, description="keyframe slack when checking that consecutive candidates point at the same place")
+    nms_keyframes: int = Field(
+        5, ge=0, description="skip a candidate (i, j) when an accepted loop (i', j') from an earlier keyframe has "
+        "|i - i'| <= n and |j - j'| <= n, in keyframe indices (0 disables); detectors use it to skip verification")
+    max_rotation_deg: float = Field(
+        60.0, gt=0, le=180,
+        description="reject a loop whose two keyframes' current orientations differ by more than this (look-alike "
+                    "places seen from opposite directions); rotation drift is far smaller than this")
+    ba_min_gap: int = Field(
+        8, ge=0, description="a loop accepted fewer than this many keyframes after the last loop BA only adds its "
+        "edges (the window BA uses them); on repeated laps nearly every keyframe closes a loop and a loop BA each "
+        "made later frames 2x slower")
+
+
 class OutputsSection(PluginConfig):
     trajectory_kitti: bool = Field(False, description="also write trajectory_kitti.txt")
     ply: bool = Field(True, description="write cloud_rgb.ply and cloud_panoptic.ply")
-    ply_max_depth: float = Field(50.0, gt=0, description="drop points farther than this (in map units) from their keyframe")
+    # A monocular map's scale is arbitrary: every cloud filter is relative (see pvslam_core/outputs/cloud.py).
+    ply_depth_factor: Optional[float] = Field(
+        3.0, gt=0, description="drop points farther than this x their keyframe's median depth (None: keep far points)")
+    ply_edge_ratio: Optional[float] = Field(
+        1.5, gt=1, description="drop pixels at depth discontinuities: where the 3x3 neighbourhood's max/min "
+        "disparity exceeds this ratio (None: off)")
+    ply_min_views: int = Field(
+        1, ge=0, description="keep a pixel only when at least this many neighbouring keyframes see its point at "
+        "their own depth (multi-view consistency; 0: off)")
+    ply_neighbours: int = Field(2, ge=1, description="keyframes on each side checked for multi-view consistency")
+    ply_consistency: float = Field(
+        0.05, gt=0, lt=1, description="relative inverse-depth difference under which two keyframes agree")
+    ply_drop_categories: list[str] = Field(
+        default_factory=lambda: ["sky"], description="panoptic category names never put in the clouds")
+    ply_voxel: float = Field(
+        0.0, ge=0, description="voxel downsampling: voxel edge as a fraction of the map's median keyframe depth "
+        "(0: off; e.g. 0.01)")
+    keyframe_depth: bool = Field(
+        True, description="write keyframes/NNNNNN_depth.npy (z-depth, map units) and keyframes/keyframes.json")
     panoptic_png: bool = Field(True, description="write per-frame panoptic PNGs (COCO id encoding)")
     panoptic_vis: bool = Field(False, description="also write colour visualisations of the panoptic ids")
     plots: bool = Field(True, description="write plots of the trajectory and its error")
+
+    # ply_max_depth was an absolute depth in map units; a monocular map's scale is arbitrary, so it removed nothing
+    # (or everything): files that still set it load, with a warning, and ply_depth_factor applies instead.
+    renamed: ClassVar[dict[str, Any]] = {"ply_max_depth": None}
 
 
 class EvaluationSection(PluginConfig):
@@ -139,18 +198,65 @@ class PipelineConfig(PluginConfig):
     optimizer: Component = Field(default_factory=lambda: Component(plugin="online_ba"))
     vps: Component = Field(default_factory=lambda: Component(plugin="warp_iou"))
     graph: GraphSection = Field(default_factory=GraphSection)
+    loop_closure: LoopClosureSection = Field(default_factory=LoopClosureSection)
     outputs: OutputsSection = Field(default_factory=OutputsSection)
     evaluation: EvaluationSection = Field(default_factory=EvaluationSection)
 
+    #: keys that moved between tables: old "table.key" -> new "table.key" (kept for one release, with a warning)
+    moved: ClassVar[dict[str, str]] = {
+        "graph.loop_max_rotation_deg": "loop_closure.max_rotation_deg",
+        "graph.loop_ba_min_gap": "loop_closure.ba_min_gap",
+        "loop.consecutive": "loop_closure.consecutive",
+        "loop.consecutive_tolerance": "loop_closure.consecutive_tolerance",
+        "loop.nms_keyframes": "loop_closure.nms_keyframes",
+    }
+
+    @model_validator(mode="before")
+    @classmethod
+    def _moved_keys(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        out = None
+        for old, new in cls.moved.items():
+            (ot, ok), (nt, nk) = old.split("."), new.split(".")
+            table = data.get(ot)
+            if not isinstance(table, dict) or ok not in table:
+                continue
+            if out is None:
+                out = copy.deepcopy(data)
+            value = out[ot].pop(ok)
+            dest = out.setdefault(nt, {})
+            if isinstance(dest, dict) and nk not in dest:
+                dest[nk] = value
+            LOG.warning("config key %s is deprecated; use %s", old, new)
+        return data if out is None else out
+
 
 # --------------------------------------------------------------------------------------------- raw dicts ----
-def read_toml(path: str | Path) -> dict[str, Any]:
+def read_config_text(path: str | Path) -> str:
+    """The text of a config file; a folder, a missing file or bytes that are not UTF-8 are clear errors."""
     p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{p}: is a directory, not a config file (give the .toml or config.json inside it)")
     if not p.is_file():
         raise ConfigError(f"{p}: config file not found")
     try:
-        with open(p, "rb") as fh:
-            return tomllib.load(fh)
+        data = p.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read the config file: {exc.strerror or exc}") from exc
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(f"{p}: not UTF-8 text: byte 0x{data[exc.start]:02x} on line {line} (offset {exc.start}); "
+                          "config files must be saved as UTF-8") from None
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    p = Path(path)
+    text = read_config_text(p)
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
 
@@ -319,8 +425,8 @@ def load_config(
         source = str(path)
         if str(path).endswith(".json"):
             try:
-                raw = json.loads(Path(path).read_text())
-            except (OSError, json.JSONDecodeError) as exc:
+                raw = json.loads(read_config_text(path))
+            except json.JSONDecodeError as exc:
                 raise ConfigError(f"{path}: cannot read JSON config: {exc}") from exc
         else:
             raw = read_toml(path)
@@ -370,6 +476,12 @@ def load_ablation(path: str | Path, overrides=None, registry=None) -> list[Varia
         if not isinstance(var, dict):
             raise ConfigError(f"{path}: variant {n} must be a table")
         name = str(var.get("name", f"variant{n}"))
+        try:
+            from .rundir import check_name
+
+            check_name(name, what="variant name")  # each variant writes into <ablation dir>/<name>/
+        except ValueError as exc:
+            raise ConfigError(f"{path}: [[variant]] {n}: {exc}") from None
         if name in names:
             raise ConfigError(f"{path}: duplicate variant name {name!r}")
         names.add(name)

@@ -9,14 +9,16 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Iterator, Optional
+from typing import TYPE_CHECKING, Callable, Iterator, Optional, Sequence
 
 import torch
 
 from .types import (
+    Category,
     EdgeObservations,
     Frame,
     LoopCandidate,
+    LoopClosure,
     OptimizerReport,
     PanopticSegmentation,
     SequenceInfo,
@@ -29,13 +31,16 @@ if TYPE_CHECKING:  # pragma: no cover
 
 @dataclass
 class BuildContext:
-    """What a factory may need besides its own config: the compute device, where the run writes, and the
-    bundle-adjustment resolution (image size / ``ba_downsample``) at which frontends return targets."""
+    """What a factory may need besides its own config: the compute device, where the run writes, the
+    bundle-adjustment resolution (image size / ``ba_downsample``) at which frontends return targets, and the
+    sequence the run will process (plugins are built after the dataset reader, so ``info`` is set for every
+    plugin but the reader itself)."""
 
     device: torch.device
     run_dir: Optional[str] = None
     seed: int = 0
     ba_downsample: int = 8
+    info: Optional[SequenceInfo] = None
 
 
 class DatasetReader(ABC):
@@ -60,60 +65,92 @@ class Segmenter(ABC):
     def segment(self, frame: Frame) -> PanopticSegmentation:
         ...
 
+    def categories(self) -> Optional[Sequence[Category]]:
+        """The categories this segmenter labels with (e.g. COCO's 133), or None when it uses the dataset's
+        (``SequenceInfo.categories``).  Outputs (panoptic PNG metadata, the panoptic point cloud) use these."""
+        return None
 
-class Frontend(ABC):
+
+class GraphListener:
+    """Hears of structural changes of the frame graph, by stable keyframe id (see :mod:`pvslam_core.types`).
+
+    Every stateful component that keys state by keyframe or edge (frontends, loop detectors, the mapper's own
+    stores) is told through these two calls, and only through them; nobody else shifts indices.
+    """
+
+    def on_keyframe_removed(self, kf_id: int) -> None:
+        """Keyframe ``kf_id`` is being removed.  Called *before* the graph forgets it (its pose, depth and index
+        are still readable); drop every state about it, including its edges (no separate
+        :meth:`on_edges_retired` is sent for edges that touch it)."""
+
+    def on_edges_retired(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
+        """Edges ``src_ids[e] -> dst_ids[e]`` (int64 ``[E]`` stable ids) left the active graph; drop per-edge state
+        (hidden states, correlation volumes, cached targets).  Their last observations stay with the graph for
+        the final BA; the frontend will not be asked to observe them again unless they are re-added."""
+
+
+class Frontend(GraphListener, ABC):
     """Owns per-keyframe features and turns frame-graph edges into flow targets and confidences.
 
     Call order, for each input frame::
 
-        r = frontend.track(frame, seg)            # motion filter; r.is_keyframe decides
+        r = frontend.track(frame, seg)                 # motion filter; r.is_keyframe decides
         if r.is_keyframe:
-            frontend.add_keyframe(k, frame, seg)  # k = index of the new keyframe in the graph
-            for _ in range(frontend.iterations):  # learned: update -> BA -> update; classical: once
+            frontend.add_keyframe(kf_id, frame, seg)   # kf_id = graph.ids[-1], the new keyframe's stable id
+            for _ in range(frontend.rounds):           # learned: update -> BA -> update; classical: once
                 obs = frontend.observe(graph, ii, jj)
                 optimizer.step(graph, obs)
 
-    A classical flow method answers once per edge (``iterations == 1``; targets cached per edge); a learned
-    RAFT-style operator keeps per-edge hidden state and refines its targets against the graph's current
-    reprojection on every call.
+    When :meth:`observe` is called (``ii``/``jj`` are graph *indices*, ``graph.ids[ii]`` their stable ids):
+
+    1. each of the ``rounds`` window rounds after a new keyframe: the active edges that touch the window;
+    2. the loop BA after an accepted loop closure: the new loop edges plus the window's active edges;
+    3. map initialisation: a pair ``(first keyframe, newer keyframe)`` that need not be a graph edge; when it is
+       not one, :meth:`on_edges_retired` follows for it once the mapper is done with it;
+    4. the final optimisation: every active edge (retired edges are served from their stored observations).
+
+    A classical flow method answers once per edge (targets cached per edge); a learned RAFT-style operator keeps
+    per-edge hidden state and refines its targets against the graph's current reprojection on every call.  Per-edge
+    state is dropped on :meth:`~GraphListener.on_edges_retired` and :meth:`~GraphListener.on_keyframe_removed`.
     """
 
-    #: number of observe -> BA rounds per new keyframe
-    iterations: int = 1
+    #: observe -> BA rounds per new keyframe (the config key ``rounds`` of the built-in frontends)
+    rounds: int = 1
 
     @abstractmethod
     def track(self, frame: Frame, seg: Optional[PanopticSegmentation]) -> TrackResult:
         """Motion filter against the last keyframe. Must not change the keyframe set."""
 
     @abstractmethod
-    def add_keyframe(self, k: int, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
-        """Store features of a new keyframe with graph index ``k`` (always the next index)."""
-
-    @abstractmethod
-    def remove_keyframe(self, k: int) -> None:
-        """Forget keyframe ``k``; keyframes after it shift down by one (as in the graph)."""
+    def add_keyframe(self, kf_id: int, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
+        """Store features of a new keyframe with stable id ``kf_id`` (the graph's newest keyframe)."""
 
     @abstractmethod
     def observe(self, graph: "FrameGraph", ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
-        """Targets and weights for edges ``ii[e] -> jj[e]`` given the graph's current poses and depths."""
+        """Targets and weights for edges ``ii[e] -> jj[e]`` (graph indices) given the graph's current poses and
+        depths.  See the class docstring for when it is called."""
 
-    def forget_edges(self, ii: torch.Tensor, jj: torch.Tensor) -> None:
-        """Edges left the graph; drop any per-edge state kept for them."""
-
-    def initial_depth(self, k: int) -> Optional[torch.Tensor]:
-        """An inverse-depth guess for new keyframe ``k`` at the BA resolution, or None for the default."""
+    def initial_depth(self, graph: "FrameGraph", kf_id: int) -> Optional[torch.Tensor]:
+        """An inverse-depth guess ``[h, w]`` for new keyframe ``kf_id`` (not yet in ``graph``), or None for the
+        mapper's default (the previous keyframe's depth moved into the new pose)."""
         return None
 
 
-class LoopDetector(ABC):
-    """Keyframe -> global descriptor; proposes loop candidates ``(i, j, score)`` with temporal exclusion."""
+class LoopDetector(GraphListener, ABC):
+    """Keyframe -> global descriptor; proposes loop candidates ``(i, j, score)`` with temporal exclusion.
+
+    The detector proposes; the mapper's loop policy (:mod:`pvslam_core.slam.loops`) decides which candidates close a
+    loop (verification status, consecutive hits, suppression near recent closures, orientation check)."""
 
     @abstractmethod
-    def add_keyframe(self, k: int, frame: Frame) -> list[LoopCandidate]:
-        """Describe keyframe ``k`` and return verified loop candidates with older keyframes, best first."""
+    def add_keyframe(self, kf_id: int, frame: Frame) -> None:
+        """Describe and store keyframe ``kf_id`` (called for every keyframe, in order)."""
 
-    def remove_keyframe(self, k: int) -> None:
-        """Keyframe ``k`` was removed; indices after it shift down by one."""
+    @abstractmethod
+    def query(self, kf_id: int, skip: Optional[Callable[[int], bool]] = None) -> list[LoopCandidate]:
+        """Loop candidates for stored keyframe ``kf_id`` among older keyframes, best first (``i`` = ``kf_id``).
+        ``skip(j)`` True means the policy would refuse ``j`` anyway: a detector may leave such candidates out
+        before expensive work (geometric verification).  ``verified`` is None when the detector does not verify."""
 
 
 class Optimizer(ABC):
@@ -124,13 +161,15 @@ class Optimizer(ABC):
         """Called after each ``observe`` while a new keyframe is being added (online/local BA)."""
 
     @abstractmethod
-    def loop(self, graph: "FrameGraph", obs: EdgeObservations, loops: list[LoopCandidate]) -> OptimizerReport:
-        """Relaxed loop BA after loop edges were added (``obs`` covers the loop edges and the local window)."""
+    def loop(self, graph: "FrameGraph", obs: EdgeObservations, loops: list[LoopClosure]) -> OptimizerReport:
+        """Relaxed loop BA after loop edges were added (``obs`` covers the loop edges and the local window;
+        ``graph.indices_of`` maps the closures' keyframe ids to graph indices)."""
 
     def finalize(
         self, graph: "FrameGraph", observe: Callable[[torch.Tensor, torch.Tensor], EdgeObservations]
     ) -> OptimizerReport:
-        """End of the sequence (offline global BA). ``observe(ii, jj)`` asks the frontend for any edges."""
+        """End of the sequence (offline global BA).  ``observe(ii, jj)`` gives observations of any edges: active
+        ones from the frontend, retired ones from the graph's store (``graph.all_edges()`` lists both)."""
         return OptimizerReport(message="no final optimisation")
 
 
@@ -145,13 +184,17 @@ class VPSState:
 
 @dataclass
 class MotionCue:
-    """Geometry from the VO for warping the previous frame into the current one (all optional)."""
+    """Geometry from the VO for warping the previous frame into the current one (all optional).
 
-    flow: Optional[torch.Tensor] = None  # float32 [2, H, W]: previous-frame pixel -> offset into the current frame
-    depth_prev: Optional[torch.Tensor] = None  # float32 [H, W] z-depth of the previous frame
+    ``flow`` and ``depth_prev`` share one resolution ``(h, w)`` (the VO's, usually the BA resolution, coarser than
+    the image); ``intrinsics`` belong to that resolution.  A head resizes them to the image it works on."""
+
+    flow: Optional[torch.Tensor] = None  # float32 [2, h, w]: previous-frame pixel -> offset into the current frame
+    flow_valid: Optional[torch.Tensor] = None  # bool [h, w]: where ``flow`` was measured (else interpolated)
+    depth_prev: Optional[torch.Tensor] = None  # float32 [h, w] z-depth of the previous frame, 0 = unknown
     pose_prev: Optional[torch.Tensor] = None  # float64 [7] T_wc
     pose_cur: Optional[torch.Tensor] = None  # float64 [7] T_wc
-    intrinsics: Optional[torch.Tensor] = None  # float [4] fx fy cx cy at full resolution
+    intrinsics: Optional[torch.Tensor] = None  # float [4] fx fy cx cy at the resolution of flow / depth_prev
 
 
 class VPSHead(ABC):

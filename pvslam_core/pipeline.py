@@ -1,41 +1,48 @@
 """The PV-SLAM pipeline (the paper's Algorithm 1) driven against the core interfaces only.
 
-For every input frame::
+For every input frame (:meth:`Pipeline.step`)::
 
-    seg   = segmenter.segment(frame)                 # initial panoptic segmentation
-    track = frontend.track(frame, seg)               # motion filter
-    if keyframe:
-        add to the frame graph, connect (neighbour + proximity edges)
-        repeat frontend.iterations times: obs = frontend.observe(edges); optimizer.step(obs)   # online BA
-        loops = loop_detector.add_keyframe(...)      # a loop i<->j adds edges (i, j-1), (i, j), (i, j+1)
-        if loops: optimizer.loop(...)                # relaxed loop BA (+ optional Sim(3) pose graph)
-        non-keyframes since the previous keyframe get motion-only BA poses
-    vps_state = vps.update(vps_state, frame, seg, ...)   # temporally consistent panoptic ids
-at the end: optimizer.finalize(...) (offline global BA), outputs, evaluation.
+    seg    = segmenter.segment(frame)                 # initial panoptic segmentation
+    result = mapper.process(frame, seg)               # VO: motion filter; on a keyframe: edges, online BA,
+                                                      # loop closure (i, j-1), (i, j), (i, j+1) + relaxed loop BA,
+                                                      # motion-only BA of the frames since the last keyframe
+    cue    = motion_cue(previous result, result)      # VO flow, depth and poses between the two frames
+    vps    = vps.update(vps, frame, seg, cue)         # temporally consistent panoptic ids
+at the end (:meth:`Pipeline.finish`): optimizer.finalize (offline global BA), outputs, evaluation.
 
 The pipeline never calls a hook per frame: plugins are built once from the registry and called directly.
-Poses are T_wc ``[t, q_xyzw]`` (see :mod:`pvslam_core.types`).
+:meth:`Pipeline.run` iterates the configured dataset; :meth:`start` / :meth:`step` / :meth:`finish` serve callers
+that feed frames themselves.  Poses are T_wc ``[t, q_xyzw]`` (see :mod:`pvslam_core.types`).
 """
 from __future__ import annotations
 
 import logging
+import signal
 import sys
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Optional
 
 import torch
 
 from .config import ResolvedConfig
-from .interfaces import BuildContext, MotionCue, VPSState
+from .interfaces import BuildContext, VPSState
 from .registry import get_registry
-from .types import RunResult
+from .types import Frame, FrameResult, PanopticSegmentation, RunResult, SequenceInfo
 
 LOG = logging.getLogger("pvslam")
+
+STAGES = ("read", "segment", "map", "vps", "outputs", "finalize")
 
 
 class PipelineError(RuntimeError):
     """The pipeline cannot go on; the message says why (outputs written so far are kept)."""
+
+
+class RunTerminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a job scheduler): handled like Ctrl-C, outputs written so far are kept."""
 
 
 def _progress(total: Optional[int], enabled: bool, desc: str):
@@ -45,10 +52,41 @@ def _progress(total: Optional[int], enabled: bool, desc: str):
                 dynamic_ncols=True, leave=False)
 
 
-class Pipeline:
-    """Builds the configured plugins and runs Algorithm 1 over the dataset."""
+@contextmanager
+def _sigterm_as_interrupt():
+    """Within the block, SIGTERM raises :class:`RunTerminated` (main thread only; elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
 
-    def __init__(self, config: ResolvedConfig, run_dir: Optional[Path] = None, registry=None):
+    def handler(signum, frame):  # noqa: ARG001
+        raise RunTerminated("terminated by SIGTERM")
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+@contextmanager
+def _signals_deferred():
+    """Ignore SIGINT/SIGTERM while partial outputs are saved (a second Ctrl-C must not cut the save short)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+class Pipeline:
+    """Builds the configured plugins and runs Algorithm 1 over the dataset (or over frames fed by the caller)."""
+
+    def __init__(self, config: ResolvedConfig, run_dir: Optional[Path] = None, registry=None, dataset=None):
         self.cfg = config
         self.pcfg = config.pipeline
         self.registry = registry or get_registry()
@@ -58,12 +96,16 @@ class Pipeline:
             raise PipelineError(f"run.device = {self.pcfg.run.device!r} but CUDA is not available; use 'cpu'")
         ctx = BuildContext(device=self.device, run_dir=str(self.run_dir) if self.run_dir else None,
                            seed=self.pcfg.run.seed, ba_downsample=self.pcfg.graph.ba_downsample)
-        self.dataset = self._build("dataset", ctx)
+        self.dataset = dataset if dataset is not None else self._build("dataset", ctx)
+        self.info: SequenceInfo = self.dataset.info()
+        ctx.info = self.info  # the other plugins may size themselves to the sequence
         self.segmenter = self._build("segmenter", ctx)
         self.frontend = self._build("frontend", ctx)
         self.loop_detector = self._build("loop", ctx)
         self.optimizer = self._build("optimizer", ctx)
         self.vps = self._build("vps", ctx)
+        self.mapper = None
+        self.outputs = None
 
     def _build(self, name: str, ctx: BuildContext):
         comp = getattr(self.pcfg, name)
@@ -72,10 +114,16 @@ class Pipeline:
         spec = self.registry.get(name, comp.plugin)
         return spec.factory(self.cfg.models[name], ctx)
 
-    # ------------------------------------------------------------------------------------------- run --
-    def run(self) -> RunResult:
-        from .slam.mapper import Mapper
+    def categories(self):
+        """The categories of the panoptic output: the segmenter's own, else the dataset's."""
+        cats = self.segmenter.categories() if self.segmenter is not None else None
+        return list(cats) if cats else list(self.info.categories)
+
+    # ---------------------------------------------------------------------------------------- per frame --
+    def start(self) -> None:
+        """Seed, thread settings, the mapper and the run directory's writers."""
         from .run_outputs import RunOutputs
+        from .slam.mapper import Mapper
 
         torch.manual_seed(self.pcfg.run.seed)
         import cv2
@@ -83,94 +131,132 @@ class Pipeline:
         cv2.setRNGSeed(self.pcfg.run.seed)  # RANSAC (two-view init, loop verification) draws from OpenCV's RNG
         if self.pcfg.run.threads > 0:
             torch.set_num_threads(self.pcfg.run.threads)
-        info = self.dataset.info()
-        gcfg = self.pcfg.graph
-        ds = gcfg.ba_downsample
+        info = self.info
+        ds = self.pcfg.graph.ba_downsample
         if info.intrinsics.width % ds or info.intrinsics.height % ds:
             raise PipelineError(
                 f"image size {info.intrinsics.width}x{info.intrinsics.height} is not a multiple of "
                 f"graph.ba_downsample={ds}; set dataset.crop_multiple={ds} (or resize)")
-        mapper = Mapper(self.pcfg, info, self.frontend, self.optimizer, self.loop_detector, self.device)
-        outputs = RunOutputs(self.run_dir, self.pcfg, info) if self.run_dir is not None else None
-        total = info.num_frames if self.pcfg.run.max_frames is None else min(info.num_frames, self.pcfg.run.max_frames)
-        LOG.info("sequence %s: %d frames %dx%d", info.name, total, info.intrinsics.width, info.intrinsics.height)
-        vps_state: Optional[VPSState] = None
-        t_start = time.perf_counter()
-        n_frames = 0
-        frame_seconds: list[float] = []
-        stage = dict.fromkeys(("read", "segment", "map", "vps", "outputs", "finalize"), 0.0)  # seconds per stage
-        try:
-            with _progress(total, self.pcfg.run.progress, "pvslam") as bar:
-                t_prev = time.perf_counter()
-                for frame in self.dataset:
-                    if n_frames >= total:
-                        break
-                    t0 = time.perf_counter()
-                    stage["read"] += t0 - t_prev
-                    seg = self.segmenter.segment(frame) if self.segmenter is not None else None
-                    t1 = time.perf_counter()
-                    new_kf = mapper.process(frame, seg)
-                    t2 = time.perf_counter()
-                    panoptic = None  # this frame's temporally consistent panoptic segmentation
-                    if self.vps is not None and seg is not None:
-                        vps_state = self.vps.update(vps_state, frame, seg, MotionCue())
-                        panoptic = vps_state.panoptic
-                    t3 = time.perf_counter()
-                    if outputs is not None:
-                        if panoptic is not None:
-                            outputs.panoptic(frame, panoptic)
-                        outputs.frame(frame, seg)
-                        if new_kf and mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
-                            outputs.checkpoint(mapper)
-                    n_frames += 1
-                    now = time.perf_counter()
-                    stage["segment"] += t1 - t0
-                    stage["map"] += t2 - t1
-                    stage["vps"] += t3 - t2
-                    stage["outputs"] += now - t3
-                    frame_seconds.append(now - t_prev)
-                    t_prev = now
-                    bar.update(1)
-                    if n_frames % 50 == 0:
-                        bar.set_postfix(kf=mapper.graph.n, loops=len(mapper.loops))
-            t_fin = time.perf_counter()
-            mapper.finalize()
-            stage["finalize"] = time.perf_counter() - t_fin
-        except BaseException as exc:  # keep what was written, then re-raise (Ctrl-C included)
-            LOG.error("run stopped after %d frames: %s: %s", n_frames, type(exc).__name__, exc)
-            if outputs is not None:
-                try:
-                    outputs.checkpoint(mapper)
-                    outputs.close(mapper, partial=True)
-                except Exception as inner:  # never mask the original error
-                    LOG.error("could not save partial outputs: %s", inner)
-            raise
-        elapsed = time.perf_counter() - t_start
+        self.mapper = Mapper(self.pcfg, info, self.frontend, self.optimizer, self.loop_detector, self.device)
+        self.outputs = RunOutputs(self.run_dir, self.pcfg, info, self.categories()) if self.run_dir else None
+        self.vps_state: Optional[VPSState] = None
+        self.last: Optional[FrameResult] = None
+        self.frames_done = 0
+        self.frame_seconds: list[float] = []
+        self.stage = dict.fromkeys(STAGES, 0.0)  # seconds per stage
+        self.t_start = time.perf_counter()
+        self.ever_initialized = False
+
+    def step(self, frame: Frame) -> FrameResult:
+        """Process one frame (segmentation, mapping, VPS, outputs); returns the mapper's result for it."""
+        from .slam.motion_cue import motion_cue
+
+        t0 = time.perf_counter()
+        seg = self.segmenter.segment(frame) if self.segmenter is not None else None
+        t1 = time.perf_counter()
+        result = self.mapper.process(frame, seg)
+        self.ever_initialized |= result.initialized
+        t2 = time.perf_counter()
+        panoptic: Optional[PanopticSegmentation] = None  # this frame's temporally consistent segmentation
+        if self.vps is not None and seg is not None:
+            self.vps_state = self.vps.update(self.vps_state, frame, seg, motion_cue(self.last, result))
+            panoptic = self.vps_state.panoptic
+        self.last = result
+        t3 = time.perf_counter()
+        if self.outputs is not None:
+            if panoptic is not None:
+                self.outputs.panoptic(frame, panoptic)
+            self.outputs.frame(frame, seg)
+            if result.is_keyframe and self.mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
+                self.outputs.checkpoint(self.mapper, self.frames_done + 1)
+        self.frames_done += 1
+        now = time.perf_counter()
+        for name, dt in (("segment", t1 - t0), ("map", t2 - t1), ("vps", t3 - t2), ("outputs", now - t3)):
+            self.stage[name] += dt
+        return result
+
+    def finish(self) -> RunResult:
+        """Final optimisation, outputs and evaluation."""
+        mapper = self.mapper
+        t_fin = time.perf_counter()
+        mapper.finalize()
+        self.stage["finalize"] = time.perf_counter() - t_fin
+        elapsed = time.perf_counter() - self.t_start
         ts, poses = mapper.trajectory()
+        g = mapper.graph
         timing = {
-            "frames": n_frames,
-            "keyframes": mapper.graph.n,
+            "frames": self.frames_done,
+            "keyframes": g.n,
             "seconds": elapsed,
-            "fps": n_frames / elapsed if elapsed > 0 else float("nan"),
+            "fps": self.frames_done / elapsed if elapsed > 0 else float("nan"),
             "tracking_failures": mapper.failures,
             "reinitialisations": mapper.reinits,
-            "stage_seconds": {k: round(v, 3) for k, v in stage.items()},  # read = dataset iteration
+            "stage_seconds": {k: round(v, 3) for k, v in self.stage.items()},  # read = dataset iteration
         }
-        metrics: dict[str, Any] = {"timing": timing}
-        if outputs is not None:
-            outputs.checkpoint(mapper)
-            outputs.close(mapper)
-            metrics = outputs.evaluate(mapper, timing, self.dataset)
+        tracking = {"initialized": bool(self.ever_initialized), "active_edges": g.num_edges,
+                    "retired_edges": g.num_retired}
+        if not self.ever_initialized:
+            LOG.error("no motion was estimated: the map never initialised (too little parallax, too few frames or "
+                      "no texture); the trajectory holds placeholder poses")
+        metrics: dict[str, Any] = {"timing": timing, "tracking": tracking}
+        if self.outputs is not None:
+            self.outputs.checkpoint(mapper)
+            self.outputs.close(mapper)
+            metrics = {**self.outputs.evaluate(mapper, timing, self.dataset), "tracking": tracking}
+            from .outputs.metrics import MetricsFile
+
+            MetricsFile(self.run_dir / "metrics.json").update({"tracking": tracking})
         return RunResult(
             run_dir=str(self.run_dir) if self.run_dir else None,
             timestamps=ts,
             poses=poses,
-            keyframe_indices=mapper.graph.frame_index.cpu().clone(),
-            keyframe_poses=mapper.graph.poses.double().cpu().clone(),
+            keyframe_indices=g.frame_index.cpu().clone(),
+            keyframe_poses=g.poses.double().cpu().clone(),
             metrics=metrics,
             loops=list(mapper.loops),
-            frame_seconds=frame_seconds,
+            frame_seconds=self.frame_seconds,
         )
+
+    def abort(self, exc: BaseException) -> None:
+        """Keep what was written: the trajectory of every completed frame and a partial metrics.json."""
+        LOG.error("run stopped after %d frames: %s: %s", self.frames_done, type(exc).__name__, exc)
+        if self.outputs is None or self.mapper is None:
+            return
+        with _signals_deferred():
+            # each save on its own: a failing write (disk full) must not stop metrics.json from being written
+            for save in (lambda: self.outputs.checkpoint(self.mapper, self.frames_done),
+                         lambda: self.outputs.close(self.mapper, partial=True, frames_done=self.frames_done)):
+                try:
+                    save()
+                except Exception as inner:  # never mask the original error
+                    LOG.error("could not save partial outputs: %s", inner)
+
+    # ------------------------------------------------------------------------------------------- run --
+    def run(self) -> RunResult:
+        self.start()
+        total = self.info.num_frames
+        if self.pcfg.run.max_frames is not None:
+            total = min(total, self.pcfg.run.max_frames)
+        LOG.info("sequence %s: %d frames %dx%d", self.info.name, total, self.info.intrinsics.width,
+                 self.info.intrinsics.height)
+        try:
+            with _sigterm_as_interrupt(), _progress(total, self.pcfg.run.progress, "pvslam") as bar:
+                t_prev = time.perf_counter()
+                for frame in self.dataset:
+                    if self.frames_done >= total:
+                        break
+                    self.stage["read"] += time.perf_counter() - t_prev
+                    self.step(frame)
+                    now = time.perf_counter()
+                    self.frame_seconds.append(now - t_prev)
+                    t_prev = now
+                    bar.update(1)
+                    if self.frames_done % 50 == 0:
+                        bar.set_postfix(kf=self.mapper.graph.n, loops=len(self.mapper.loops))
+                return self.finish()
+        except BaseException as exc:  # keep what was written, then re-raise (Ctrl-C and SIGTERM included)
+            self.abort(exc)
+            raise
 
 
 def run(config: ResolvedConfig, run_dir: Optional[Path | str] = None, registry=None,
@@ -186,5 +272,9 @@ def run(config: ResolvedConfig, run_dir: Optional[Path | str] = None, registry=N
         run_dir = Path(run_dir)
         init_run_dir(run_dir, config, registry, overrides or {})
     with RunLog(run_dir, rcfg.log_level):
-        pipe = Pipeline(config, run_dir, registry)
+        try:
+            pipe = Pipeline(config, run_dir, registry)
+        except BaseException as exc:  # e.g. the dataset cannot be opened: say so in log.txt too
+            LOG.error("could not start the run: %s: %s", type(exc).__name__, exc)
+            raise
         return pipe.run()

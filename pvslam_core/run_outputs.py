@@ -2,10 +2,14 @@
 
 Trajectory files are rewritten atomically every ``run.checkpoint_every`` keyframes and whenever the run stops,
 so an error or Ctrl-C keeps a valid trajectory of what was processed.  Layout: see ``pvslam_core/outputs``.
+
+A file that cannot be written (full disk, permissions) does not stop the others of the same checkpoint: each
+failure is logged with its path and recorded in ``metrics.json`` under ``write_errors`` (with ``partial: true``),
+then :class:`OutputWriteError` names every file that failed.  ``groundtruth.txt`` and ``groundtruth_loops.json``
+make the run directory self-contained: ``pvslam eval`` re-evaluates it without the dataset.
 """
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any, Optional
@@ -15,72 +19,138 @@ import torch
 
 from .config import PipelineConfig, ResolvedConfig
 from .outputs.trajectory_io import TrajectoryWriter, write_tum
-from .types import Frame, PanopticSegmentation, SequenceInfo
+from .types import Category, Frame, PanopticSegmentation, SequenceInfo
 
 LOG = logging.getLogger("pvslam")
 
 
+class OutputWriteError(OSError):
+    """One or more result files could not be written; the message names each file and why."""
+
+
 class RunOutputs:
-    def __init__(self, run_dir: Path, pcfg: PipelineConfig, info: SequenceInfo):
+    def __init__(self, run_dir: Path, pcfg: PipelineConfig, info: SequenceInfo,
+                 categories: Optional[list[Category]] = None):
         self.dir = Path(run_dir)
         self.cfg = pcfg
         self.info = info
+        # the panoptic output's categories: the segmenter's when it declares them, else the dataset's
+        self.categories = list(categories) if categories else list(info.categories)
         self.traj = TrajectoryWriter(self.dir / "trajectory.txt", fmt="tum")
         self.traj_kitti = (TrajectoryWriter(self.dir / "trajectory_kitti.txt", fmt="kitti")
                            if pcfg.outputs.trajectory_kitti else None)
         self.gt_ts: list[float] = []
         self.gt_poses: list[torch.Tensor] = []
+        self.names: dict[int, str] = {}  # input-frame index -> source name (keyframes.json, exports)
+        self.write_errors: dict[str, str] = {}  # path -> error, of every write that failed
+        if info.loop_pairs is not None:  # archived runs re-evaluate loops without the dataset
+            self._write("groundtruth_loops.json", _write_json, self.dir / "groundtruth_loops.json",
+                        {"pairs": [[int(i), int(j)] for i, j in info.loop_pairs], "source": info.source or info.name})
         self.pan_writer = None
         if pcfg.outputs.panoptic_png:
             from .outputs.panoptic_png import PanopticWriter
 
-            self.pan_writer = PanopticWriter(self.dir, categories=list(info.categories) or None,
+            self.pan_writer = PanopticWriter(self.dir, categories=self.categories or None,
                                              vis=pcfg.outputs.panoptic_vis)
 
     def frame(self, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
+        self.names[frame.index] = frame.name
         if frame.gt_pose is not None:
             self.gt_ts.append(frame.timestamp)
             self.gt_poses.append(frame.gt_pose.double())
 
     def panoptic(self, frame: Frame, seg: PanopticSegmentation) -> None:
         if self.pan_writer is not None:
-            self.pan_writer.write(frame.index, seg)
+            self._write(f"panoptic/{frame.index:06d}.png", self.pan_writer.write, frame.index, seg, frame.name or None)
+            self._raise_write_errors()
 
-    def checkpoint(self, mapper) -> None:
+    def checkpoint(self, mapper, frames_done: Optional[int] = None) -> None:
+        """Rewrite the trajectory files; ``frames_done``: only the first so many frames (a run stopped mid-frame
+        keeps the frames it completed, so trajectory.txt, groundtruth.txt and the log agree)."""
         ts, poses = mapper.trajectory()
+        if frames_done is not None:
+            ts, poses = ts[:frames_done], poses[:frames_done]
         if len(ts) == 0:
             return
+        from .outputs.loops_io import write_loops
+
         self.traj.update(ts.numpy(), poses.numpy())
-        self.traj.flush()
+        self._write("trajectory.txt", self.traj.flush)
         if self.traj_kitti is not None:
             self.traj_kitti.update(ts.numpy(), poses.numpy())
-            self.traj_kitti.flush()
+            self._write("trajectory_kitti.txt", self.traj_kitti.flush)
         g = mapper.graph
         if g.n:
-            write_tum(self.dir / "keyframes.txt", g.timestamps.double().cpu().numpy(), g.poses.double().cpu().numpy())
+            self._write("keyframes.txt", write_tum, self.dir / "keyframes.txt", g.timestamps.double().cpu().numpy(),
+                        g.poses.double().cpu().numpy())
         if self.gt_ts:
-            write_tum(self.dir / "groundtruth.txt", np.array(self.gt_ts), torch.stack(self.gt_poses).numpy())
-        loops = [{"frame_i": c.i, "frame_j": c.j, "score": c.score, "inliers": c.inliers} for c in mapper.loops]
-        _write_json(self.dir / "loops.json", {"loops": loops})
+            self._write("groundtruth.txt", write_tum, self.dir / "groundtruth.txt", np.array(self.gt_ts),
+                        torch.stack(self.gt_poses).numpy())
+        self._write("loops.json", write_loops, self.dir / "loops.json", mapper.loops)
+        self._raise_write_errors()
 
-    def close(self, mapper, partial: bool = False) -> None:
+    def close(self, mapper, partial: bool = False, frames_done: Optional[int] = None) -> None:
+        """Final files: segments.json, the point clouds, keyframe depth; with ``partial`` a metrics.json that says
+        the run stopped early. Write failures are collected as in :meth:`checkpoint`."""
         if self.pan_writer is not None:
-            self.pan_writer.close()
+            self._write("panoptic/segments.json", self.pan_writer.close)
         g = mapper.graph
-        if self.cfg.outputs.ply and g.n and mapper.initialized:
-            from .outputs.ply import panoptic_point_cloud_from_keyframes, point_cloud_from_keyframes, write_ply
-
+        if g.n and mapper.initialized and (self.cfg.outputs.ply or self.cfg.outputs.keyframe_depth):
             poses, disps, intr = g.poses.double().cpu(), g.disps.float().cpu(), g.intrinsics.cpu()
-            max_depth = self.cfg.outputs.ply_max_depth
-            pts, cols = point_cloud_from_keyframes(poses, disps, intr, torch.stack(mapper.kf_images),
-                                                   max_depth=max_depth)
-            write_ply(self.dir / "cloud_rgb.ply", pts, cols)
-            if all(s is not None for s in mapper.kf_segs) and self.info.categories:
-                pts2, cols2, extra = panoptic_point_cloud_from_keyframes(
-                    poses, disps, intr, mapper.kf_segs, list(self.info.categories), max_depth=max_depth)
-                write_ply(self.dir / "cloud_panoptic.ply", pts2, cols2, extra=extra)
-        if partial:
-            _write_json(self.dir / "metrics.json", {"partial": True, "frames_written": len(mapper.anchors)})
+            ids = g.ids.tolist()
+            if self.cfg.outputs.ply:
+                from .outputs.cloud import write_clouds
+
+                images = torch.stack([mapper.kf_images[i] for i in ids])
+                segs = [mapper.kf_segs.get(i) for i in ids]
+                stats = self._write("cloud_rgb.ply", write_clouds, self.dir, poses, disps, intr, images, segs,
+                                    self.categories, g.frame_index.cpu(), self.cfg.outputs)
+                if stats:
+                    LOG.info("point cloud: %d of %d keyframe depth pixels kept (relative depth, edges, multi-view "
+                             "consistency, categories), %d points written", stats["kept"], stats["valid"],
+                             stats["rgb"])
+            if self.cfg.outputs.keyframe_depth:
+                from .outputs.keyframes_io import write_keyframes
+
+                fi = g.frame_index.cpu()
+                self._write("keyframes/keyframes.json", write_keyframes, self.dir, fi, g.timestamps.cpu(), poses,
+                            disps, intr, self.info.intrinsics, [self.names.get(int(i), "") for i in fi.tolist()])
+        if partial or self.write_errors:
+            done = len(mapper.frames) if frames_done is None else frames_done
+            self._partial_metrics({"frames_written": done})
+        self._raise_write_errors()
+
+    # ---------------------------------------------------------------------------------- write failures --
+    def _write(self, name: str, fn, *args):
+        """``fn(*args)``; an OSError is logged with the file and recorded instead of raised (see the module doc)."""
+        try:
+            return fn(*args)
+        except OSError as exc:
+            path = exc.filename if isinstance(exc.filename, str) and exc.filename else str(self.dir / name)
+            msg = exc.strerror or str(exc)
+            self.write_errors[path] = msg
+            LOG.error("could not write %s: %s", path, msg)
+            return None
+
+    def _partial_metrics(self, extra: Optional[dict] = None) -> None:
+        """``metrics.json`` with ``partial: true`` and the write errors so far (merged into what it holds)."""
+        from .outputs.metrics import MetricsFile
+
+        path = self.dir / "metrics.json"
+        try:
+            MetricsFile(path).update({"partial": True, **(extra or {}),
+                                      **({"write_errors": dict(self.write_errors)} if self.write_errors else {})})
+        except (OSError, ValueError) as exc:
+            msg = getattr(exc, "strerror", None) or str(exc)
+            self.write_errors[str(path)] = msg
+            LOG.error("could not write %s: %s", path, msg)
+
+    def _raise_write_errors(self) -> None:
+        if not self.write_errors:
+            return
+        self._partial_metrics()
+        lines = [f"{p}: {m}" for p, m in self.write_errors.items()]
+        raise OutputWriteError("could not write " + "; ".join(lines))
 
     def evaluate(self, mapper, timing: dict, dataset) -> dict[str, Any]:
         return evaluate_saved_run(self.dir, None, timing, dataset=dataset, pcfg=self.cfg)
@@ -93,14 +163,19 @@ def _write_json(path: Path, obj: Any) -> None:
 
 
 def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing: dict, registry=None,
-                       dataset=None, pcfg: Optional[PipelineConfig] = None) -> dict[str, Any]:
+                       dataset=None, pcfg: Optional[PipelineConfig] = None,
+                       dataset_error: Optional[str] = None) -> dict[str, Any]:
     """Metrics of a run directory: ATE/RPE (evo), loop precision/recall, PQ/VPQ; writes ``metrics.json`` and plots.
 
-    The trajectory ground truth is ``groundtruth.txt`` in the run directory; panoptic labels and revisit pairs
-    come from the dataset, rebuilt from the run's config when not given.
+    Ground truth comes from the run directory first -- ``groundtruth.txt`` (trajectory) and
+    ``groundtruth_loops.json`` (revisit pairs) -- so an archived or copied run is re-evaluated without its dataset.
+    The dataset (rebuilt from ``resolved`` when not given) is only opened for what the run directory cannot hold:
+    panoptic labels, and the revisits of runs written before ``groundtruth_loops.json``.  A dataset that cannot be
+    opened (moved, plugin not installed: ``dataset_error``) is not an error; ``evaluation_sources`` in the result
+    says where each kind of ground truth came from.
     """
     from .evaluation.run_eval import evaluate_run
-    from .outputs.metrics import MetricsFile
+    from .outputs.metrics import MetricsFile, read_json
 
     run_dir = Path(run_dir)
     pcfg = pcfg or resolved.pipeline
@@ -108,15 +183,29 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     MetricsFile(run_dir / "metrics.json").update({"timing": timing})
     if not ecfg.enabled:
         return {"timing": timing}
-    if dataset is None and resolved is not None:
-        from .interfaces import BuildContext
-        from .registry import get_registry
-
-        spec = (registry or get_registry()).get("dataset", resolved.pipeline.dataset.plugin)
-        dataset = spec.factory(resolved.models["dataset"], BuildContext(device=torch.device("cpu")))
+    sources: dict[str, str] = {}
+    loop_gt = None
+    loops_file = run_dir / "groundtruth_loops.json"
+    if loops_file.is_file():
+        loop_gt = [tuple(p) for p in read_json(loops_file)["pairs"]]
+        sources["loops"] = "groundtruth_loops.json (run directory)"
+    has_pred_panoptic = (run_dir / "panoptic" / "segments.json").is_file()
+    if dataset is None and dataset_error is None and (loop_gt is None or has_pred_panoptic) and resolved is not None:
+        dataset, dataset_error = _open_dataset(resolved, registry)
     info = dataset.info() if dataset is not None else None
+    if dataset is not None:
+        sources["dataset"] = f"used: {pcfg.dataset.plugin} ({info.source or info.name})"
+    elif dataset_error is not None:
+        sources["dataset"] = f"not available ({dataset_error})"
+    else:
+        sources["dataset"] = "not needed"
+    if loop_gt is None and info is not None and info.loop_pairs is not None:
+        loop_gt, sources["loops"] = info.loop_pairs, "dataset"
+    sources.setdefault("loops", "none (no groundtruth_loops.json, no revisits from the dataset)")
+    sources["trajectory"] = ("groundtruth.txt (run directory)" if (run_dir / "groundtruth.txt").is_file()
+                             else "none (no groundtruth.txt in the run directory)")
     panoptic_gt = None
-    if info is not None and info.has_gt_panoptic and (run_dir / "panoptic" / "segments.json").is_file():
+    if info is not None and info.has_gt_panoptic and has_pred_panoptic:
         panoptic_gt = {}
         for frame in dataset:  # int32 ids bound the memory; at most max_panoptic_frames frames
             if frame.gt_panoptic is not None:
@@ -124,12 +213,28 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
                                             frame.gt_panoptic.segments)
             if len(panoptic_gt) >= ecfg.max_panoptic_frames:
                 break
+    sources["panoptic"] = ("dataset" if panoptic_gt else
+                           "none (" + ("no predicted panoptic/" if not has_pred_panoptic else
+                                       "needs the dataset's labels") + ")")
     out = evaluate_run(
         run_dir,
         panoptic_gt=panoptic_gt,
-        loop_gt=info.loop_pairs if info is not None else None,
+        loop_gt=loop_gt,
         categories=list(info.categories) if info is not None and info.categories else None,
         align=ecfg.align, rpe_delta=ecfg.rpe_delta, loop_tolerance=ecfg.loop_tolerance,
         vpq_ks=tuple(ecfg.vpq_ks), plots=pcfg.outputs.plots,
     )
-    return {"timing": timing, **out}
+    MetricsFile(run_dir / "metrics.json").update({"evaluation_sources": sources})
+    return {"timing": timing, **out, "evaluation_sources": sources}
+
+
+def _open_dataset(resolved: ResolvedConfig, registry=None):
+    """``(dataset, None)``, or ``(None, why)`` when the run's dataset cannot be opened any more."""
+    from .interfaces import BuildContext
+    from .registry import get_registry
+
+    try:
+        spec = (registry or get_registry()).get("dataset", resolved.pipeline.dataset.plugin)
+        return spec.factory(resolved.models["dataset"], BuildContext(device=torch.device("cpu"))), None
+    except Exception as exc:  # noqa: BLE001 - any failure to open it means: evaluate from the run directory
+        return None, f"{type(exc).__name__}: {exc}"

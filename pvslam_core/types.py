@@ -21,6 +21,10 @@ Conventions (stated once, used everywhere)
 * **Flow targets**: for an edge ``(i, j)`` of the frame graph, ``target[e, :, y, x]`` is the ``(u, v)``
   pixel position in keyframe ``j`` (at the BA resolution) that pixel ``(x, y)`` of keyframe ``i``
   corresponds to; ``weight[e]`` is the per-coordinate confidence in ``[0, 1]``.
+* **Keyframes** have two numbers: a graph *index* (position in the frame graph, ``0..n-1``; it shifts down when an
+  older keyframe is removed, and is what the BA's edge lists ``ii``/``jj`` hold) and a stable *id* (assigned once,
+  never reused, never shifted).  Plugins key their own state by id (``graph.ids[ii]``) and hear of removals and
+  retired edges through :class:`~pvslam_core.interfaces.GraphListener`.
 """
 from __future__ import annotations
 
@@ -45,12 +49,28 @@ class Intrinsics:
     dist: tuple[float, ...] = ()  # OpenCV order (k1, k2, p1, p2[, k3]); empty = no distortion
 
     def __post_init__(self) -> None:
+        import math
+
+        for name in ("fx", "fy", "cx", "cy"):
+            v = getattr(self, name)
+            if not math.isfinite(v):
+                raise ValueError(f"{name}={v} is not a finite number")
         if not (self.fx > 0 and self.fy > 0):
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        # A principal point beyond half an image from the border is a wrong calibration (pixels vs normalised
+        # units, swapped values, another resolution), not a shift lens: refuse it here instead of failing later.
+        for name, v, size in (("cx", self.cx, self.width), ("cy", self.cy, self.height)):
+            if not -0.5 * size <= v <= 1.5 * size:
+                raise ValueError(f"{name}={v} lies far outside the {self.width}x{self.height} image "
+                                 f"(allowed {-0.5 * size:g}..{1.5 * size:g})")
         if len(self.dist) not in (0, 4, 5, 8, 12, 14):
             raise ValueError(f"distortion must have 0, 4, 5, 8, 12 or 14 coefficients, got {len(self.dist)}")
+        names = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tx", "ty")
+        for name, v in zip(names, self.dist):
+            if not math.isfinite(v):
+                raise ValueError(f"distortion coefficient {name}={v} is not a finite number")
 
     @property
     def has_distortion(self) -> bool:
@@ -102,12 +122,33 @@ class Segment:
 
 
 @dataclass
+class FeaturePyramid:
+    """Named multi-scale feature maps of one image (e.g. a segmenter's FPN levels ``p2..p6``), for a VPS head.
+
+    ``maps[name]`` is float ``[C, ceil(H / strides[name]), ceil(W / strides[name])]`` for an ``H x W`` image (padding
+    to a size divisibility may add rows/columns at the bottom/right); ``strides[name]`` is its stride in input
+    pixels.  Names are the producer's (detectron2 uses ``p2``..``p6``)."""
+
+    maps: dict[str, torch.Tensor]
+    strides: dict[str, int]
+
+    def __post_init__(self) -> None:
+        if set(self.maps) != set(self.strides):
+            raise ValueError(f"FeaturePyramid: levels {sorted(self.maps)} and strides {sorted(self.strides)} differ")
+
+    @property
+    def names(self) -> list[str]:
+        """Level names, finest (smallest stride) first."""
+        return sorted(self.maps, key=lambda n: self.strides[n])
+
+
+@dataclass
 class PanopticSegmentation:
     """Per-pixel segment ids plus one :class:`Segment` per id present (0 = void)."""
 
     ids: torch.Tensor  # int64 [H, W]
     segments: list[Segment]
-    features: Optional[dict[str, torch.Tensor]] = None  # optional backbone features for a VPS head
+    features: Optional[FeaturePyramid] = None  # the segmenter's multi-scale features, for a feature-level VPS head
 
     def segment(self, sid: int) -> Optional[Segment]:
         for s in self.segments:
@@ -199,7 +240,9 @@ class EdgeObservations:
     target: torch.Tensor  # float32 [E, 2, h, w] (u, v) in keyframe jj of each pixel of keyframe ii
     weight: torch.Tensor  # float32 [E, 2, h, w] confidence in [0, 1]
     dynamic: Optional[torch.Tensor] = None  # float32 [E, h, w] probability the pixel moves independently
-    eta: Optional[torch.Tensor] = None  # float32 [N, h, w] per-keyframe depth damping (learned frontends)
+    # float32 [n, h, w]: per-keyframe inverse-depth damping for the BA, one map per graph keyframe (learned
+    # frontends: DROID's eta); None -> the optimizer's configured constant
+    depth_damping: Optional[torch.Tensor] = None
 
     def __post_init__(self) -> None:
         e = int(self.ii.shape[0])
@@ -212,11 +255,59 @@ class EdgeObservations:
 
 @dataclass
 class LoopCandidate:
-    i: int  # the newer keyframe
-    j: int  # the older keyframe it revisits
+    """A loop proposed by a :class:`~pvslam_core.interfaces.LoopDetector` (keyframes by stable id)."""
+
+    i: int  # stable id of the newer keyframe
+    j: int  # stable id of the older keyframe it revisits
     score: float  # similarity (cosine) in [-1, 1]
-    verified: bool = False  # passed geometric verification
+    # geometric verification: True passed, False failed, None not checked (a retrieval-only detector); the
+    # mapper's loop policy accepts True always, None only when configured to (loop_closure.accept_unverified)
+    verified: Optional[bool] = None
     inliers: int = 0
+
+
+@dataclass
+class LoopClosure:
+    """A loop the pipeline accepted: input-frame indices (for outputs and evaluation) and keyframe ids."""
+
+    frame_i: int  # input-frame index of the newer keyframe
+    frame_j: int  # input-frame index of the older keyframe
+    kf_i: int  # stable keyframe ids
+    kf_j: int
+    score: float
+    verified: Optional[bool] = None
+    inliers: int = 0
+    loop_ba: bool = False  # whether this closure ran a loop BA (else its edges only joined the window BA)
+
+
+@dataclass
+class FrameResult:
+    """What the mapper says about one input frame (and the pipeline turns into the VPS head's motion cue).
+
+    Geometry is at the BA resolution ``(h, w)``.  The *reference* is the keyframe this frame was tracked against
+    (the newest keyframe when the frame arrived): ``ref_target`` are the positions in this frame of the reference's
+    pixels, ``ref_disp``/``ref_pose`` the reference's inverse depth and pose.  Two frames tracked against the same
+    reference (or a frame and the reference itself) therefore share the pixels from which the flow between them
+    follows (:func:`pvslam_core.slam.motion_cue.motion_cue`).
+    """
+
+    frame_index: int
+    timestamp: float
+    pose: torch.Tensor  # float64 [7] T_wc, the estimate at the time this frame was processed
+    initialized: bool  # whether the map was initialised (before that poses and depths are placeholders)
+    keyframe_id: Optional[int] = None  # stable id when this frame became a keyframe
+    ref_id: Optional[int] = None  # stable id of the reference keyframe (None for the first keyframe)
+    ref_pose: Optional[torch.Tensor] = None  # float64 [7] T_wc of the reference
+    ref_target: Optional[torch.Tensor] = None  # float32 [2, h, w] reference pixel -> (u, v) in this frame
+    ref_weight: Optional[torch.Tensor] = None  # float32 [2, h, w] confidence of ref_target
+    ref_disp: Optional[torch.Tensor] = None  # float32 [h, w] inverse depth of the reference
+    intrinsics: Optional[torch.Tensor] = None  # float32 [4] fx fy cx cy at the BA resolution
+    failed: bool = False  # tracking failed on this frame (its pose is a prediction)
+    message: str = ""
+
+    @property
+    def is_keyframe(self) -> bool:
+        return self.keyframe_id is not None
 
 
 @dataclass
@@ -242,5 +333,5 @@ class RunResult:
     keyframe_indices: torch.Tensor  # int64 [K] input-frame index of each keyframe
     keyframe_poses: torch.Tensor  # float64 [K, 7] T_wc
     metrics: dict = field(default_factory=dict)
-    loops: list[LoopCandidate] = field(default_factory=list)
+    loops: list[LoopClosure] = field(default_factory=list)
     frame_seconds: list[float] = field(default_factory=list)  # wall time spent on each input frame

@@ -15,11 +15,11 @@ def _sig(x):
 def test_eq4_values_paper_convention(w):
     wl = torch.tensor([w, w])
     m_d = torch.tensor([0.0, 1.0])  # static, dynamic
-    out = panoptic_aware_weight(wl, m_d, eta=10.0)
+    out = panoptic_aware_weight(wl, m_d, offset=10.0)
     assert float(out[0]) == pytest.approx(_sig(w + 10.0), rel=1e-6)  # static: + eta
     assert float(out[1]) == pytest.approx(_sig(w), rel=1e-6)  # dynamic: raw logit
     # soft masks interpolate the logit offset linearly
-    half = panoptic_aware_weight(torch.tensor(w), torch.tensor(0.5), eta=10.0)
+    half = panoptic_aware_weight(torch.tensor(w), torch.tensor(0.5), offset=10.0)
     assert float(half) == pytest.approx(_sig(w + 5.0), rel=1e-6)
 
 
@@ -27,7 +27,7 @@ def test_eq4_values_paper_convention(w):
 def test_eq4_values_pvo_code_convention(w):
     wl = torch.tensor([w, w])
     m_d = torch.tensor([0.0, 1.0])  # still pvslam's mask: 1 = dynamic
-    out = panoptic_aware_weight(wl, m_d, eta=10.0, convention="pvo_code")
+    out = panoptic_aware_weight(wl, m_d, offset=10.0, convention="pvo_code")
     # PVO's code: sigmoid(w + (1 - M_s) * 10) with M_s = 1 on static pixels
     assert float(out[0]) == pytest.approx(_sig(w), rel=1e-6)  # static: raw logit
     assert float(out[1]) == pytest.approx(_sig(w + 10.0), rel=1e-6)  # dynamic: + eta
@@ -39,7 +39,7 @@ def test_bool_mask_and_broadcast():
     wl = torch.zeros(2, 3, 4)
     dyn = torch.zeros(3, 4, dtype=torch.bool)
     dyn[1, 2] = True
-    out = panoptic_aware_weight(wl, dyn, eta=4.0)
+    out = panoptic_aware_weight(wl, dyn, offset=4.0)
     assert out.shape == (2, 3, 4)
     assert float(out[0, 1, 2]) == pytest.approx(0.5)
     assert float(out[1, 0, 0]) == pytest.approx(_sig(4.0))

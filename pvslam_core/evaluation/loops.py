@@ -27,7 +27,9 @@ __all__ = ["loop_precision_recall", "revisit_events"]
 def _pairs(pairs: Iterable[Any]) -> np.ndarray:
     out = []
     for p in pairs:
-        if hasattr(p, "i") and hasattr(p, "j"):  # LoopCandidate
+        if hasattr(p, "frame_i") and hasattr(p, "frame_j"):  # LoopClosure (input-frame indices)
+            a, b = int(p.frame_i), int(p.frame_j)
+        elif hasattr(p, "i") and hasattr(p, "j"):
             a, b = int(p.i), int(p.j)
         else:
             a, b = (int(v) for v in p)
@@ -57,7 +59,7 @@ def revisit_events(gt_pairs: Iterable[Any], tolerance: int = 5) -> list[np.ndarr
 def loop_precision_recall(detected: Iterable[Any], gt_pairs: Iterable[Any], tolerance: int = 5) -> dict:
     """Precision / recall of detected loop pairs (see the module docstring for the exact definitions).
 
-    ``detected``: ``(i, j)`` tuples or :class:`~pvslam_core.types.LoopCandidate` objects; ``gt_pairs``: ``(i, j)``.
+    ``detected``: ``(i, j)`` frame-index tuples or :class:`~pvslam_core.types.LoopClosure` objects; ``gt_pairs``: ``(i, j)``.
     Returns ``precision, recall, pair_recall, f1, num_detected, num_tp, num_fp, num_gt_pairs, num_gt_events,
     num_events_detected, tolerance, false_positives`` (up to 100 unmatched detections, for debugging).
     """

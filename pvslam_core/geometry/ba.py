@@ -204,7 +204,7 @@ def dense_ba(
     iters: int = 2,
     lm: float = 1e-4,
     ep: float = 0.1,
-    eta: float | torch.Tensor = 1e-3,
+    depth_damping: float | torch.Tensor = 1e-3,
     depth_free: Optional[torch.Tensor] = None,
     min_depth: float = 0.2,
     robust: Optional[str] = None,
@@ -215,9 +215,9 @@ def dense_ba(
 ) -> OptimizerReport:
     """Run ``iters`` Gauss-Newton/LM iterations of dense BA on ``graph`` in place (see the module docstring).
 
-    ``free`` / ``depth_free``: bool ``[n]``.  ``eta``: depth damping, a float or a tensor broadcastable to
-    ``[n, h, w]``; when ``obs.eta`` (learned, per keyframe) is given it is used instead, as DROID:
-    ``0.2 * obs.eta + 1e-7``.  ``robust``: None, ``'huber'`` or ``'cauchy'`` IRLS on the 2D residual with
+    ``free`` / ``depth_free``: bool ``[n]``.  ``depth_damping``: DROID's ``eta``, a float or a tensor broadcastable
+    to ``[n, h, w]``; when ``obs.depth_damping`` (learned, per keyframe) is given it is used instead, as DROID:
+    ``0.2 * obs.depth_damping + 1e-7``.  ``robust``: None, ``'huber'`` or ``'cauchy'`` IRLS on the 2D residual with
     ``robust_scale`` pixels.  ``dtype``: per-pixel arithmetic (default float32 - the graph stores float32
     disparities anyway, and noise-free problems still converge to ~1e-7; the reduced pose system, the pose
     updates and the poses are always float64).  ``max_chunk_pixels``: edge-pixels linearised at once (the
@@ -254,14 +254,14 @@ def dense_ba(
     intr = graph.intrinsics
     target_all = obs.target.reshape(E, 2, P).to(dev)  # views: chunks are cast / clamped when used
     conf_all = obs.weight.reshape(E, 2, P).to(dev)
-    if obs.eta is not None:
-        eta_map = (0.2 * obs.eta.to(dev, dtype) + 1e-7).reshape(N, P)
+    if obs.depth_damping is not None:
+        eta_map = (0.2 * obs.depth_damping.to(dev, dtype) + 1e-7).reshape(N, P)
     else:
-        eta_t = torch.as_tensor(eta, dtype=dtype, device=dev)
+        eta_t = torch.as_tensor(depth_damping, dtype=dtype, device=dev)
         eta_map = eta_t.expand(N, h, w).reshape(N, P) if eta_t.dim() > 0 else eta_t.expand(N, P)
-    eta_src = obs.eta if obs.eta is not None else torch.as_tensor(eta)
+    eta_src = obs.depth_damping if obs.depth_damping is not None else torch.as_tensor(depth_damping)
     if not _all_finite(eta_src) or bool((eta_src < 0).any()):
-        return _report_reject(report, "dense_ba: non-finite or negative eta; estimate left unchanged")
+        return _report_reject(report, "dense_ba: non-finite or negative depth damping; estimate left unchanged")
 
     free_idx = torch.nonzero(free).squeeze(1)
     F = int(free_idx.shape[0])

@@ -2,12 +2,12 @@
 
 Format::
 
-    {"loops": [{"i": 41, "j": 3, "frame_i": 410, "frame_j": 30, "score": 0.91, "verified": true, "inliers": 120},
-               ...]}
+    {"loops": [{"frame_i": 410, "frame_j": 30, "kf_i": 41, "kf_j": 3, "score": 0.91, "verified": true,
+                "inliers": 120, "loop_ba": true}, ...]}
 
-``i`` / ``j`` are keyframe indices (newer, older) as in :class:`~pvslam_core.types.LoopCandidate`; ``frame_i`` /
-``frame_j`` the input-frame indices (present when the writer was given the keyframe -> frame mapping), which is
-what loop evaluation against ground-truth revisit pairs uses.
+``frame_i`` / ``frame_j`` are the input-frame indices (newer, older) - what loop evaluation against ground-truth
+revisit pairs uses; ``kf_i`` / ``kf_j`` the stable keyframe ids (:class:`~pvslam_core.types.LoopClosure`).  Files
+may instead carry ``i`` / ``j`` keyframe indices plus a keyframe -> frame mapping given to the writer.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ __all__ = ["write_loops", "read_loops", "loop_frame_pairs"]
 
 
 def write_loops(path: str | os.PathLike, loops: Sequence[Any], keyframe_frame_index: Optional[Any] = None) -> None:
-    """Write loops (``LoopCandidate`` objects, dicts with ``i``/``j`` or ``(i, j)`` tuples) atomically.
+    """Write loops (``LoopClosure`` objects, dicts, objects with ``i``/``j`` or ``(i, j)`` tuples) atomically.
 
     ``keyframe_frame_index``: int ``[K]`` input-frame index of each keyframe, to add ``frame_i`` / ``frame_j``.
     """
@@ -34,6 +34,9 @@ def write_loops(path: str | os.PathLike, loops: Sequence[Any], keyframe_frame_in
     for lp in loops:
         if isinstance(lp, dict):
             d = dict(lp)
+        elif hasattr(lp, "frame_i") and hasattr(lp, "kf_i"):  # LoopClosure
+            d = {k: getattr(lp, k) for k in ("frame_i", "frame_j", "kf_i", "kf_j", "score", "verified", "inliers",
+                                             "loop_ba")}
         elif hasattr(lp, "i") and hasattr(lp, "j"):
             d = {"i": int(lp.i), "j": int(lp.j)}
             for k in ("score", "verified", "inliers"):

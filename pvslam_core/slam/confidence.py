@@ -6,6 +6,8 @@ Eq. 4 of the PV-SLAM paper::
 
     w_p = sigmoid(w + (1 - M_d) * eta),      eta = 10,   M_d = 1 on *dynamic* pixels
 
+(``eta`` is called ``offset`` in the code, to keep it apart from the BA's depth damping, also ``eta`` in DROID.)
+
 The mask convention matters, and the paper and PVO's public code disagree:
 
 * **paper** (default here): ``M_d = 1`` marks dynamic pixels, so static pixels get ``+eta`` on their logit and
@@ -51,7 +53,7 @@ def logit(p: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
 def panoptic_aware_weight(
     w_logit: torch.Tensor,
     dynamic: torch.Tensor,
-    eta: float = 10.0,
+    offset: float = 10.0,
     convention: str = "paper",
 ) -> torch.Tensor:
     """PV-SLAM eq. 4: the confidence of each pixel given its raw logit and its dynamic mask.
@@ -60,7 +62,7 @@ def panoptic_aware_weight(
         w_logit: raw confidence logits ``w`` (any shape).
         dynamic: probability / mask that the pixel moves independently, **1 = dynamic** (broadcastable to
             ``w_logit``; bool or float in [0, 1]).  This is pvslam's convention whatever ``convention`` says.
-        eta: the logit offset (10 in the paper and in PVO).
+        offset: the logit offset ``eta`` of eq. 4 (10 in the paper and in PVO).
         convention: ``"paper"`` -> ``sigmoid(w + (1 - M_d) * eta)``;  ``"pvo_code"`` -> PVO's code, whose mask
             is the *static* mask ``M_s = 1 - M_d``: ``sigmoid(w + (1 - M_s) * eta) = sigmoid(w + M_d * eta)``.
             See the module docstring for why "paper" is the default.
@@ -72,21 +74,21 @@ def panoptic_aware_weight(
         raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
     m_d = dynamic.to(dtype=w_logit.dtype if w_logit.is_floating_point() else torch.float32)
     if convention == "paper":
-        return torch.sigmoid(w_logit + (1.0 - m_d) * eta)
+        return torch.sigmoid(w_logit + (1.0 - m_d) * offset)
     m_s = 1.0 - m_d  # PVO's mask: 1 = static
-    return torch.sigmoid(w_logit + (1.0 - m_s) * eta)
+    return torch.sigmoid(w_logit + (1.0 - m_s) * offset)
 
 
 def observed_flow_weight(
     confidence: torch.Tensor,
     dynamic: Optional[torch.Tensor],
-    eta: float = 10.0,
+    offset: float = 10.0,
     convention: str = "paper",
     max_conf: float = 0.99,
 ) -> torch.Tensor:
     """Weights for targets that are the *observed* (full) flow, from a confidence ``c`` in [0, 1].
 
-    Feeds ``w_logit = logit(min(c, max_conf)) - eta`` to :func:`panoptic_aware_weight`, so with the paper
+    Feeds ``w_logit = logit(min(c, max_conf)) - offset`` (``offset`` = eq. 4's ``eta``) to :func:`panoptic_aware_weight`, so with the paper
     convention static pixels keep their confidence (capped at ``max_conf``) and dynamic pixels get
     ``sigmoid(logit(c) - eta) = c e^-eta / (1 - c + c e^-eta)``, i.e. ``~ c e^-eta`` for small ``c`` and at most
     ``~ 4.5e-3`` for ``c <= 0.99`` and ``eta = 10``.  The cap matters: a perfectly consistent pixel (``c = 1``,
@@ -96,7 +98,7 @@ def observed_flow_weight(
     if dynamic is None:
         return confidence
     c = confidence.clamp(max=max_conf)
-    return panoptic_aware_weight(logit(c) - eta, dynamic, eta=eta, convention=convention)
+    return panoptic_aware_weight(logit(c) - offset, dynamic, offset=offset, convention=convention)
 
 
 def _thing_lookup(

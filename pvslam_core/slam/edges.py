@@ -1,11 +1,15 @@
-"""Which frame-graph edges a new keyframe gets (DROID-SLAM style; reference anchors section 1.5).
+"""Which frame-graph edges a new keyframe gets and which edges retire (DROID-SLAM style; DROID-SLAM reference
+notes, shared/reference/anchors.md section 1.5).
 
 * neighbour edges to the previous ``neighbours`` keyframes;
 * proximity edges to older keyframes inside ``proximity_window`` whose frame distance (mean induced flow at the
   BA resolution, under the current estimate) is below ``proximity_thresh``, greedily by distance with index NMS;
 * loop edges ``(i, j-1), (i, j), (i, j+1)`` for a detected loop ``i <-> j`` (the paper adds the two outer ones).
 
-All functions return ``(ii, jj)`` int64 tensors; with ``bidirectional`` both directions are included.
+* retirement: edges that no longer touch the last ``active_window`` keyframes (the window BAs would never use
+  them again), edges older than ``max_edge_age`` optimisation rounds, and beyond ``max_active_edges`` the oldest.
+
+The edge functions return ``(ii, jj)`` int64 tensors; with ``bidirectional`` both directions are included.
 """
 from __future__ import annotations
 
@@ -66,3 +70,20 @@ def active_edges(graph: FrameGraph, k: int, window: int) -> tuple[torch.Tensor, 
     lo = k - window + 1
     mask = (graph.ii >= lo) | (graph.jj >= lo)
     return graph.ii[mask], graph.jj[mask]
+
+
+def retirement_mask(graph: FrameGraph, k: int, cfg: GraphSection) -> torch.Tensor:
+    """bool ``[num_edges]``: active edges to retire before keyframe ``k``'s window BA (see the module docstring).
+    Edges touching ``k`` itself never retire here (they were just added or are about to be observed)."""
+    if graph.num_edges == 0:
+        return torch.zeros(0, dtype=torch.bool, device=graph.device)
+    lo = k - cfg.active_window + 1
+    touches_new = (graph.ii == k) | (graph.jj == k)
+    mask = ~((graph.ii >= lo) | (graph.jj >= lo))
+    mask |= (graph.edge_age >= cfg.max_edge_age) & ~touches_new
+    excess = int((~mask).sum()) - cfg.max_active_edges
+    if excess > 0:  # the oldest of the remaining ones (by the keyframe count when they were added)
+        cand = torch.nonzero(~mask & ~touches_new).squeeze(1)
+        order = torch.argsort(graph.edge_born[cand], stable=True)
+        mask[cand[order[:excess]]] = True
+    return mask

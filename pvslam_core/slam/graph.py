@@ -1,20 +1,36 @@
-"""The frame graph: keyframe store (pose, inverse depth at the BA resolution) plus directed edges ``i -> j``.
+"""The frame graph: keyframe store (stable id, pose, inverse depth at the BA resolution) plus directed edges
+``i -> j`` with a lifecycle.
 
-Storage grows geometrically (amortised O(1) ``add_keyframe``); the public attributes are views of the first
-``n`` rows.  Memory per keyframe is one pose plus one ``h x w`` inverse-depth map.  Poses are ``T_wc``
-(camera-to-world, float64), see :mod:`pvslam_core.types`.
+Keyframes.  Each keyframe has a graph *index* (``0..n-1``, what the BA's edge lists hold; it shifts down when an
+older keyframe is removed) and a stable *id* (``ids[k]``, assigned once, never reused).  Ids grow with the index,
+so ``indices_of`` is a binary search.  Storage grows geometrically (amortised O(1) ``add_keyframe``); the public
+attributes are views of the first ``n`` rows.  Poses are ``T_wc`` (camera-to-world, float64), see
+:mod:`pvslam_core.types`.
+
+Edges.  ``ii``/``jj``/``edge_kind``/``edge_age`` are the *active* edges, the ones the window and loop BAs use and
+the frontend keeps per-edge state for.  ``edge_age`` counts the optimisation rounds an edge took part in
+(:meth:`age_edges`).  :meth:`retire_edges` moves edges out of the active set (DROID-SLAM's ``rm_factors(...,
+store=True)``): the last observation recorded for each (:meth:`record_observations`) is kept, as a flow offset
+and a weight in float16 (about 10 KB per edge at 40x30), for the final global BA; listeners hear
+``on_edges_retired`` so per-edge state can go.  :meth:`all_edges` lists active and retired edges.
+
+Listeners (:class:`~pvslam_core.interfaces.GraphListener`) hear ``on_keyframe_removed(id)`` before a keyframe's
+data is dropped and ``on_edges_retired(src_ids, dst_ids)`` after edges are retired.  This is the only place that
+shifts indices.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Iterable, Optional
 
 import torch
 
 from ..geometry.projective import frame_distance as _frame_distance
+from ..types import EdgeObservations
 
 EDGE_ODOMETRY = 0  # odometry / neighbourhood edge
 EDGE_PROXIMITY = 1
 EDGE_LOOP = 2
+EDGE_KIND_NAMES = {EDGE_ODOMETRY: "odometry", EDGE_PROXIMITY: "proximity", EDGE_LOOP: "loop"}
 
 
 class FrameGraph:
@@ -24,15 +40,23 @@ class FrameGraph:
         self.intrinsics = torch.as_tensor(intrinsics, dtype=torch.float32).to(self.device).reshape(4).clone()
         capacity = max(1, int(capacity))
         self.n = 0
+        self.next_id = 0
         h, w = self.ba_shape
         self._poses = torch.zeros(capacity, 7, dtype=torch.float64, device=self.device)
         self._disps = torch.zeros(capacity, h, w, dtype=torch.float32, device=self.device)
         self._frame_index = torch.zeros(capacity, dtype=torch.int64, device=self.device)
         self._timestamps = torch.zeros(capacity, dtype=torch.float64, device=self.device)
+        self._ids = torch.zeros(capacity, dtype=torch.int64, device=self.device)
+        self._ids_cpu: list[int] = []  # the same ids, for Python-side lookups without device syncs
         self.ii = torch.zeros(0, dtype=torch.int64, device=self.device)
         self.jj = torch.zeros(0, dtype=torch.int64, device=self.device)
         self.edge_age = torch.zeros(0, dtype=torch.int64, device=self.device)
         self.edge_kind = torch.zeros(0, dtype=torch.int8, device=self.device)
+        self.edge_born = torch.zeros(0, dtype=torch.int64, device=self.device)  # next_id when the edge was added
+        self._last_obs: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}  # (src id, dst id) -> target, weight
+        self._retired: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor, int]] = {}  # -> offset f16, weight f16, kind
+        self.retired_total = 0  # edges ever retired (statistics)
+        self.listeners: list[Any] = []
 
     # ------------------------------------------------------------------------------------------- views
     @property
@@ -56,14 +80,62 @@ class FrameGraph:
         return self._timestamps[: self.n]
 
     @property
+    def ids(self) -> torch.Tensor:
+        """int64 ``[n]`` stable keyframe ids (ascending)."""
+        return self._ids[: self.n]
+
+    @property
     def num_edges(self) -> int:
+        """Active edges."""
         return int(self.ii.shape[0])
+
+    @property
+    def num_retired(self) -> int:
+        return len(self._retired)
 
     def __len__(self) -> int:
         return self.n
 
     def __repr__(self) -> str:
-        return f"FrameGraph(n={self.n}, edges={self.num_edges}, ba_shape={self.ba_shape}, device={self.device})"
+        return (f"FrameGraph(n={self.n}, edges={self.num_edges} active + {self.num_retired} retired, "
+                f"ba_shape={self.ba_shape}, device={self.device})")
+
+    # ------------------------------------------------------------------------------------------- ids
+    def id_of(self, k: int) -> int:
+        """Stable id of the keyframe at graph index ``k``."""
+        if not -self.n <= int(k) < self.n:
+            raise IndexError(f"keyframe index {k} out of range (n={self.n})")
+        return self._ids_cpu[int(k)]
+
+    def index_of(self, kf_id: int) -> int:
+        """Graph index of keyframe ``kf_id``; KeyError when it is not (or no longer) in the graph."""
+        import bisect
+
+        k = bisect.bisect_left(self._ids_cpu, int(kf_id))
+        if k >= self.n or self._ids_cpu[k] != int(kf_id):
+            raise KeyError(f"keyframe id {kf_id} is not in the graph")
+        return k
+
+    def has_id(self, kf_id: int) -> bool:
+        try:
+            self.index_of(kf_id)
+            return True
+        except KeyError:
+            return False
+
+    def indices_of(self, kf_ids) -> torch.Tensor:
+        """int64 graph indices of ``kf_ids`` (any shape), ``-1`` where an id is not in the graph."""
+        q = torch.as_tensor(kf_ids, dtype=torch.int64, device=self.device)
+        if self.n == 0:
+            return torch.full_like(q, -1)
+        pos = torch.searchsorted(self.ids, q.reshape(-1)).clamp(max=self.n - 1)
+        found = self.ids[pos] == q.reshape(-1)
+        return torch.where(found, pos, torch.full_like(pos, -1)).reshape(q.shape)
+
+    def add_listener(self, listener: Any) -> None:
+        """Register a :class:`~pvslam_core.interfaces.GraphListener` (each object once)."""
+        if listener is not None and all(listener is not l for l in self.listeners):
+            self.listeners.append(listener)
 
     # ------------------------------------------------------------------------------------------- keyframes
     def _grow(self, need: int) -> None:
@@ -82,9 +154,10 @@ class FrameGraph:
         self._disps = grown(self._disps)
         self._frame_index = grown(self._frame_index)
         self._timestamps = grown(self._timestamps)
+        self._ids = grown(self._ids)
 
     def add_keyframe(self, frame_index: int, timestamp: float, pose_wc: torch.Tensor, disp: torch.Tensor) -> int:
-        """Append a keyframe; returns its index (``n - 1`` afterwards)."""
+        """Append a keyframe; returns its index (``n - 1`` afterwards).  Its stable id is ``ids[-1]``."""
         h, w = self.ba_shape
         disp = torch.as_tensor(disp)
         if disp.dim() == 0:
@@ -98,40 +171,56 @@ class FrameGraph:
         self._disps[k] = disp.reshape(h, w).to(self.device, torch.float32)
         self._frame_index[k] = int(frame_index)
         self._timestamps[k] = float(timestamp)
+        self._ids[k] = self.next_id
+        self._ids_cpu.append(self.next_id)
+        self.next_id += 1
         self.n += 1
         return k
 
     def remove_keyframe(self, k: int) -> None:
-        """Remove keyframe ``k`` and the edges touching it; later keyframes (and edge ends) shift down by one."""
+        """Remove keyframe ``k`` and every edge touching it (active and retired); later keyframes (and edge ends)
+        shift down by one.  Listeners hear ``on_keyframe_removed`` first, while the keyframe is still readable."""
         k = int(k)
         if not 0 <= k < self.n:
             raise IndexError(f"keyframe {k} out of range (n={self.n})")
-        for buf in (self._poses, self._disps, self._frame_index, self._timestamps):
+        kf_id = self._ids_cpu[k]
+        for listener in list(self.listeners):
+            listener.on_keyframe_removed(kf_id)
+        for buf in (self._poses, self._disps, self._frame_index, self._timestamps, self._ids):
             buf[k : self.n - 1] = buf[k + 1 : self.n].clone()
+        del self._ids_cpu[k]
         self.n -= 1
         keep = (self.ii != k) & (self.jj != k)
         self._keep_edges(keep)
         self.ii = self.ii - (self.ii > k).long()
         self.jj = self.jj - (self.jj > k).long()
+        for store in (self._last_obs, self._retired):
+            for key in [key for key in store if kf_id in key]:
+                del store[key]
 
     # ------------------------------------------------------------------------------------------- edges
     def _keep_edges(self, keep: torch.Tensor) -> None:
+        """Drop active edges where ``keep`` is False (callers clean ``_last_obs`` themselves)."""
         self.ii, self.jj = self.ii[keep], self.jj[keep]
         self.edge_age, self.edge_kind = self.edge_age[keep], self.edge_kind[keep]
+        self.edge_born = self.edge_born[keep]
+
+    def _keys(self, ii: torch.Tensor, jj: torch.Tensor) -> torch.Tensor:
+        m = max(self.n, 1)
+        return ii * m + jj
 
     def has_edges(self, ii, jj) -> torch.Tensor:
-        """bool ``[len(ii)]``: whether each ``ii -> jj`` is already an edge."""
+        """bool ``[len(ii)]``: whether each ``ii -> jj`` is an active edge."""
         ii = torch.as_tensor(ii, dtype=torch.int64, device=self.device).reshape(-1)
         jj = torch.as_tensor(jj, dtype=torch.int64, device=self.device).reshape(-1)
         if self.num_edges == 0 or len(ii) == 0:
             return torch.zeros(len(ii), dtype=torch.bool, device=self.device)
-        m = max(self.n, int(ii.max()) + 1, int(jj.max()) + 1, int(self.ii.max()) + 1, int(self.jj.max()) + 1)
-        existing = self.ii * m + self.jj
-        return torch.isin(ii * m + jj, existing)
+        return torch.isin(self._keys(ii, jj), self._keys(self.ii, self.jj))
 
     def add_edges(self, ii, jj, kind: int = EDGE_ODOMETRY) -> torch.Tensor:
-        """Add edges ``ii -> jj``; self-edges, out-of-range ends and duplicates (with existing edges or within the
-        call) are skipped.  Returns the bool mask ``[len(ii)]`` of edges actually added (new edges have age 0)."""
+        """Add active edges ``ii -> jj``; self-edges, out-of-range ends and duplicates (with active edges or within
+        the call) are skipped; a retired edge that is added again becomes active (its stored observation goes).
+        Returns the bool mask ``[len(ii)]`` of edges actually added (new edges have age 0)."""
         ii = torch.as_tensor(ii, dtype=torch.int64, device=self.device).reshape(-1)
         jj = torch.as_tensor(jj, dtype=torch.int64, device=self.device).reshape(-1)
         if ii.shape != jj.shape:
@@ -140,33 +229,120 @@ class FrameGraph:
         ok &= ~self.has_edges(ii, jj)
         if ok.any():
             # duplicates inside this call: keep the first occurrence
-            key = ii * max(self.n, 1) + jj
+            key = self._keys(ii, jj)
             idx = torch.nonzero(ok).squeeze(1)
             _, inv = torch.unique(key[idx], return_inverse=True)
             first = torch.full((int(inv.max()) + 1,), len(idx), dtype=torch.int64, device=self.device)
             first.scatter_reduce_(0, inv, torch.arange(len(idx), device=self.device), reduce="amin")
-            keep_idx = idx[first]
             ok = torch.zeros_like(ok)
-            ok[keep_idx] = True
+            ok[idx[first]] = True
         sel = torch.nonzero(ok).squeeze(1)
         if len(sel):
+            if self._retired:
+                for i, j in zip(ii[sel].tolist(), jj[sel].tolist()):
+                    self._retired.pop((self._ids_cpu[i], self._ids_cpu[j]), None)
             self.ii = torch.cat([self.ii, ii[sel]])
             self.jj = torch.cat([self.jj, jj[sel]])
             self.edge_age = torch.cat([self.edge_age, torch.zeros(len(sel), dtype=torch.int64, device=self.device)])
             self.edge_kind = torch.cat(
                 [self.edge_kind, torch.full((len(sel),), int(kind), dtype=torch.int8, device=self.device)]
             )
+            self.edge_born = torch.cat(
+                [self.edge_born, torch.full((len(sel),), self.next_id, dtype=torch.int64, device=self.device)]
+            )
         return ok
 
-    def remove_edges(self, mask: torch.Tensor) -> None:
-        """Remove the edges where ``mask`` (bool over the current edges) is True."""
+    def edge_mask(self, ii, jj) -> torch.Tensor:
+        """bool ``[num_edges]``: the active edges that are among ``ii -> jj``."""
+        ii = torch.as_tensor(ii, dtype=torch.int64, device=self.device).reshape(-1)
+        jj = torch.as_tensor(jj, dtype=torch.int64, device=self.device).reshape(-1)
+        if self.num_edges == 0 or len(ii) == 0:
+            return torch.zeros(self.num_edges, dtype=torch.bool, device=self.device)
+        return torch.isin(self._keys(self.ii, self.jj), self._keys(ii, jj))
+
+    def age_edges(self, ii, jj, by: int = 1) -> None:
+        """One more optimisation round for the active edges among ``ii -> jj``."""
+        self.edge_age = self.edge_age + int(by) * self.edge_mask(ii, jj).long()
+
+    def record_observations(self, obs: EdgeObservations) -> None:
+        """Remember the latest observation of each active edge in ``obs`` (kept if the edge is retired)."""
+        if obs.ii.numel() == 0:
+            return
+        active = self.has_edges(obs.ii, obs.jj).tolist()
+        ids = self._ids_cpu
+        for e, (i, j) in enumerate(zip(obs.ii.tolist(), obs.jj.tolist())):
+            if active[e]:
+                self._last_obs[(ids[i], ids[j])] = (obs.target[e], obs.weight[e])
+
+    def retire_edges(self, mask: torch.Tensor) -> int:
+        """Move the active edges where ``mask`` is True to the retired store (their last recorded observation is
+        kept for :meth:`retired_observations`; an edge never observed is simply dropped).  Listeners hear
+        ``on_edges_retired``.  Returns the number retired."""
         mask = torch.as_tensor(mask, dtype=torch.bool, device=self.device).reshape(-1)
         if mask.shape[0] != self.num_edges:
             raise ValueError(f"mask has {mask.shape[0]} entries for {self.num_edges} edges")
+        sel = torch.nonzero(mask).squeeze(1)
+        if len(sel) == 0:
+            return 0
+        h, w = self.ba_shape
+        grid = _grid(h, w, self.device)
+        src = self.ids[self.ii[sel]]
+        dst = self.ids[self.jj[sel]]
+        for s, d, kind in zip(src.tolist(), dst.tolist(), self.edge_kind[sel].tolist()):
+            last = self._last_obs.pop((s, d), None)
+            if last is not None:
+                target, weight = last
+                offset = (target.to(self.device, torch.float32) - grid).to(torch.float16)
+                self._retired[(s, d)] = (offset, weight.to(self.device, torch.float16), int(kind))
+        self.retired_total += len(sel)
         self._keep_edges(~mask)
+        for listener in list(self.listeners):
+            listener.on_edges_retired(src, dst)
+        return int(len(sel))
 
-    def age_edges(self, by: int = 1) -> None:
-        self.edge_age = self.edge_age + int(by)
+    def retired_edges(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(ii, jj)`` graph indices of the retired edges that have a stored observation."""
+        if not self._retired:
+            z = torch.zeros(0, dtype=torch.int64, device=self.device)
+            return z, z.clone()
+        keys = torch.tensor(list(self._retired), dtype=torch.int64, device=self.device)  # [R, 2] ids
+        idx = self.indices_of(keys)
+        return idx[:, 0], idx[:, 1]
+
+    def is_retired(self, ii, jj) -> torch.Tensor:
+        """bool ``[len(ii)]``: whether each ``ii -> jj`` has a stored retired observation."""
+        ii = torch.as_tensor(ii, dtype=torch.int64).reshape(-1).tolist()
+        jj = torch.as_tensor(jj, dtype=torch.int64).reshape(-1).tolist()
+        ids = self._ids_cpu
+        return torch.tensor([(ids[i], ids[j]) in self._retired for i, j in zip(ii, jj)], dtype=torch.bool)
+
+    def retired_observations(self, ii, jj) -> EdgeObservations:
+        """The stored observations of retired edges ``ii -> jj`` (graph indices; each must be retired)."""
+        ii = torch.as_tensor(ii, dtype=torch.int64, device=self.device).reshape(-1)
+        jj = torch.as_tensor(jj, dtype=torch.int64, device=self.device).reshape(-1)
+        h, w = self.ba_shape
+        ids = self._ids_cpu
+        rows = []
+        for i, j in zip(ii.tolist(), jj.tolist()):
+            entry = self._retired.get((ids[i], ids[j]))
+            if entry is None:
+                raise KeyError(f"edge {i} -> {j} (ids {ids[i]} -> {ids[j]}) has no retired observation")
+            rows.append(entry)
+        if not rows:
+            z = torch.zeros(0, 2, h, w, dtype=torch.float32, device=self.device)
+            return EdgeObservations(ii, jj, z, z.clone())
+        grid = _grid(h, w, self.device)
+        target = torch.stack([r[0] for r in rows]).float() + grid
+        weight = torch.stack([r[1] for r in rows]).float()
+        return EdgeObservations(ii, jj, target, weight)
+
+    def all_edges(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(ii, jj)`` of the active edges followed by the retired ones (for the final global BA)."""
+        rii, rjj = self.retired_edges()
+        return torch.cat([self.ii, rii]), torch.cat([self.jj, rjj])
+
+    def retired_bytes(self) -> int:
+        return sum(o.numel() * o.element_size() + w_.numel() * w_.element_size() for o, w_, _ in self._retired.values())
 
     # ------------------------------------------------------------------------------------------- state
     def set_poses(self, idx, poses_wc: torch.Tensor) -> None:
@@ -184,6 +360,7 @@ class FrameGraph:
         return _frame_distance(self.poses, self.disps, self.intrinsics, ii, jj, beta=beta)
 
     def state_dict(self) -> dict[str, Any]:
+        """Keyframes and active edges (the retired store and recorded observations are not included)."""
         return {
             "ba_shape": torch.tensor(self.ba_shape, dtype=torch.int64),
             "intrinsics": self.intrinsics.cpu().clone(),
@@ -191,10 +368,13 @@ class FrameGraph:
             "disps": self.disps.cpu().clone(),
             "frame_index": self.frame_index.cpu().clone(),
             "timestamps": self.timestamps.cpu().clone(),
+            "ids": self.ids.cpu().clone(),
+            "next_id": torch.tensor(self.next_id, dtype=torch.int64),
             "ii": self.ii.cpu().clone(),
             "jj": self.jj.cpu().clone(),
             "edge_age": self.edge_age.cpu().clone(),
             "edge_kind": self.edge_kind.cpu().clone(),
+            "edge_born": self.edge_born.cpu().clone(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -209,15 +389,23 @@ class FrameGraph:
         self._disps = torch.zeros(cap, h, w, dtype=torch.float32, device=self.device)
         self._frame_index = torch.zeros(cap, dtype=torch.int64, device=self.device)
         self._timestamps = torch.zeros(cap, dtype=torch.float64, device=self.device)
+        self._ids = torch.zeros(cap, dtype=torch.int64, device=self.device)
         self.n = n
         self._poses[:n] = state["poses"].to(self.device, torch.float64)
         self._disps[:n] = state["disps"].to(self.device, torch.float32)
         self._frame_index[:n] = state["frame_index"].to(self.device)
         self._timestamps[:n] = state["timestamps"].to(self.device, torch.float64)
+        ids = state.get("ids", torch.arange(n))
+        self._ids[:n] = ids.to(self.device, torch.int64)
+        self._ids_cpu = [int(v) for v in ids.tolist()]
+        self.next_id = int(state.get("next_id", torch.tensor(n)))
         self.ii = state["ii"].to(self.device, torch.int64).clone()
         self.jj = state["jj"].to(self.device, torch.int64).clone()
         self.edge_age = state["edge_age"].to(self.device, torch.int64).clone()
         self.edge_kind = state["edge_kind"].to(self.device, torch.int8).clone()
+        self.edge_born = state.get("edge_born", torch.zeros_like(state["ii"])).to(self.device, torch.int64).clone()
+        self._last_obs.clear()
+        self._retired.clear()
 
     @classmethod
     def from_state_dict(cls, state: dict[str, Any], device="cpu") -> "FrameGraph":
@@ -225,3 +413,17 @@ class FrameGraph:
         g = cls(h, w, state["intrinsics"], device=device, capacity=max(1, int(state["poses"].shape[0])))
         g.load_state_dict(state)
         return g
+
+
+_GRIDS: dict[tuple[int, int, str], torch.Tensor] = {}
+
+
+def _grid(h: int, w: int, device: torch.device) -> torch.Tensor:
+    """float32 ``[2, h, w]`` pixel coordinates ``(x, y)`` (cached)."""
+    key = (h, w, str(device))
+    g = _GRIDS.get(key)
+    if g is None:
+        ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32, device=device),
+                                torch.arange(w, dtype=torch.float32, device=device), indexing="ij")
+        g = _GRIDS[key] = torch.stack([xs, ys])
+    return g

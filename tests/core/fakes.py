@@ -28,11 +28,13 @@ def depth_map(h: int, w: int) -> torch.Tensor:
 
 class FakeDatasetConfig(PluginConfig):
     frames: int = Field(12, ge=2, description="number of frames")
+    speed: float = Field(SPEED, gt=0, description="metres per frame along +x")
 
 
 class FakeDataset(DatasetReader):
     def __init__(self, cfg: FakeDatasetConfig):
         self.n = cfg.frames
+        self.speed = cfg.speed
         self.k = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
 
     def info(self) -> SequenceInfo:
@@ -42,7 +44,7 @@ class FakeDataset(DatasetReader):
         g = torch.Generator().manual_seed(0)
         img = torch.randint(0, 255, (3, H, W), generator=g, dtype=torch.uint8)
         for i in range(self.n):
-            pose = torch.tensor([SPEED * i, 0, 0, 0, 0, 0, 1], dtype=torch.float64)
+            pose = torch.tensor([self.speed * i, 0, 0, 0, 0, 0, 1], dtype=torch.float64)
             yield Frame(i, 0.1 * i, img.clone(), self.k, gt_pose=pose, gt_depth=depth_map(H, W), name=f"fake{i}")
 
 
@@ -66,19 +68,21 @@ class ExactFrontendConfig(PluginConfig):
 class ExactFrontend(Frontend):
     """Targets from the known scene: u_j = u_i - f (x_j - x_i) / z at the BA resolution."""
 
-    iterations = 1
+    rounds = 1
 
     def __init__(self, cfg: ExactFrontendConfig, ds: int):
         self.cfg = cfg
         self.ds = ds
-        self.kf_x: list[float] = []
+        self.kf_x: dict[int, float] = {}  # stable keyframe id -> camera x
         self.count = 0
 
     def track(self, frame, seg):
         self.count += 1
         x = float(frame.gt_pose[0])
         is_kf = self.count % self.cfg.keyframe_every == 0
-        return TrackResult(is_kf, 1.0, *self._tw(self.kf_x[-1], x, self.ds)) if self.kf_x else TrackResult(is_kf, 1.0)
+        if not self.kf_x:
+            return TrackResult(is_kf, 1.0)
+        return TrackResult(is_kf, 1.0, *self._tw(self.kf_x[max(self.kf_x)], x, self.ds))
 
     def _tw(self, xi: float, xj: float, ds: int):
         h, w = H // ds, W // ds
@@ -89,16 +93,17 @@ class ExactFrontend(Frontend):
         target = torch.stack([xs - f * (xj - xi) / z, ys])
         return target, torch.ones(2, h, w)
 
-    def add_keyframe(self, k, frame, seg):
-        self.kf_x.append(float(frame.gt_pose[0]))
+    def add_keyframe(self, kf_id, frame, seg):
+        self.kf_x[kf_id] = float(frame.gt_pose[0])
 
-    def remove_keyframe(self, k):
-        del self.kf_x[k]
+    def on_keyframe_removed(self, kf_id):
+        del self.kf_x[kf_id]
 
     def observe(self, graph, ii, jj):
         h, w = graph.ba_shape
         ds = H // h
-        tw = [self._tw(self.kf_x[int(i)], self.kf_x[int(j)], ds) for i, j in zip(ii.tolist(), jj.tolist())]
+        ids = graph.ids
+        tw = [self._tw(self.kf_x[int(ids[i])], self.kf_x[int(ids[j])], ds) for i, j in zip(ii.tolist(), jj.tolist())]
         gap = self.cfg.max_pair_gap
         tw = [(t, w_ * 0 if gap and abs(i - j) > gap else w_) for (t, w_), i, j in zip(tw, ii.tolist(), jj.tolist())]
         return EdgeObservations(ii, jj, torch.stack([t for t, _ in tw]), torch.stack([w_ for _, w_ in tw]))
@@ -126,7 +131,7 @@ class RecordingOptimizer(Optimizer):
 
 
 class EveryKeyframeLoopConfig(PluginConfig):
-    start: int = Field(4, ge=2, description="keyframes from this index on report a verified loop with keyframe 1")
+    start: int = Field(4, ge=2, description="keyframes from this id on report a verified loop with keyframe id 1")
 
 
 class EveryKeyframeLoop(LoopDetector):
@@ -135,8 +140,11 @@ class EveryKeyframeLoop(LoopDetector):
     def __init__(self, cfg: EveryKeyframeLoopConfig):
         self.cfg = cfg
 
-    def add_keyframe(self, k, frame):
-        return [LoopCandidate(k, 1, 0.99, verified=True, inliers=100)] if k >= self.cfg.start else []
+    def add_keyframe(self, kf_id, frame):
+        pass
+
+    def query(self, kf_id, skip=None):
+        return [LoopCandidate(kf_id, 1, 0.99, verified=True, inliers=100)] if kf_id >= self.cfg.start else []
 
 
 class PassVPSConfig(PluginConfig):

@@ -106,11 +106,13 @@ def test_initialisation_falls_back_to_a_nearer_pair(fake_registry, fake_config_f
 @pytest.mark.parametrize("gap, expected", [(0, 8), (100, 1), (3, 3)])
 def test_loop_ba_not_rerun_along_one_revisit(fake_registry, fake_config_file, gap, expected):
     """Every keyframe from the 4th reports a loop with keyframe 1; from keyframe 5 to 12 each adds new loop edges
-    (keyframe 4's are all there already). A loop BA runs only when the last one is graph.loop_ba_min_gap
-    keyframes old: gap 3 -> keyframes 5, 8 and 11."""
+    (keyframe 4's are all there already). A loop BA runs only when the last one is loop_closure.ba_min_gap
+    keyframes old: gap 3 -> keyframes 5, 8 and 11.  (Suppression near accepted loops is off: it would keep all
+    but the first of these closures.)"""
     fakes.RecordingOptimizer.loop_calls = 0
     res = run_config(fake_config_file, registry=fake_registry,
-                     overrides=['loop.plugin="every_kf"', f"graph.loop_ba_min_gap={gap}", "dataset.frames=26",
-                                "graph.warmup=3"])
+                     overrides=['loop.plugin="every_kf"', f"loop_closure.ba_min_gap={gap}", "dataset.frames=26",
+                                "graph.warmup=3", "loop_closure.nms_keyframes=0"])
     assert len(res.loops) == 8  # every accepted loop is recorded (loops.json, loop metrics)
     assert fakes.RecordingOptimizer.loop_calls == expected
+    assert sum(c.loop_ba for c in res.loops) == expected

@@ -31,7 +31,7 @@ def test_noise_free_recovers_ground_truth(problem):
     g = pr.graph(p0, d0)
     free = torch.ones(7, dtype=torch.bool)
     free[:2] = False  # two fixed poses fix the monocular scale gauge
-    rep = dense_ba(g, pr.obs(), free, iters=10, lm=1e-4, ep=1e-4, eta=1e-4)
+    rep = dense_ba(g, pr.obs(), free, iters=10, lm=1e-4, ep=1e-4, depth_damping=1e-4)
     assert not rep.rejected and rep.iterations == 10
     assert rep.cost_after < 1e-6 * rep.cost_before
     et, er = pose_err(pr.poses, g.poses)
@@ -61,7 +61,7 @@ def test_noise_and_outliers():
     g = pr.graph(p0, d0)
     free = torch.ones(7, dtype=torch.bool)
     free[:2] = False
-    rep = dense_ba(g, pr.obs(), free, iters=10, lm=1e-4, ep=1e-3, eta=1e-3, robust="huber", robust_scale=1.0)
+    rep = dense_ba(g, pr.obs(), free, iters=10, lm=1e-4, ep=1e-3, depth_damping=1e-3, robust="huber", robust_scale=1.0)
     assert not rep.rejected and rep.cost_after < rep.cost_before
     et, er = pose_err(pr.poses, g.poses)
     # stated accuracy: 0.3 px noise + 10 % outliers (+-10 px, weight x0.02) at 40x30, depths 1-8 m
@@ -170,8 +170,8 @@ def test_float32_path_matches(problem):
     free = torch.ones(7, dtype=torch.bool)
     free[:2] = False
     g32, g64 = pr.graph(p0, d0), pr.graph(p0, d0)
-    dense_ba(g32, pr.obs(), free, iters=6, ep=1e-4, eta=1e-4, dtype=torch.float32)
-    dense_ba(g64, pr.obs(), free, iters=6, ep=1e-4, eta=1e-4, dtype=torch.float64)
+    dense_ba(g32, pr.obs(), free, iters=6, ep=1e-4, depth_damping=1e-4, dtype=torch.float32)
+    dense_ba(g64, pr.obs(), free, iters=6, ep=1e-4, depth_damping=1e-4, dtype=torch.float64)
     et, er = pose_err(g64.poses, g32.poses)
     assert et < 1e-4 and er < 1e-4
 

@@ -104,9 +104,9 @@ def test_fixed_depth_sources_robust_and_shuffled_edges(problem):
     perm = torch.randperm(len(pr.ii), generator=torch.Generator().manual_seed(0))
     eta = 1e-3 * (1.0 + torch.rand(9, H, W, generator=torch.Generator().manual_seed(1)))
     o = pr.obs()
-    obs = EdgeObservations(o.ii[perm], o.jj[perm], o.target[perm], o.weight[perm], eta=eta)
+    obs = EdgeObservations(o.ii[perm], o.jj[perm], o.target[perm], o.weight[perm], depth_damping=eta)
     kw = dict(depth_free=depth_free, robust="cauchy", robust_scale=1.0)
-    ref = run(pr, p0, d0, free, HUGE, obs=EdgeObservations(o.ii, o.jj, o.target, o.weight, eta=eta), **kw)
+    ref = run(pr, p0, d0, free, HUGE, obs=EdgeObservations(o.ii, o.jj, o.target, o.weight, depth_damping=eta), **kw)
     assert torch.equal(ref[0].disps[[3, 6]], d0[[3, 6]])
     for mcp in (5 * P, 2 * P):
         assert_same(ref, run(pr, p0, d0, free, mcp, obs=obs, **kw))

@@ -31,10 +31,12 @@ def test_edges_dedup_and_remove():
     again = g.add_edges([0, 2], [1, 0], kind=2)
     assert again.tolist() == [False, True]
     assert g.edge_kind.tolist() == [0, 0, 0, 2]
-    g.age_edges()
-    assert g.edge_age.tolist() == [1, 1, 1, 1]
-    g.remove_edges(g.ii == 0)
+    g.age_edges(g.ii, g.jj)
+    g.age_edges([2], [0])
+    assert g.edge_age.tolist() == [1, 1, 1, 2]
+    assert g.retire_edges(g.ii == 0) == 1  # never observed: dropped, nothing stored
     assert list(zip(g.ii.tolist(), g.jj.tolist())) == [(1, 0), (2, 3), (2, 0)]
+    assert g.num_retired == 0
 
 
 def test_remove_keyframe_shifts():

@@ -58,5 +58,5 @@ def test_metrics_file_refuses_to_clobber_bad_file(tmp_path):
 def test_to_jsonable_dataclass():
     from pvslam_core.types import LoopCandidate
 
-    assert to_jsonable(LoopCandidate(3, 1, 0.5)) == {"i": 3, "j": 1, "score": 0.5, "verified": False, "inliers": 0}
+    assert to_jsonable(LoopCandidate(3, 1, 0.5)) == {"i": 3, "j": 1, "score": 0.5, "verified": None, "inliers": 0}
     assert math.isnan(float("nan")) and to_jsonable([float("-inf")]) == [None]

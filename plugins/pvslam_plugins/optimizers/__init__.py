@@ -1,2 +1,3 @@
-"""Bundle-adjustment optimizer plugins: ``online_ba`` (sliding-window BA on every keyframe, the PV-SLAM paper's)
-and ``offline_ba`` (DROID-SLAM style local BA plus a global BA at the end); shared code in :mod:`.common`."""
+"""Optimizer plugins.  :mod:`.dense_ba` registers two schedules of one dense bundle adjustment: ``online_ba`` (the
+PV-SLAM paper's: a sliding-window BA as each keyframe arrives) and ``offline_ba`` (DROID-SLAM's: a small local BA
+per keyframe and a global BA over every keyframe at the end)."""

@@ -12,8 +12,11 @@ class FlowFrontendConfig(PluginConfig):
     """DIS optical flow + forward-backward and photometric confidence + panoptic-aware dynamic masking.
 
     Units: ``*_px`` fields and ``fb_sigma`` are in **full-resolution image pixels** unless they say "BA px"
-    (pixels at the bundle-adjustment resolution, 1/``ba_downsample`` of the image).
+    (pixels at the bundle-adjustment resolution, 1/``graph.ba_downsample`` of the image).
     """
+
+    # ba_downsample: the BA resolution comes from graph.ba_downsample (BuildContext.ba_downsample)
+    renamed = {"eta": "panoptic_offset", "ba_downsample": None}
 
     # --- DIS optical flow -----------------------------------------------------------------------------------
     preset: Literal["ultrafast", "fast", "medium"] = Field(
@@ -58,11 +61,6 @@ class FlowFrontendConfig(PluginConfig):
     patch_stride: Optional[int] = Field(None, ge=1, le=16, description="DIS patch stride; None: preset default.")
 
     # --- targets and confidence -----------------------------------------------------------------------------
-    ba_downsample: int = Field(
-        8, ge=1, le=16,
-        description="BA resolution = image / ba_downsample, for `track` until a graph has been seen (keep it equal "
-        "to graph.ba_downsample); afterwards track and observe follow graph.ba_shape.",
-    )
     fb_sigma: float = Field(
         1.0, gt=0.0,
         description="Forward-backward consistency scale (full-res px): confidence c = exp(-fb^2 / (2 sigma^2)).",
@@ -137,7 +135,7 @@ class FlowFrontendConfig(PluginConfig):
     )
     rounds: int = Field(
         1, ge=1, le=4,
-        description="observe -> BA rounds per new keyframe (the pipeline's `iterations`). With 1, a new edge's "
+        description="observe -> BA rounds per new keyframe (Frontend.rounds). With 1, a new edge's "
         "dynamic mask is first applied at the next keyframe's BA (edges stay in the window for several keyframes); "
         "2 applies it at once at twice the BA cost.",
     )
@@ -159,7 +157,7 @@ class FlowFrontendConfig(PluginConfig):
         description="If more than this fraction of an edge's pixels would be dynamic, the estimate (not the scene) "
         "is wrong: the edge gets no dynamic mask.",
     )
-    eta: float = Field(10.0, ge=0.0, description="PV-SLAM eq. 4 logit offset.")
+    panoptic_offset: float = Field(10.0, ge=0.0, description="PV-SLAM eq. 4 logit offset (the paper's eta).")
     convention: Literal["paper", "pvo_code"] = Field(
         "paper", description="Mask convention of eq. 4 (see pvslam_core.slam.confidence); keep 'paper'."
     )

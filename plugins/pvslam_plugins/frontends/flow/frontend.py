@@ -3,8 +3,9 @@
 Per keyframe it keeps only a grayscale image at the flow resolution (19 KB at 320x240 with the default
 ``flow_scale`` 0.5, 77 KB at full resolution) and its panoptic ids at the BA resolution (~10 KB).  Per edge it
 caches the BA-resolution target and confidence (computed once: a classical method answers once) plus the latest
-dynamic mask, keyed by **stable keyframe ids** so that removing a keyframe (which shifts graph indices down)
-never mixes up cached edges.
+dynamic mask, keyed by the graph's **stable keyframe ids**; the graph tells when a keyframe goes or an edge retires
+(``on_keyframe_removed`` / ``on_edges_retired``) and the cached state goes with it, so the cache stays bounded by
+the active edges.
 
 Confidence of a pixel = ``exp(-fb^2 / 2 sigma^2)`` (forward-backward consistency, 0 where ``x + f(x)`` leaves
 the image) x ``exp(-r^2 / 2 sigma_p^2)`` (local photometric residual), pooled over each BA block.
@@ -20,16 +21,16 @@ flow exceeds ``keyframe_thresh`` BA px or fewer than ``keyframe_min_coverage`` o
 tracking failure on a blank frame (intensity std) or when more than ``max_fb_fail_fraction`` of the pixels fail
 the forward-backward check (sudden jump).  A repeated frame is not a failure (zero flow, no keyframe).
 
-Rounds per new keyframe (``iterations`` = ``rounds``, default 1).  On an edge's first ``observe`` the weight is the
+Rounds per new keyframe (``rounds``, default 1).  On an edge's first ``observe`` the weight is the
 confidence only; on its next ``dynamic_updates`` calls (after at least one BA round) pixels whose observed target
 disagrees with the reprojection under the current estimate by more than ``dynamic_thresh`` BA px (and 3x the
 edge's median residual) are dynamic, the mask is voted over (thing) segments, and the weight follows PV-SLAM
 eq. 4 with the paper convention (static -> c, dynamic -> ~ c e^-eta; see :mod:`pvslam_core.slam.confidence`).  This
 also rejects outlier flow on static scenes.
 
-``initial_depth(k)``: a constant map equal to the median inverse depth of the previous keyframe (read from the
-graph last passed to ``observe``), as DROID-SLAM 2025 does; a median is robust to the few near/far outliers
-that would pull a mean.  None (pipeline default) before any graph was seen.
+``initial_depth(graph, id)``: a constant map equal to the median inverse depth of the newest keyframe, as DROID-SLAM
+2025 does; a median is robust to the few near/far outliers that would pull a mean.  (The mapper prefers the
+previous keyframe's depth moved into the new pose once the map is initialised.)
 """
 from __future__ import annotations
 
@@ -77,10 +78,12 @@ def _default_reproject():
 class FlowFrontend(Frontend):
     """DIS optical-flow frontend (see the module docstring)."""
 
-    def __init__(self, config: Optional[FlowFrontendConfig] = None, device: Any = "cpu", reproject_fn=None):
+    def __init__(self, config: Optional[FlowFrontendConfig] = None, device: Any = "cpu", reproject_fn=None,
+                 ba_downsample: int = 8):
         self.cfg = config or FlowFrontendConfig()
         self.device = torch.device(device)
-        self.iterations = self.cfg.rounds
+        self.ba_downsample = int(ba_downsample)
+        self.rounds = self.cfg.rounds
         dis_kw = dict(
             gradient_descent_iterations=self.cfg.gradient_descent_iterations,
             variational_refinement_iterations=self.cfg.variational_refinement_iterations,
@@ -93,10 +96,8 @@ class FlowFrontend(Frontend):
         same = tp == self.cfg.preset and tfs == self.cfg.finest_scale
         self._dis_track = self._dis if same else F.create_dis(tp, finest_scale=tfs, **dis_kw)
         self._reproject_fn = reproject_fn
-        self._sids: list[int] = []  # graph index -> stable id
-        self._kfs: dict[int, _Keyframe] = {}
-        self._edges: dict[tuple[int, int], _Edge] = {}
-        self._next_sid = 0
+        self._kfs: dict[int, _Keyframe] = {}  # stable keyframe id -> keyframe (insertion order = time order)
+        self._edges: dict[tuple[int, int], _Edge] = {}  # (source id, target id) -> cached edge
         self._pending: Optional[dict] = None  # the last tracked frame's gray and flow to the last keyframe
         self._graph = None  # last graph seen in observe (for initial_depth)
         self.stats = {"track_calls": 0, "track_s": 0.0, "dis_calls": 0, "dis_s": 0.0, "edges_computed": 0,
@@ -105,11 +106,10 @@ class FlowFrontend(Frontend):
     # ----------------------------------------------------------------------------------------- helpers --
     @property
     def num_keyframes(self) -> int:
-        return len(self._sids)
+        return len(self._kfs)
 
-    def stable_id(self, k: int) -> int:
-        """The stable id of graph keyframe ``k``."""
-        return self._sids[k]
+    def _last_id(self) -> Optional[int]:
+        return next(reversed(self._kfs)) if self._kfs else None
 
     def cached_edges(self) -> list[tuple[int, int]]:
         """Cached edges as stable-id pairs (for tests and diagnostics)."""
@@ -138,7 +138,7 @@ class FlowFrontend(Frontend):
         if self._graph is not None:  # the graph's BA resolution wins once one has been seen
             h, w = self._graph.ba_shape
             return int(h), int(w)
-        s = self.cfg.ba_downsample
+        s = self.ba_downsample
         return max(1, frame.height // s), max(1, frame.width // s)
 
     def _sigma(self) -> float:
@@ -193,10 +193,10 @@ class FlowFrontend(Frontend):
             return TrackResult(is_keyframe=False, mean_flow=0.0, failed=True,
                                message=f"no texture: intensity std {std:.2f} < min_texture_std "
                                        f"{self.cfg.min_texture_std}")
-        if not self._sids:
+        last_sid = self._last_id()
+        if last_sid is None:
             self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": None}
             return TrackResult(is_keyframe=True, mean_flow=0.0, message="first keyframe")
-        last_sid = self._sids[-1]
         last = self._kfs[last_sid]
         if last.gray.shape != gray.shape:
             return TrackResult(is_keyframe=False, mean_flow=0.0, failed=True,
@@ -221,49 +221,41 @@ class FlowFrontend(Frontend):
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
 
     # ------------------------------------------------------------------------------------- keyframes --
-    def add_keyframe(self, k: int, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
-        if k != len(self._sids):
-            raise ValueError(f"add_keyframe: expected the next index {len(self._sids)}, got {k}")
+    def add_keyframe(self, kf_id: int, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
+        if kf_id in self._kfs:
+            raise ValueError(f"add_keyframe: keyframe id {kf_id} was added before")
         pend = self._pending if (self._pending and self._pending["frame_index"] == frame.index) else None
         gray = pend["gray"] if pend is not None else self._gray(frame)
         h, w = self._ba_shape_for(frame)
         seg_ba, things = self._seg_info(seg, h, w)
-        sid = self._next_sid
-        self._next_sid += 1
-        if (pend is not None and self.cfg.reuse_track_flow and pend.get("last_sid") is not None and self._sids
-                and pend["last_sid"] == self._sids[-1]):
+        sid = int(kf_id)
+        if (pend is not None and self.cfg.reuse_track_flow and pend.get("last_sid") is not None
+                and pend["last_sid"] == self._last_id()):
             a = pend["last_sid"]
             (tf, wf), (tb, wb) = pend["fwd"], pend["bwd"]
             self._edges[(a, sid)] = _Edge(torch.from_numpy(tf), torch.from_numpy(wf))
             self._edges[(sid, a)] = _Edge(torch.from_numpy(tb), torch.from_numpy(wb))
         self._kfs[sid] = _Keyframe(gray=gray, frame_index=frame.index, seg_ba=seg_ba, thing_ids=things)
-        self._sids.append(sid)
         self._pending = None
 
-    def remove_keyframe(self, k: int) -> None:
-        if not 0 <= k < len(self._sids):
-            raise IndexError(f"remove_keyframe: no keyframe {k} (have {len(self._sids)})")
-        sid = self._sids.pop(k)
-        self._kfs.pop(sid, None)
-        for key in [e for e in self._edges if sid in e]:
+    # -------------------------------------------------------------------------------- graph listener --
+    def on_keyframe_removed(self, kf_id: int) -> None:
+        self._kfs.pop(kf_id, None)
+        for key in [e for e in self._edges if kf_id in e]:
             del self._edges[key]
 
-    def forget_edges(self, ii: torch.Tensor, jj: torch.Tensor) -> None:
-        n = len(self._sids)
-        for i, j in zip(ii.tolist(), jj.tolist()):
-            if not (0 <= i < n and 0 <= j < n):
-                continue
-            a, b = self._sids[i], self._sids[j]
+    def on_edges_retired(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
+        for a, b in zip(src_ids.tolist(), dst_ids.tolist()):
             self._edges.pop((a, b), None)
             rev = self._edges.get((b, a))
-            if rev is not None and not rev.requested:
+            if rev is not None and not rev.requested:  # computed only alongside the retired direction
                 del self._edges[(b, a)]
 
-    def initial_depth(self, k: int) -> Optional[torch.Tensor]:
-        g = self._graph
-        if g is None or k < 1 or int(g.n) < k:
+    def initial_depth(self, graph, kf_id: int) -> Optional[torch.Tensor]:
+        g = graph
+        if g is None or int(g.n) < 1:
             return None
-        d = g.disps[k - 1]
+        d = g.disps[-1]
         d = d[torch.isfinite(d) & (d > 0)]
         if d.numel() == 0:
             return None
@@ -276,18 +268,22 @@ class FlowFrontend(Frontend):
         h, w = (int(v) for v in graph.ba_shape)
         dev = graph.disps.device if hasattr(graph, "disps") else self.device
         ii_l, jj_l = ii.tolist(), jj.tolist()
-        n = len(self._sids)
+        n = int(graph.n)
         for i, j in zip(ii_l, jj_l):
             if not (0 <= i < n and 0 <= j < n) or i == j:
                 raise IndexError(f"observe: edge ({i}, {j}) is not between two of the {n} keyframes")
-        keys = [(self._sids[i], self._sids[j]) for i, j in zip(ii_l, jj_l)]
+        ids = graph.ids.tolist()
+        keys = [(ids[i], ids[j]) for i, j in zip(ii_l, jj_l)]
+        unknown = sorted({k for key in keys for k in key if k not in self._kfs})
+        if unknown:
+            raise KeyError(f"observe: keyframe ids {unknown} were never added to this frontend")
         missing = []
         for e, key in enumerate(keys):
             ent = self._edges.get(key)
             if ent is None or tuple(ent.target.shape[-2:]) != (h, w):
                 missing.append(e)
         if missing:
-            self._compute_edges(graph, [ii_l[e] for e in missing], [jj_l[e] for e in missing], h, w)
+            self._compute_edges(graph, ids, [ii_l[e] for e in missing], [jj_l[e] for e in missing], h, w)
         entries = [self._edges[key] for key in keys]
         E = len(entries)
         if E == 0:
@@ -306,9 +302,9 @@ class FlowFrontend(Frontend):
                 weight = conf.clone()
                 m = dyn > 0
                 if bool(m.any()):
-                    weight[m] = observed_flow_weight(conf[m], dyn[m], eta=self.cfg.eta, convention="paper")
+                    weight[m] = observed_flow_weight(conf[m], dyn[m], offset=self.cfg.panoptic_offset, convention="paper")
             else:
-                weight = observed_flow_weight(conf, dyn, eta=self.cfg.eta, convention=self.cfg.convention)
+                weight = observed_flow_weight(conf, dyn, offset=self.cfg.panoptic_offset, convention=self.cfg.convention)
         else:
             dyn = torch.zeros(E, h, w, dtype=torch.float32, device=dev)
             weight = conf
@@ -318,7 +314,7 @@ class FlowFrontend(Frontend):
         weight2 = weight[:, None].expand(E, 2, h, w).contiguous()
         return EdgeObservations(ii=ii, jj=jj, target=target.float(), weight=weight2.float(), dynamic=dyn.float())
 
-    def _compute_edges(self, graph, ii: list[int], jj: list[int], h: int, w: int) -> None:
+    def _compute_edges(self, graph, ids: list[int], ii: list[int], jj: list[int], h: int, w: int) -> None:
         """Compute DIS flow for the (unordered) pairs behind the given edges; cache both directions."""
         pairs: dict[tuple[int, int], None] = {}
         for i, j in zip(ii, jj):
@@ -328,7 +324,7 @@ class FlowFrontend(Frontend):
         if self.cfg.use_reprojection_init and plist:
             inits = self._reprojection_inits(graph, plist, h, w)
         for (a, b) in plist:
-            sa, sb = self._sids[a], self._sids[b]
+            sa, sb = ids[a], ids[b]
             ga, gb = self._kfs[sa].gray, self._kfs[sb].gray
             if (a, b) in inits:
                 init_f, init_b = inits[(a, b)]
@@ -376,7 +372,7 @@ class FlowFrontend(Frontend):
             if float(mag.mean()) <= self.cfg.init_min_flow:
                 continue
             back, ok_b = F.invert_coords(coords[p], ok_f)
-            g = self._kfs[self._sids[i]].gray
+            g = self._kfs[int(graph.ids[i])].gray
             init_f = F.init_flow_from_coords(coords[p], ok_f, *g.shape)
             init_b = F.init_flow_from_coords(back, ok_b, *g.shape, min_valid=0.2)
             if init_f is not None and init_b is not None:
@@ -406,7 +402,8 @@ class FlowFrontend(Frontend):
             med = torch.nanmedian(torch.where(valid, res, torch.nan).reshape(N, -1), dim=1).values
             thr = torch.maximum(thr, torch.nan_to_num(med, nan=0.0) * self.cfg.dynamic_rel_thresh)
         dyn = (res > thr[:, None, None]) & valid
-        srcs = [self._kfs[self._sids[int(ii[e])]] for e in need]
+        ids = graph.ids
+        srcs = [self._kfs[int(ids[int(ii[e])])] for e in need]
         if any(s_.seg_ba is not None for s_ in srcs):
             h, w = res.shape[-2:]
             zero = torch.zeros(h, w, dtype=torch.int64)
@@ -429,4 +426,5 @@ class FlowFrontend(Frontend):
 
 def make_frontend(config: FlowFrontendConfig, context) -> FlowFrontend:
     """Registry factory: ``make_frontend(config, BuildContext)``."""
-    return FlowFrontend(config, device=getattr(context, "device", "cpu"))
+    return FlowFrontend(config, device=getattr(context, "device", "cpu"),
+                        ba_downsample=getattr(context, "ba_downsample", 8))

@@ -5,10 +5,11 @@
 * Candidates: keyframes older than the temporal exclusion window (``exclude_recent`` keyframes and
   ``min_time_gap`` seconds) with similarity >= ``threshold``, best ``max_candidates`` first.
 * Verification (:mod:`.verify`): ORB matches (ratio test + mutual check), essential-matrix RANSAC with the
-  keyframes' intrinsics; accepted with >= ``min_inliers`` inliers and inlier ratio >= ``min_inlier_ratio``;
-  optionally ``consecutive`` hits (DPVO uses 3) and NMS against accepted loops.
+  keyframes' intrinsics; verified with >= ``min_inliers`` inliers and inlier ratio >= ``min_inlier_ratio``.
+  Which candidates close a loop is the mapper's loop policy (``[loop_closure]``: consecutive hits, suppression,
+  orientation check), not the detector's.
 
-Registered as loop plugin ``classical`` (entry point ``classical_loop``).
+Registered as loop plugin ``classical`` (entry point ``classical``).
 """
 from __future__ import annotations
 

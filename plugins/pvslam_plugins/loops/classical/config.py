@@ -30,7 +30,8 @@ class ClassicalLoopConfig(PluginConfig):
     verify: bool = Field(
         True,
         description="run geometric verification (ORB + essential-matrix RANSAC); false returns retrieval-only "
-        "candidates with verified=False (ablation only: not safe for loop closure)",
+        "candidates (verified = None), which the loop policy accepts on score when loop_closure.accept_unverified "
+        "is true (ablations; look-alike places then close false loops)",
     )
     orb_features: int = Field(
         500, ge=50,
@@ -59,19 +60,6 @@ class ClassicalLoopConfig(PluginConfig):
     )
     min_inlier_ratio: float = Field(
         0.5, ge=0.0, le=1.0, description="... and at least this fraction of the tentative ORB matches"
-    )
-    consecutive: int = Field(
-        1, ge=1,
-        description="require verified hits to the same place in this many consecutive keyframes (DPVO uses 3)",
-    )
-    consecutive_tolerance: int = Field(
-        3, ge=0,
-        description="keyframe slack when checking that consecutive hits point at the same place",
-    )
-    nms_keyframes: int = Field(
-        5, ge=0,
-        description="suppress a candidate (i, j) if an already accepted loop (i', j') from an earlier keyframe has "
-        "|i - i'| <= n and |j - j'| <= n (0 disables)",
     )
     # --- descriptor ----------------------------------------------------------------------------------------------
     thumbnail_size: tuple[int, int] = Field(

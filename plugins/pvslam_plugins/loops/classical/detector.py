@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
-from typing import Any, Optional
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
 
 import cv2
 import numpy as np
@@ -19,37 +19,36 @@ from .verify import OrbFeatures, Verification, extract, verify
 
 @dataclass
 class _Keyframe:
+    kf_id: int  # stable keyframe id (the graph's)
     frame_index: int
     timestamp: float
     jpeg: Optional[np.ndarray]  # grayscale JPEG of the (reduced) keyframe image, for lazy ORB extraction
     intrinsics: Optional[Intrinsics]  # of the stored image
-    uid: int = 0  # unique within the detector (feature-cache key)
-    hits: list[int] = field(default_factory=list)  # older keyframes this one verified against (before the
-    # consecutive / NMS filters), for the consecutive-hit rule
 
 
 class ClassicalLoopDetector(LoopDetector):
     """Keyframe database with a cosine-similarity retrieval step and geometric verification.
 
-    ``add_keyframe(k, frame)`` must be called with ``k`` = the number of keyframes stored (the next index);
-    ``remove_keyframe(k)`` shifts the later indices down, as in the frame graph.  Per keyframe it stores a float32
-    descriptor (about 1.3 kB) and a grayscale JPEG of the image (about 20 kB at 320x240).  ORB features are
-    extracted lazily, only for keyframes that take part in a verification, and cached (LRU, ``feature_cache``
-    keyframes of about 40 B per keypoint), so a keyframe without loop candidates costs ~2 ms at 320x240.
+    ``add_keyframe(id, frame)`` describes and stores a keyframe (ids in time order); ``query(id, skip)`` returns
+    its verified candidates (or, with ``verify = false``, retrieval-only candidates with ``verified = None``).
+    Acceptance (consecutive hits, suppression near accepted loops, orientation) is the mapper's loop policy; its
+    ``skip`` predicate spares the verification of candidates it would refuse anyway.  Per keyframe the detector
+    stores a float32 descriptor (about 1.3 kB) and a grayscale JPEG of the image (about 20 kB at 320x240).  ORB
+    features are extracted lazily, only for keyframes that take part in a verification, and cached (LRU,
+    ``feature_cache`` keyframes of about 40 B per keypoint), so a keyframe without loop candidates costs ~2 ms.
     """
 
     def __init__(self, config: Optional[ClassicalLoopConfig] = None) -> None:
         self.config = config or ClassicalLoopConfig()
-        self._kf: list[_Keyframe] = []
+        self._kf: list[_Keyframe] = []  # rows in time order; a removed keyframe's row is deleted
         self._desc = np.zeros((0, 0), np.float32)  # [capacity, D]; rows [0, len(self._kf)) valid
         self._times = np.zeros(0, np.float64)  # [capacity] keyframe timestamps, same rows
-        self.accepted: list[LoopCandidate] = []  # every loop returned so far (indices kept current on removal)
+        self._new_small: Optional[tuple[int, np.ndarray]] = None  # (id, reduced gray) of the newest keyframe
         self.last_verifications: list[tuple[int, int, float, Verification]] = []  # (i, j, score, result) of the
-        # last add_keyframe call, for diagnostics
+        # last query (stable ids), for diagnostics
         self.timings: dict[str, float] = {"describe": 0.0, "retrieve": 0.0, "store": 0.0, "features": 0.0,
                                           "verify": 0.0}
-        self._features: "OrderedDict[int, OrbFeatures]" = OrderedDict()  # keyed by _Keyframe.uid
-        self._next_uid = 0
+        self._features: "OrderedDict[int, OrbFeatures]" = OrderedDict()  # keyed by keyframe id
 
     # --- descriptors ----------------------------------------------------------------------------------------
     def descriptor(self, image: ImageLike) -> np.ndarray:
@@ -70,8 +69,17 @@ class ClassicalLoopDetector(LoopDetector):
         d = self.descriptors
         return d @ d.T
 
+    def keyframe_ids(self) -> list[int]:
+        return [kf.kf_id for kf in self._kf]
+
     def keyframe_frame_indices(self) -> list[int]:
         return [kf.frame_index for kf in self._kf]
+
+    def _row(self, kf_id: int) -> int:
+        for r in range(len(self._kf) - 1, -1, -1):  # queries are for recent keyframes
+            if self._kf[r].kf_id == kf_id:
+                return r
+        raise KeyError(f"classical loop detector: keyframe id {kf_id} is not stored")
 
     def _append_descriptor(self, d: np.ndarray, timestamp: float) -> None:
         n = len(self._kf)
@@ -91,11 +99,11 @@ class ClassicalLoopDetector(LoopDetector):
         self._times[n] = timestamp
 
     # --- LoopDetector -------------------------------------------------------------------------------------------
-    def add_keyframe(self, k: int, frame: Frame) -> list[LoopCandidate]:
+    def add_keyframe(self, kf_id: int, frame: Frame) -> None:
         c = self.config
-        if k != len(self._kf):
-            raise ValueError(f"classical loop detector: add_keyframe({k}) but {len(self._kf)} keyframes are stored; "
-                             "keyframes must be added in order (k = next index)")
+        if self._kf and kf_id <= self._kf[-1].kf_id:
+            raise ValueError(f"classical loop detector: keyframe id {kf_id} after {self._kf[-1].kf_id}; keyframes "
+                             "must be added in time order")
         t0 = time.perf_counter()
         gray = to_gray(frame.image)
         if gray.dtype != np.uint8:
@@ -103,46 +111,55 @@ class ClassicalLoopDetector(LoopDetector):
         d = self.descriptor(gray)
         t1 = time.perf_counter()
         self.timings["describe"] += t1 - t0
-
-        candidates = self._retrieve(d, float(frame.timestamp))
-        t2 = time.perf_counter()
-        self.timings["retrieve"] += t2 - t1
-
         small, K = self._reduce(gray, frame.intrinsics) if c.verify else (None, None)
         jpeg = None
         if small is not None:
             ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, int(c.jpeg_quality)])
             jpeg = buf if ok else None
-        kf = _Keyframe(int(frame.index), float(frame.timestamp), jpeg, K, uid=self._next_uid)
-        self._next_uid += 1
         self._append_descriptor(d, float(frame.timestamp))
-        self._kf.append(kf)
-        self.timings["store"] += time.perf_counter() - t2
+        self._kf.append(_Keyframe(int(kf_id), int(frame.index), float(frame.timestamp), jpeg, K))
+        self._new_small = (int(kf_id), small) if small is not None else None
+        self.timings["store"] += time.perf_counter() - t1
 
+    def query(self, kf_id: int, skip: Optional[Callable[[int], bool]] = None) -> list[LoopCandidate]:
+        c = self.config
+        r = self._row(kf_id)
+        kf = self._kf[r]
+        t1 = time.perf_counter()
+        candidates = self._retrieve(r)
+        self.timings["retrieve"] += time.perf_counter() - t1
         self.last_verifications = []
-        verified: list[LoopCandidate] = []
-        for j, score in candidates:
+        out: list[LoopCandidate] = []
+        for j_row, score in candidates:
+            j_id = self._kf[j_row].kf_id
             if not c.verify:
-                verified.append(LoopCandidate(k, j, score, verified=False, inliers=0))
+                out.append(LoopCandidate(kf_id, j_id, score, verified=None, inliers=0))
                 continue
-            if self._suppressed(k, j):  # would be dropped anyway: skip the expensive verification
+            if skip is not None and skip(j_id):  # the policy would refuse it: skip the expensive verification
                 continue
+            small = self._new_small[1] if self._new_small and self._new_small[0] == kf_id else None
             fa = self._get_features(kf, small)
-            fb = self._get_features(self._kf[j])
-            t3 = time.perf_counter()
+            fb = self._get_features(self._kf[j_row])
             if fa is None or fb is None:
                 continue
+            t3 = time.perf_counter()
             res = verify(fa, fb, min_inliers=c.min_inliers, min_inlier_ratio=c.min_inlier_ratio,
                          ratio=c.ratio, cross_check=c.cross_check, threshold_px=c.ransac_threshold_px)
             self.timings["verify"] += time.perf_counter() - t3
-            self.last_verifications.append((k, j, score, res))
-            if res.accepted:
-                verified.append(LoopCandidate(k, j, score, verified=True, inliers=res.inliers))
-
-        kf.hits = [lc.j for lc in verified]
-        out = [lc for lc in verified if self._consecutive_ok(k, lc.j) and not self._suppressed(k, lc.j)]
-        self.accepted.extend(out)
+            self.last_verifications.append((kf_id, j_id, score, res))
+            out.append(LoopCandidate(kf_id, j_id, score, verified=bool(res.accepted), inliers=res.inliers))
         return out
+
+    def on_keyframe_removed(self, kf_id: int) -> None:
+        try:
+            r = self._row(kf_id)
+        except KeyError:
+            return
+        n = len(self._kf)
+        self._features.pop(kf_id, None)
+        del self._kf[r]
+        self._desc[r : n - 1] = self._desc[r + 1 : n]
+        self._times[r : n - 1] = self._times[r + 1 : n]
 
     def _reduce(self, gray: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
         h, w = gray.shape
@@ -154,7 +171,7 @@ class ClassicalLoopDetector(LoopDetector):
         return small, K.scaled(nw / w, nh / h)
 
     def _get_features(self, kf: _Keyframe, gray: Optional[np.ndarray] = None) -> Optional[OrbFeatures]:
-        key = kf.uid
+        key = kf.kf_id
         feats = self._features.get(key)
         if feats is not None:
             self._features.move_to_end(key)
@@ -171,56 +188,22 @@ class ClassicalLoopDetector(LoopDetector):
             self._features.popitem(last=False)
         return feats
 
-    def remove_keyframe(self, k: int) -> None:
-        n = len(self._kf)
-        if not 0 <= k < n:
-            raise IndexError(f"classical loop detector: remove_keyframe({k}) with {n} keyframes stored")
-        self._features.pop(self._kf[k].uid, None)
-        del self._kf[k]
-        self._desc[k : n - 1] = self._desc[k + 1 : n]
-        self._times[k : n - 1] = self._times[k + 1 : n]
-        for kf in self._kf:
-            kf.hits = [j - (j > k) for j in kf.hits if j != k]
-        kept = []
-        for lc in self.accepted:
-            if lc.i == k or lc.j == k:
-                continue
-            lc.i -= lc.i > k
-            lc.j -= lc.j > k
-            kept.append(lc)
-        self.accepted = kept
-
     # --- steps -------------------------------------------------------------------------------------------------
-    def _retrieve(self, d: np.ndarray, timestamp: float) -> list[tuple[int, float]]:
-        """Best older keyframes outside the temporal exclusion window with similarity >= threshold."""
+    def _retrieve(self, r: int) -> list[tuple[int, float]]:
+        """Best older rows outside the temporal exclusion window with similarity >= threshold: (row, score)."""
         c = self.config
-        n = len(self._kf)
-        last = n - 1 - c.exclude_recent  # newest index allowed by the keyframe window (new keyframe has index n)
+        last = r - 1 - c.exclude_recent  # newest row allowed by the keyframe window
         if last < 0:
             return []
+        d = self._desc[r]
         sims = self._desc[: last + 1] @ d
         times = self._times[: last + 1]
-        ok = (sims >= c.threshold) & (timestamp - times >= c.min_time_gap)
+        ok = (sims >= c.threshold) & (self._times[r] - times >= c.min_time_gap)
         idx = np.nonzero(ok)[0]
         if len(idx) == 0:
             return []
         idx = idx[np.argsort(-sims[idx], kind="stable")][: c.max_candidates]
         return [(int(j), float(sims[j])) for j in idx]
-
-    def _consecutive_ok(self, k: int, j: int) -> bool:
-        c = self.config
-        for m in range(1, c.consecutive):
-            if k - m < 0:
-                return False
-            if not any(abs(j - jp) <= c.consecutive_tolerance + m for jp in self._kf[k - m].hits):
-                return False
-        return True
-
-    def _suppressed(self, k: int, j: int) -> bool:
-        n = self.config.nms_keyframes
-        if n <= 0:
-            return False
-        return any(lc.i != k and abs(lc.i - k) <= n and abs(lc.j - j) <= n for lc in self.accepted)
 
 
 def make_loop_detector(config: ClassicalLoopConfig, context: Any = None) -> ClassicalLoopDetector:

@@ -96,32 +96,13 @@ def test_sudden_jump_fails():
     assert not r2.failed and fe.num_keyframes == 1
 
 
-def test_track_timing_printout():
-    big = S.texture("astronaut")
-    variants = [("default (ultrafast, finest 1, flow_scale 0.5)", {}),
-                ("ultrafast, finest 0, flow_scale 0.5 (accuracy option)", dict(track_finest_scale=0)),
-                ("medium, flow_scale 0.5", dict(track_preset="medium", track_finest_scale=None, finest_scale=None)),
-                ("fast, flow_scale 1.0", dict(track_preset="fast", track_finest_scale=None, finest_scale=None,
-                                              flow_scale=1.0))]
-    for name, kw in variants:
-        fe = _frontend(**kw)
-        fe.add_keyframe(0, S.frame(S.base(big), 0), None)
-        frames = [S.frame(S.shifted(big, 0.7 * t, 0.2 * t), t) for t in range(1, 16)]
-        fe.track(frames[0], None)  # warm-up
-        t0 = time.perf_counter()
-        for f in frames:
-            fe.track(f, None)
-        ms = (time.perf_counter() - t0) / len(frames) * 1e3
-        print(f"\n[flow frontend] track() at 320x240, {name}: {ms:.2f} ms/frame")
-
-
 # -------------------------------------------------------------------------------------- observe --
 def test_observe_targets_and_track_reuse():
     big = S.texture("astronaut")
     shifts = [0.0, 20.0, 36.0]
     g = _graph(shifts)
     fe = _frontend(dynamic_masking=False)  # default: the track flow is reused for (k-1, k)
-    assert fe.iterations == 1
+    assert fe.rounds == 1
     for k, dx in enumerate(shifts):
         f = S.frame(S.shifted(big, dx), k)
         if k:
@@ -176,33 +157,43 @@ def test_keyframe_when_coverage_drops():
     assert not off.track(S.frame(zoom, 1), None).is_keyframe
 
 
-def test_index_shift_after_remove_keyframe():
+def test_state_follows_graph_notifications():
+    """The frontend keys its cache by the graph's stable ids: removing a keyframe from the graph (which shifts later
+    indices down) and retiring edges both reach it as notifications, and its cache follows."""
     big = S.texture("astronaut")
     shifts = [0.0, 12.0, 30.0, 44.0]
     g = _graph(shifts)
     fe = _frontend(dynamic_masking=False)
+    g.add_listener(fe)
     for k, dx in enumerate(shifts):
-        fe.add_keyframe(k, S.frame(S.shifted(big, dx), k), None)
+        fe.add_keyframe(g.id_of(k), S.frame(S.shifted(big, dx), k), None)
     ii = torch.tensor([0, 2, 1, 3])
     jj = torch.tensor([2, 0, 3, 1])
+    g.add_edges(ii, jj)
     before = fe.observe(g, ii, jj)
     computed = fe.stats["edges_computed"]
-    sids = [fe.stable_id(k) for k in range(4)]
-    # the graph drops keyframe 1: the frontend forgets its edges, then the keyframe; later indices shift down
-    fe.forget_edges(torch.tensor([1, 3]), torch.tensor([3, 1]))
-    assert (sids[1], sids[3]) not in fe.cached_edges() and (sids[3], sids[1]) not in fe.cached_edges()
-    fe.remove_keyframe(1)
+    assert sorted(fe.cached_edges()) == [(0, 2), (1, 3), (2, 0), (3, 1)]
+    # the graph drops keyframe 1: its edges go from the cache, later graph indices shift down
     g.remove_keyframe(1)
-    assert fe.num_keyframes == 3 and [fe.stable_id(k) for k in range(3)] == [sids[0], sids[2], sids[3]]
-    assert all(sids[1] not in e for e in fe.cached_edges())
-    after = fe.observe(g, torch.tensor([0, 1]), torch.tensor([1, 0]))  # old (0, 2) and (2, 0)
+    assert fe.num_keyframes == 3 and sorted(fe.cached_edges()) == [(0, 2), (2, 0)]
+    after = fe.observe(g, torch.tensor([0, 1]), torch.tensor([1, 0]))  # old (0, 2) and (2, 0), now indices 0, 1
     assert fe.stats["edges_computed"] == computed  # served from the cache by stable id
     assert torch.equal(after.target, before.target[:2])
-    # a new keyframe gets the next index and a fresh stable id
-    fe.add_keyframe(3, S.frame(S.shifted(big, 60.0), 4), None)
-    assert fe.stable_id(3) == sids[3] + 1
+    # retiring edges drops their state too (the graph keeps their last observation)
+    g.record_observations(after)
+    assert g.retire_edges(torch.ones(g.num_edges, dtype=torch.bool)) == 2
+    assert fe.cached_edges() == [] and g.num_retired == 2
+    stored = g.retired_observations(torch.tensor([0, 1]), torch.tensor([1, 0]))
+    assert float((stored.target - after.target).abs().max()) < 0.02  # float16 offsets
+    # ids are never reused, and a keyframe id is added once
+    g.add_keyframe(5, 0.5, g.poses[-1], g.disps[-1])
+    assert g.id_of(-1) == 4
+    fe.add_keyframe(4, S.frame(S.shifted(big, 60.0), 5), None)
     with pytest.raises(ValueError):
-        fe.add_keyframe(7, S.frame(S.base(big), 5), None)
+        fe.add_keyframe(4, S.frame(S.base(big), 6), None)
+    with pytest.raises(KeyError):  # observing a keyframe the frontend never saw is a clear error
+        g.add_keyframe(6, 0.6, g.poses[-1], g.disps[-1])
+        fe.observe(g, torch.tensor([0]), torch.tensor([4]))
 
 
 def test_reprojection_init_for_long_baseline_edge():
@@ -232,11 +223,9 @@ def test_initial_depth_median_of_previous_keyframe():
     g = _graph([0.0, 16.0])
     g.set_disps(torch.tensor([1]), torch.linspace(0.2, 1.0, BA_H * BA_W).reshape(1, BA_H, BA_W))
     fe = _frontend()
-    assert fe.initial_depth(2) is None  # no graph seen yet: pipeline default
     for k, dx in enumerate([0.0, 16.0]):
         fe.add_keyframe(k, S.frame(S.shifted(big, dx), k), None)
-    fe.observe(g, torch.tensor([0]), torch.tensor([1]))
-    d = fe.initial_depth(2)
+    d = fe.initial_depth(g, 2)
     assert d.shape == (BA_H, BA_W)
     assert float(d[0, 0]) == pytest.approx(float(g.disps[1].median()))
 
@@ -255,7 +244,7 @@ def _moving_patch_scene(convention, with_seg):
     seg1 = S.patch_segmentation(x0 + int(dx) + 24, y0 + 10, 72, 96) if with_seg else None
     g = _graph([0.0, dx])
     fe = _frontend(convention=convention, preset="medium")  # a flow that tracks the object itself
-    assert fe.iterations == 1  # one round per keyframe; masks apply from an edge's second observation
+    assert fe.rounds == 1  # one round per keyframe; masks apply from an edge's second observation
     fe.add_keyframe(0, S.frame(i0, 0), seg0)
     fe.add_keyframe(1, S.frame(i1, 1), seg1)
     ii, jj = torch.tensor([0, 1]), torch.tensor([1, 0])
@@ -311,9 +300,12 @@ def test_registered_plugin(monkeypatch):
     reg = build_registry(extra_modules=(flow_plugin,))
     spec = reg.get("frontend", "flow")
     cfg = spec.config_model(preset="medium", flow_scale=1.0)
-    fe = spec.factory(cfg, type("Ctx", (), {"device": torch.device("cpu")})())
-    assert isinstance(fe, FlowFrontend) and fe.iterations == 1
-    assert spec.factory(spec.config_model(rounds=2), type("Ctx", (), {"device": torch.device("cpu")})()).iterations == 2
+    fe = spec.factory(cfg, type("Ctx", (), {"device": torch.device("cpu"), "ba_downsample": 8})())
+    assert isinstance(fe, FlowFrontend) and fe.rounds == 1
+    assert spec.factory(spec.config_model(rounds=2), type("Ctx", (), {"device": torch.device("cpu")})()).rounds == 2
+    # renamed keys of earlier releases still load: eta -> panoptic_offset; ba_downsample comes from the graph now
+    old = spec.config_model.model_validate({"eta": 7.0, "ba_downsample": 4})
+    assert old.panoptic_offset == 7.0
     with pytest.raises(Exception):
         spec.config_model(flow_scale=0.3)
     with pytest.raises(Exception):

@@ -1,4 +1,4 @@
-"""Tests of the ``classical`` loop detector (descriptor, verification, temporal exclusion, index bookkeeping)."""
+"""Tests of the ``classical`` loop detector (descriptor, verification, temporal exclusion, id bookkeeping)."""
 from __future__ import annotations
 
 import time
@@ -59,9 +59,15 @@ def gray(img: np.ndarray) -> np.ndarray:
 
 
 def cfg(**kw) -> ClassicalLoopConfig:
-    base = dict(exclude_recent=3, min_time_gap=0.0, nms_keyframes=0)
+    base = dict(exclude_recent=3, min_time_gap=0.0)
     base.update(kw)
     return ClassicalLoopConfig(**base)
+
+
+def step(det: ClassicalLoopDetector, kf_id: int, fr: Frame, skip=None) -> list:
+    """Add a keyframe and return its candidates that passed verification (what the loop policy can accept)."""
+    det.add_keyframe(kf_id, fr)
+    return [c for c in det.query(kf_id, skip) if c.verified]
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -111,14 +117,14 @@ def test_revisit_detected_and_verified():
     det = ClassicalLoopDetector(cfg())
     tour = _tour()
     for k, img in enumerate(tour):
-        assert det.add_keyframe(k, frame(img, 10 * k)) == []
+        assert step(det, k, frame(img, 10 * k)) == []
     k = len(tour)
-    loops = det.add_keyframe(k, frame(view("astronaut", dx=6, dy=4, gain=1.1, noise=3.0), 10 * k))
+    loops = step(det, k, frame(view("astronaut", dx=6, dy=4, gain=1.1, noise=3.0), 10 * k))
     assert len(loops) == 1
     lc = loops[0]
     assert (lc.i, lc.j) == (k, 0) and lc.verified and lc.inliers >= 30 and lc.score >= det.config.threshold
     # a new place does not close a loop
-    assert det.add_keyframe(k + 1, frame(textured_noise(7), 10 * (k + 1))) == []
+    assert step(det, k + 1, frame(textured_noise(7), 10 * (k + 1))) == []
     sim = det.similarity_matrix()
     assert sim.shape == (k + 2, k + 2) and np.allclose(sim, sim.T) and np.allclose(np.diag(sim), 1, atol=1e-5)
     assert sim[k, 0] == pytest.approx(lc.score, abs=1e-6)
@@ -131,14 +137,20 @@ def test_verification_rejects_retrieval_false_positive():
     for k, img in enumerate(tour):
         det.add_keyframe(k, frame(img, k))
     k = len(tour)
-    loops = det.add_keyframe(k, frame(view("coffee", dx=-8, dy=3), k))
-    assert [(lc.i, lc.j) for lc in loops] == [(k, 1)]
+    det.add_keyframe(k, frame(view("coffee", dx=-8, dy=3), k))
+    out = det.query(k)
+    assert [(lc.i, lc.j) for lc in out if lc.verified] == [(k, 1)]
+    assert all(lc.verified is False for lc in out if lc.j != 1)  # checked and failed, never "unknown"
     assert len(det.last_verifications) == k - det.config.exclude_recent
+    # the loop policy's skip predicate spares the verification of candidates it would refuse anyway
+    det.query(k, skip=lambda j: j != 1)
+    assert [v[1] for v in det.last_verifications] == [1]
     unverified = ClassicalLoopDetector(cfg(threshold=-1.0, max_candidates=2, verify=False))
     for kk, img in enumerate(tour):
         unverified.add_keyframe(kk, frame(img, kk))
-    out = unverified.add_keyframe(k, frame(view("coffee", dx=-8, dy=3), k))
-    assert len(out) == 2 and not any(lc.verified for lc in out) and out[0].j == 1
+    unverified.add_keyframe(k, frame(view("coffee", dx=-8, dy=3), k))
+    out = unverified.query(k)
+    assert len(out) == 2 and all(lc.verified is None for lc in out) and out[0].j == 1  # retrieval only
 
 
 def test_temporal_exclusion_keyframes_and_seconds():
@@ -149,56 +161,35 @@ def test_temporal_exclusion_keyframes_and_seconds():
         det = ClassicalLoopDetector(cfg(exclude_recent=excl))
         for k, img in enumerate(tour):
             det.add_keyframe(k, frame(img, k, t=100.0 * k))
-        assert len(det.add_keyframe(3, frame(revisit, 3, t=300.0))) == expect, excl
+        assert len(step(det, 3, frame(revisit, 3, t=300.0))) == expect, excl
     # time window: 3 s after the original with min_time_gap 5 s -> excluded; 6 s -> accepted
     for t_revisit, expect in ((3.0, 0), (6.0, 1)):
         det = ClassicalLoopDetector(cfg(exclude_recent=0, min_time_gap=5.0))
         for k, img in enumerate(tour):
             det.add_keyframe(k, frame(img, k, t=0.5 * k))
-        assert len(det.add_keyframe(3, frame(revisit, 3, t=t_revisit))) == expect, t_revisit
+        assert len(step(det, 3, frame(revisit, 3, t=t_revisit))) == expect, t_revisit
 
 
-def test_remove_keyframe_shifts_indices():
+def test_removed_keyframe_is_forgotten_ids_stay():
+    """Keyframes are named by stable id: a removal (graph notification) drops one, the others keep their ids."""
     det = ClassicalLoopDetector(cfg(exclude_recent=1))
     tour = _tour()
     for k, img in enumerate(tour):
         det.add_keyframe(k, frame(img, k))
     n = len(tour)
-    det.remove_keyframe(1)  # "coffee" goes; "rocket" (was 2) becomes 1
+    det.on_keyframe_removed(1)  # "coffee" goes; "rocket" keeps id 2
     assert len(det) == n - 1 and det.descriptors.shape[0] == n - 1
-    assert det.keyframe_frame_indices()[:3] == [0, 2, 3]
-    loops = det.add_keyframe(n - 1, frame(view("rocket", dx=4, dy=-6), n))
-    assert [(lc.i, lc.j) for lc in loops] == [(n - 1, 1)]
-    # the similarity matrix follows the removal
+    assert det.keyframe_ids()[:3] == [0, 2, 3] and det.keyframe_frame_indices()[:3] == [0, 2, 3]
+    loops = step(det, n, frame(view("rocket", dx=4, dy=-6), n))
+    assert [(lc.i, lc.j) for lc in loops] == [(n, 2)]
     assert det.similarity_matrix().shape == (n, n)
     # a revisit of the removed place finds nothing verified
-    assert det.add_keyframe(n, frame(view("coffee", dx=3), n + 1)) == []
-    # accepted loops are re-indexed too
-    det.remove_keyframe(0)
-    assert [(lc.i, lc.j) for lc in det.accepted] == [(n - 2, 0)]
-    with pytest.raises(ValueError):
+    assert step(det, n + 1, frame(view("coffee", dx=3), n + 1)) == []
+    det.on_keyframe_removed(100)  # unknown ids are ignored
+    with pytest.raises(ValueError):  # ids come in time order
         det.add_keyframe(5, frame(view("moon"), 99))
-    with pytest.raises(IndexError):
-        det.remove_keyframe(100)
-
-
-def test_consecutive_hits_and_nms():
-    tour = _tour()
-    n = len(tour)
-    revisits = [view("astronaut", dx=4 * m, dy=2 * m) for m in range(3)]
-    # consecutive = 2: the first revisit is not reported, the second one is
-    det = ClassicalLoopDetector(cfg(consecutive=2))
-    for k, img in enumerate(tour):
-        det.add_keyframe(k, frame(img, k))
-    got = [det.add_keyframe(n + m, frame(img, n + m)) for m, img in enumerate(revisits)]
-    assert got[0] == [] and [(lc.i, lc.j) for lc in got[1]] == [(n + 1, 0)]
-    # nms: after a loop (n, 0) is accepted, (n+1, 0) is suppressed with nms_keyframes=2 and kept with 0
-    for nms, expect in ((2, 0), (0, 1)):
-        det = ClassicalLoopDetector(cfg(nms_keyframes=nms))
-        for k, img in enumerate(tour):
-            det.add_keyframe(k, frame(img, k))
-        assert len(det.add_keyframe(n, frame(revisits[0], n))) == 1
-        assert len(det.add_keyframe(n + 1, frame(revisits[1], n + 1))) == expect
+    with pytest.raises(KeyError):
+        det.query(1)
 
 
 def test_registered_and_fast():
@@ -220,6 +211,6 @@ def test_registered_and_fast():
     det = make_loop_detector(ClassicalLoopConfig(), None)
     t = time.perf_counter()
     for k, img in enumerate(imgs):
-        det.add_keyframe(k, frame(img, k))
+        step(det, k, frame(img, k))
     per_call = (time.perf_counter() - t) / len(imgs)
     assert per_call < 0.05, per_call

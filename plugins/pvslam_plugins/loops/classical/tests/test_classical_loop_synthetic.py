@@ -71,7 +71,10 @@ def test_detector_closes_the_loop(loop_sequence):
     for k, (f, im) in enumerate(zip(s["idx"], s["imgs"])):
         fr = Frame(index=int(f), timestamp=float(s["ts"][f]), image=torch.from_numpy(im).permute(2, 0, 1).contiguous(),
                    intrinsics=s["K"])
-        loops += det.add_keyframe(k, fr)
+        det.add_keyframe(k, fr)
+        # suppression near accepted loops, as the pipeline's loop policy does (nms_keyframes = 5)
+        near = lambda j, k=k: any(abs(lc.i - k) <= 5 and abs(lc.j - j) <= 5 for lc in loops)  # noqa: E731
+        loops += [c for c in det.query(k, skip=near) if c.verified][:1]
     assert loops, "no loop closed on the driving loop"
     idx, c = s["idx"], s["centres"]
     d = np.array([np.linalg.norm(c[idx[lc.i]] - c[idx[lc.j]]) for lc in loops])

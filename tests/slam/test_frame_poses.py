@@ -1,0 +1,48 @@
+"""Poses of every frame anchored to keyframes (pvslam_core.slam.frame_poses)."""
+import pytest
+import torch
+
+from pvslam_core.geometry.lie import se3_exp, se3_inv, se3_mul
+from pvslam_core.geometry.projective import reproject
+from pvslam_core.geometry.testing import make_problem
+from pvslam_core.slam.frame_poses import FramePoses
+
+
+def test_poses_follow_keyframes_and_survive_removal():
+    pr = make_problem(n=4, seed=2)
+    g = pr.graph()
+    fp = FramePoses(g)
+    rel = se3_exp(torch.tensor([0.1, 0.0, 0.05, 0.0, 0.02, 0.0], dtype=torch.float64))
+    for k in range(4):
+        fp.add_keyframe(10 * k, float(k), g.id_of(k))
+        fp.add_frame(10 * k + 5, k + 0.5, g.id_of(k), rel)
+    ts, poses = fp.poses()
+    assert ts.tolist() == [0, 0.5, 1, 1.5, 2, 2.5, 3, 3.5]
+    assert torch.allclose(poses[3], se3_mul(pr.poses[1], rel))
+    # the BA moves keyframe 1: its frames move with it
+    moved = se3_mul(pr.poses[1], se3_exp(torch.tensor([0, 0.2, 0, 0.05, 0, 0], dtype=torch.float64)))
+    g.set_poses(torch.tensor([1]), moved[None])
+    assert torch.allclose(fp.poses()[1][3], se3_mul(moved, rel))
+    before = fp.poses()[1]
+    g.remove_keyframe(1)  # the graph tells; frames anchored to it re-anchor to keyframe 0 at the same pose
+    after = fp.poses()[1]
+    assert torch.allclose(before, after, atol=1e-9)
+    assert fp.entries[2].anchor == g.id_of(0) and not fp.entries[2].is_keyframe
+    with pytest.raises(ValueError):
+        g.remove_keyframe(0)
+
+
+def test_refine_recovers_pose_from_exact_correspondences():
+    pr = make_problem(n=3, seed=5, radius=2)
+    g = pr.graph()
+    fp = FramePoses(g, robust="cauchy", robust_scale=1.0)
+    fp.add_keyframe(0, 0.0, g.id_of(0))
+    coords, valid = reproject(pr.poses, pr.disps.double(), pr.intr.double(), torch.tensor([0]), torch.tensor([2]))
+    target = coords[0].permute(2, 0, 1).float()
+    weight = valid[0].float().expand(2, -1, -1).clone()
+    e = fp.add_frame(7, 0.7, g.id_of(0), torch.tensor([0, 0, 0, 0, 0, 0, 1.0], dtype=torch.float64), target, weight)
+    init = se3_mul(pr.poses[2], se3_exp(torch.tensor([0.03, -0.02, 0.02, 0.01, -0.01, 0.0], dtype=torch.float64)))
+    assert fp.refine(e, init, iters=8)
+    err = se3_mul(se3_inv(pr.poses[2]), fp.pose_of(e))
+    assert float(err[:3].norm()) < 1e-3
+    assert fp.refill(iters=4) == 1

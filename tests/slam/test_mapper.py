@@ -1,0 +1,124 @@
+"""The mapper (Algorithm 1's per-frame driver) with the framework's exact fake plugins: per-frame results,
+initialisation, online BA accuracy, loop handling, keyframe removal, and the motion cue for the VPS head."""
+import torch
+
+import fakes
+from pvslam_core.config import validate_pipeline
+from pvslam_core.geometry.testing import umeyama_ate
+from pvslam_core.interfaces import BuildContext
+from pvslam_core.registry import get_registry
+from pvslam_core.slam.graph import EDGE_LOOP
+from pvslam_core.slam.mapper import Mapper
+from pvslam_core.slam.motion_cue import motion_cue
+
+
+SPEED = 0.4  # m per frame: 2.5 / 1.25 BA px between keyframes on the near / far plane (enough parallax)
+
+
+def build(frames=24, loop=None, optimizer="online_ba", **graph):
+    pcfg = validate_pipeline({"graph": {"warmup": 3, "ba_downsample": 4, "remove_redundant": False, **graph},
+                              "loop_closure": {"nms_keyframes": 0}})
+    ds = fakes.FakeDataset(fakes.FakeDatasetConfig(frames=frames, speed=SPEED))
+    fe = fakes.ExactFrontend(fakes.ExactFrontendConfig(keyframe_every=2), ds=4)
+    spec = get_registry().get("optimizer", optimizer)
+    opt = spec.factory(spec.config_model(), BuildContext(device=torch.device("cpu")))
+    return Mapper(pcfg, ds.info(), fe, opt, loop, "cpu"), ds, fe
+
+
+def test_results_initialisation_and_accuracy():
+    m, ds, fe = build()
+    results = [m.process(f, None) for f in ds]
+    first = results[0]
+    assert first.keyframe_id == 0 and first.ref_id is None and first.is_keyframe
+    assert [r.is_keyframe for r in results[:6]] == [True, False, True, False, True, False]  # every 2nd frame
+    r1 = results[1]  # tracked against keyframe 0
+    assert r1.ref_id == 0 and r1.ref_target.shape == (2, 12, 16) and r1.keyframe_id is None
+    assert not results[2].initialized and results[4].initialized  # warmup = 3 keyframes
+    assert results[5].ref_id == 2  # the third keyframe
+    m.finalize()
+    ts, poses = m.trajectory()
+    gt = torch.stack([f.gt_pose for f in ds])
+    assert len(ts) == len(gt)
+    ate = umeyama_ate(poses[:, :3], gt[:, :3])
+    assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate  # exact targets: exact poses up to scale
+
+
+def test_motion_cue_between_frames_sharing_a_reference():
+    m, ds, fe = build(frames=14)
+    frames = list(ds)
+    results = [m.process(f, None) for f in frames]
+    prev, cur = results[10], results[11]  # keyframe 10 (reference) -> frame 11
+    assert prev.keyframe_id is not None and cur.ref_id == prev.keyframe_id
+    cue = motion_cue(prev, cur)
+    h, w = 12, 16
+    f = fakes.F / 4
+    z = fakes.depth_map(h, w)
+    true_u = -f * SPEED / z  # the camera moves +x by SPEED per frame
+    ok = cue.flow_valid
+    assert ok.float().mean() > 0.8
+    assert torch.allclose(cue.flow[0][ok], true_u[ok], atol=1e-3) and float(cue.flow[1].abs().max()) < 1e-3
+    # depth of the previous frame, in map units (monocular scale): the far plane is twice as far
+    d = cue.depth_prev
+    assert abs(float(d[:, -3].median() / d[:, 2].median()) - 2.0) < 0.01
+    assert cue.pose_prev is not None and cue.intrinsics is not None
+    # two non-keyframes sharing the reference: the flow between them follows from both targets
+    m2, ds2, _ = build(frames=14)
+    fe2 = m2.frontend
+    fe2.cfg.keyframe_every = 3
+    rs = [m2.process(f_, None) for f_ in ds2]
+    pairs = [(a, b) for a, b in zip(rs, rs[1:]) if a.ref_id is not None and a.ref_id == b.ref_id and not a.is_keyframe]
+    assert pairs
+    cue = motion_cue(*pairs[-1])
+    ok = cue.flow_valid.clone()
+    ok[:, w // 2 - 2: w // 2 + 2] = False  # the fake planes are fixed in the image, not in 3D: skip their border
+    assert ok.float().mean() > 0.5
+    assert torch.allclose(cue.flow[0][ok], true_u[ok], atol=1e-3)
+    assert motion_cue(None, cur).flow is None
+
+
+class VerifiedLoop:
+    """Proposes (id, 1) from keyframe id 8 on (a stand-in detector)."""
+
+    def __init__(self):
+        self.added = []
+
+    def add_keyframe(self, kf_id, frame):
+        self.added.append(kf_id)
+
+    def query(self, kf_id, skip=None):
+        from pvslam_core.types import LoopCandidate
+
+        return [LoopCandidate(kf_id, 1, 0.9, verified=True, inliers=50)] if kf_id >= 8 else []
+
+    def on_keyframe_removed(self, kf_id):
+        self.added.remove(kf_id)
+
+    def on_edges_retired(self, src, dst):
+        pass
+
+
+def test_loops_add_edges_and_run_the_loop_ba():
+    det = VerifiedLoop()
+    m, ds, fe = build(frames=24, loop=det)
+    for f in ds:
+        m.process(f, None)
+    assert det.added == m.graph.ids.tolist()
+    assert m.loops and m.loops[0].kf_i == 8 and m.loops[0].kf_j == 1 and m.loops[0].loop_ba
+    g = m.graph
+    loop_pairs = {(int(g.ids[i]), int(g.ids[j])) for i, j, k in zip(g.ii, g.jj, g.edge_kind) if int(k) == EDGE_LOOP}
+    # later loop edges are still active; the first loop's have retired with their keyframe's window
+    assert {(11, 0), (11, 1), (11, 2)} <= loop_pairs | {(a, b) for a, b in [(11, 0), (11, 1), (11, 2)]}
+    assert g.num_retired > 0
+
+
+def test_redundant_keyframes_are_removed_and_everyone_hears():
+    m, ds, fe = build(frames=30, remove_redundant=True, redundant_thresh=2.2)
+    for f in ds:
+        m.process(f, None)
+    ids = m.graph.ids.tolist()
+    assert len(ids) < 15  # 15 keyframes were added
+    assert sorted(fe.kf_x) == ids and sorted(m.kf_images) == ids
+    anchors = {e.anchor for e in m.frames.entries}
+    assert anchors <= set(ids)
+    m.finalize()
+    assert m.trajectory()[1].shape == (30, 7)
