@@ -1,0 +1,58 @@
+"""``pvslam train``: the core loads the trainer's config (TOML + --set, validated) and calls the plugin's trainer."""
+import json
+
+import pytest
+from pydantic import Field
+
+from pvslam_core.config import ConfigError
+from pvslam_core.config_base import PluginConfig
+from pvslam_core.registry import PluginError, build_registry, hookimpl
+from pvslam_core.training import Trainer, train
+
+
+class ToyTrainConfig(PluginConfig):
+    steps: int = Field(3, ge=1, description="optimisation steps")
+    lr: float = Field(0.1, gt=0, description="learning rate")
+
+
+def toy_run(cfg, out, resume):
+    state = out / "state.json"
+    done = json.loads(state.read_text())["step"] if (resume and state.is_file()) else 0
+    for step in range(done, cfg.steps):
+        state.write_text(json.dumps({"step": step + 1}))
+    return {"steps_run": cfg.steps - done, "lr": cfg.lr}
+
+
+class ToyPlugin:
+    @hookimpl
+    def register_loop_detectors(self, register):
+        register("toy", lambda c, ctx: None, ToyTrainConfig, description="test-only",
+                 trainer=Trainer(ToyTrainConfig, toy_run))
+
+
+@pytest.fixture
+def registry():
+    return build_registry(extra_modules=(ToyPlugin(),))
+
+
+def test_train_dispatch_config_and_resume(tmp_path, registry):
+    cfg = tmp_path / "train.toml"
+    cfg.write_text("steps = 5\n")
+    out, summary = train("loop", "toy", cfg, ["lr=0.5"], tmp_path / "t", registry=registry)
+    assert summary == {"steps_run": 5, "lr": 0.5}
+    saved = json.loads((out / "train_config.json").read_text())
+    assert saved["plugin"] == "toy" and saved["config"] == {"steps": 5, "lr": 0.5}
+    assert json.loads((out / "summary.json").read_text())["steps_run"] == 5
+    _, again = train("loop", "toy", cfg, ["steps=7"], out, resume=True, registry=registry)
+    assert again["steps_run"] == 2  # continued from step 5
+
+
+def test_train_errors(tmp_path, registry):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("stepz = 5\n")
+    with pytest.raises(ConfigError, match="unknown key 'stepz'.*allowed keys here: steps, lr"):
+        train("loop", "toy", bad, registry=registry, out_dir=tmp_path / "x")
+    with pytest.raises(PluginError, match="has no trainer; trainable plugins: loop toy"):
+        train("frontend", "flow", registry=build_registry(extra_modules=(ToyPlugin(),)))
+    with pytest.raises(FileNotFoundError):
+        train("loop", "toy", resume=True, out_dir=tmp_path / "missing", registry=registry)
