@@ -7,11 +7,14 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any, Optional, Union
 
 from .config import PipelineConfig, ResolvedConfig, load_ablation, load_config, _normalise_overrides
 from .types import RunResult
+
+LOG = logging.getLogger("pvslam")
 
 ConfigLike = Union[None, str, Path, dict, PipelineConfig, ResolvedConfig]
 
@@ -32,32 +35,64 @@ def run_config(config: ConfigLike = None, overrides=None, run_dir: Optional[Unio
 
 
 def run_ablation(path: Union[str, Path], overrides=None, registry=None) -> list[tuple[str, RunResult]]:
-    """Run every ``[[variant]]`` of an ablation file, each into ``<ablation run dir>/<variant name>/``."""
+    """Run every ``[[variant]]`` of an ablation file, each into ``<ablation run dir>/<variant name>/``.
+
+    A variant that fails does not stop the others: its result has ``metrics = {"failed": True, "error": "..."}``
+    (see :func:`failed_result`) and ``comparison.json`` records the error. Ctrl-C still stops the ablation.
+    """
     from .pipeline import run
     from .report import comparison_rows
-    from .rundir import make_run_dir, write_json
+    from .rundir import make_run_dir, make_variant_dir, write_json
 
     variants = load_ablation(path, overrides=overrides, registry=registry)
     first = variants[0].config.pipeline.run
     base = make_run_dir(first.output_dir, Path(path).stem)
     results: list[tuple[str, RunResult]] = []
     for v in variants:
-        res = run(v.config, run_dir=base / v.name, registry=registry,
-                  overrides={**_normalise_overrides(overrides), **v.deltas})
+        vdir = make_variant_dir(base, v.name)
+        try:
+            res = run(v.config, run_dir=vdir, registry=registry,
+                      overrides={**_normalise_overrides(overrides), **v.deltas})
+        except Exception as exc:  # noqa: BLE001 - recorded in the table; the other variants still run
+            LOG.error("ablation variant %r failed: %s: %s", v.name, type(exc).__name__, exc)
+            res = failed_result(vdir, exc)
         results.append((v.name, res))
         write_json(base / "comparison.json", comparison_rows(results))
     return results
 
 
+def failed_result(run_dir: Optional[Union[str, Path]], exc: BaseException) -> RunResult:
+    """The :class:`RunResult` of a run that raised: no poses, ``metrics = {"failed": True, "error": ...}``."""
+    import torch
+
+    return RunResult(run_dir=str(run_dir) if run_dir is not None else None,
+                     timestamps=torch.zeros(0, dtype=torch.float64), poses=torch.zeros(0, 7, dtype=torch.float64),
+                     keyframe_indices=torch.zeros(0, dtype=torch.int64),
+                     keyframe_poses=torch.zeros(0, 7, dtype=torch.float64),
+                     metrics={"failed": True, "error": f"{type(exc).__name__}: {exc}"})
+
+
 def evaluate_run_dir(run_dir: Union[str, Path], registry=None) -> dict[str, Any]:
-    """Recompute the metrics of a run directory (ground truth re-read through the run's dataset config)."""
+    """Recompute the metrics of a run directory from its own files (``groundtruth.txt``,
+    ``groundtruth_loops.json``); the dataset named in its ``config.json`` is opened only for panoptic labels, and
+    a dataset (or dataset plugin) that is gone is reported in ``evaluation_sources``, not an error."""
+    from .config import ConfigError, EvaluationSection, OutputsSection
     from .run_outputs import evaluate_saved_run
+    from .outputs.metrics import read_json
 
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file():
         raise FileNotFoundError(f"{run_dir}: not a pvslam run directory (no config.json)")
-    resolved = load_config(run_dir / "config.json", registry=registry)
     timing = {}
     if (run_dir / "metrics.json").is_file():
         timing = json.loads((run_dir / "metrics.json").read_text()).get("timing", {})
+    try:
+        resolved = load_config(run_dir / "config.json", registry=registry)
+    except ConfigError as exc:  # e.g. the dataset plugin is not installed here: evaluate from the run directory
+        raw = read_json(run_dir / "config.json")
+        pcfg = PipelineConfig(evaluation=EvaluationSection.model_validate(raw.get("evaluation", {})),
+                              outputs=OutputsSection.model_validate(raw.get("outputs", {})))
+        pcfg.dataset.plugin = str((raw.get("dataset") or {}).get("plugin", "?"))
+        return evaluate_saved_run(run_dir, None, timing, registry=registry, pcfg=pcfg,
+                                  dataset_error=f"the run's config no longer resolves here: {exc}")
     return evaluate_saved_run(run_dir, resolved, timing, registry=registry)

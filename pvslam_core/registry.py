@@ -18,11 +18,19 @@ functions, for example::
 the pipeline calls the selected objects directly, never a per-frame hook.  Built-in plugins go through exactly
 this path (see ``pyproject.toml``).  ``PVSLAM_LOAD_PLUGINS=a,b`` restricts which entry points are loaded
 (empty string: none).
+
+One broken third-party plugin must not take every command down: an entry point that fails to import, whose hook
+raises, or that registers something invalid (a config model without ``extra="forbid"``, a name another plugin
+already has, a hook name with a typo) is skipped as a whole -- none of its registrations are kept -- with a
+:class:`PluginLoadWarning` naming the entry point and the error; ``pvslam plugins`` lists it as broken.  Modules
+passed directly to :func:`build_registry` (tests, embedding) still raise: their caller asked for them.
 """
 from __future__ import annotations
 
+import difflib
 import os
 import sys
+import warnings
 from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Callable, Optional
@@ -81,6 +89,10 @@ class PluginError(Exception):
     """A plugin could not be found, loaded or registered."""
 
 
+class PluginLoadWarning(UserWarning):
+    """A plugin entry point was skipped: it failed to import or to register (the message says which and why)."""
+
+
 @dataclass
 class PluginSpec:
     interface: str
@@ -98,7 +110,8 @@ class PluginSpec:
 class Registry:
     plugins: dict[tuple[str, str], PluginSpec] = field(default_factory=dict)
     loaded_entry_points: list[str] = field(default_factory=list)
-    skipped_entry_points: list[str] = field(default_factory=list)
+    skipped_entry_points: list[str] = field(default_factory=list)  # not in PVSLAM_LOAD_PLUGINS
+    broken_entry_points: dict[str, str] = field(default_factory=dict)  # entry point -> why it was skipped
 
     def get(self, interface: str, name: str) -> PluginSpec:
         key = (interface, name)
@@ -110,14 +123,16 @@ class Registry:
         return sorted(n for (i, n) in self.plugins if i == interface)
 
     def _unknown_message(self, interface: str, name: str) -> str:
-        installed = self.names(interface)
-        lines = [f"unknown {interface} plugin {name!r}."]
-        lines.append("Installed " + interface + " plugins: " + (", ".join(installed) if installed else "(none)"))
         from .catalog import load_catalog  # local import: the catalog is only read on this error path
 
+        installed = self.names(interface)
         missing = [
             e for e in load_catalog() if e.interface == interface and (interface, e.name) not in self.plugins
         ]
+        close = difflib.get_close_matches(name, installed + [e.name for e in missing], n=3, cutoff=0.6)
+        hint = ("; did you mean " + " or ".join(repr(c) for c in close) + "?") if close else "."
+        lines = [f"unknown {interface} plugin {name!r}{hint}"]
+        lines.append("Installed " + interface + " plugins: " + (", ".join(installed) if installed else "(none)"))
         if missing:
             lines.append("Known in registry.toml but not installed:")
             for e in missing:
@@ -126,6 +141,8 @@ class Registry:
             lines.append(
                 "Entry points not loaded because of PVSLAM_LOAD_PLUGINS: " + ", ".join(self.skipped_entry_points)
             )
+        for ep, why in self.broken_entry_points.items():
+            lines.append(f"Entry point {ep!r} is broken and was skipped: {why}")
         return "\n".join(lines)
 
 
@@ -146,59 +163,95 @@ def _entry_points() -> list[metadata.EntryPoint]:
     return [seen[k] for k in sorted(seen)]
 
 
+def _warn_broken(reg: Registry, name: str, value: str, why: str) -> None:
+    reg.broken_entry_points[name] = why
+    warnings.warn(f"pvslam: skipping plugin entry point {name!r} ({value}): {why}", PluginLoadWarning, stacklevel=3)
+
+
 def build_registry(extra_modules: tuple[Any, ...] = ()) -> Registry:
     """Load the entry points of group ``pvslam`` (filtered by ``PVSLAM_LOAD_PLUGINS``) and collect registrations.
 
-    ``extra_modules`` are modules/objects with hookimpls registered directly (for tests and embedding).
+    ``extra_modules`` are modules/objects with hookimpls registered directly (for tests and embedding); an error
+    in one of them raises, while a broken entry point is skipped with a :class:`PluginLoadWarning`.
     """
     pm = pluggy.PluginManager(PROJECT)
     pm.add_hookspecs(HookSpecs)
     reg = Registry()
     allow = _allow_list()
-    origin: dict[int, tuple[str, str, str]] = {}
-    for ep in _entry_points():
+    eps = _entry_points()
+    # (plugin object, entry-point name or None for extra modules, entry-point value, distribution, version)
+    sources: list[tuple[Any, Optional[str], str, str, str]] = []
+    for ep in eps:
         if allow is not None and ep.name not in allow:
             reg.skipped_entry_points.append(ep.name)
             continue
         try:
             module = ep.load()
-        except Exception as exc:  # a broken plugin must name itself, not crash with a bare traceback
-            raise PluginError(
-                f"entry point {ep.name!r} ({ep.value}) in group {ENTRY_POINT_GROUP!r} failed to import: "
-                f"{type(exc).__name__}: {exc}"
-            ) from exc
-        dist = getattr(ep, "dist", None)
-        dist_name = dist.metadata["Name"] if dist is not None else ""
-        version = dist.version if dist is not None else ""
+        except Exception as exc:  # noqa: BLE001 - any import failure: skip this plugin, name it and why
+            _warn_broken(reg, ep.name, ep.value, f"failed to import: {type(exc).__name__}: {exc}")
+            continue
         if pm.is_registered(module):
             continue
-        pm.register(module, name=ep.name)
-        origin[id(module)] = (ep.name, dist_name, version)
-        reg.loaded_entry_points.append(ep.name)
+        try:
+            pm.register(module, name=ep.name)
+            pm.check_pending()  # a hook name with a typo is this entry point's fault
+        except Exception as exc:  # noqa: BLE001
+            if pm.is_registered(module):
+                pm.unregister(module)
+            _warn_broken(reg, ep.name, ep.value, f"invalid hooks: {type(exc).__name__}: {exc}")
+            continue
+        dist = getattr(ep, "dist", None)
+        sources.append((module, ep.name, ep.value, dist.metadata["Name"] if dist is not None else "",
+                        dist.version if dist is not None else ""))
+    if allow:
+        known = [ep.name for ep in eps]
+        for name in sorted(allow - set(known)):
+            close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+            warnings.warn(f"PVSLAM_LOAD_PLUGINS names {name!r}, which is no installed entry point"
+                          + (f"; did you mean {close[0]!r}?" if close else "")
+                          + " Installed: " + ", ".join(known), PluginLoadWarning, stacklevel=2)
     for mod in extra_modules:
         pm.register(mod)
-        origin[id(mod)] = (getattr(mod, "__name__", repr(mod)), "", "")
+        sources.append((mod, None, getattr(mod, "__name__", repr(mod)), "", ""))
     pm.check_pending()
 
+    # Each plugin's hooks run as one transaction: a hook that raises, or an invalid registration, discards
+    # everything that plugin registered, so a half-registered plugin never appears.
+    impls: dict[int, list[tuple[str, Any]]] = {}
     for interface, hook_name in HOOK_FOR.items():
-        hook = getattr(pm.hook, hook_name)
-        for impl in hook.get_hookimpls():
-            ep_name, dist_name, version = origin.get(id(impl.plugin), (impl.plugin_name, "", ""))
+        for impl in getattr(pm.hook, hook_name).get_hookimpls():
+            impls.setdefault(id(impl.plugin), []).append((interface, impl))
+    for plugin, ep_name, value, dist_name, version in sources:
+        label = ep_name or value
+        staged: dict[tuple[str, str], PluginSpec] = {}
+        try:
+            for interface, impl in impls.get(id(plugin), []):
+                def register(name: str, factory: Callable[..., Any], config_model: type, description: str = "",
+                             _i: str = interface, **extras: Any) -> None:
+                    _check_config_model(_i, name, config_model)
+                    key = (_i, name)
+                    prev = reg.plugins.get(key) or staged.get(key)
+                    if prev is not None:
+                        raise PluginError(f"{_i} plugin {name!r} is registered twice: by entry point "
+                                          f"{prev.entry_point!r} and by {label!r}")
+                    staged[key] = PluginSpec(_i, name, factory, config_model, description, label, dist_name,
+                                             version, extras)
 
-            def register(name: str, factory: Callable[..., Any], config_model: type, description: str = "",
-                         _i: str = interface, _ep: str = ep_name, _d: str = dist_name, _v: str = version,
-                         **extras: Any) -> None:
-                _check_config_model(_i, name, config_model)
-                key = (_i, name)
-                if key in reg.plugins:
-                    prev = reg.plugins[key]
-                    raise PluginError(
-                        f"{_i} plugin {name!r} is registered twice: by entry point {prev.entry_point!r} "
-                        f"and by {_ep!r}"
-                    )
-                reg.plugins[key] = PluginSpec(_i, name, factory, config_model, description, _ep, _d, _v, extras)
-
-            impl.function(register=register)
+                try:
+                    impl.function(register=register)
+                except PluginError:
+                    raise
+                except Exception as exc:  # noqa: BLE001
+                    raise PluginError(f"its {HOOK_FOR[interface]} hook raised {type(exc).__name__}: {exc}") from exc
+        except PluginError as exc:
+            if ep_name is None:  # a module the caller passed in: its errors are the caller's to see
+                raise
+            pm.unregister(plugin)
+            _warn_broken(reg, ep_name, value, str(exc))
+            continue
+        reg.plugins.update(staged)
+        if ep_name is not None:
+            reg.loaded_entry_points.append(ep_name)
     return reg
 
 

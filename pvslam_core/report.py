@@ -49,8 +49,11 @@ def comparison_rows(results: list[tuple[str, RunResult]]) -> list[dict[str, Any]
     rows = []
     for name, r in results:
         m = r.metrics
+        failed = bool(m.get("failed"))
         rows.append({
             "variant": name,
+            "status": "failed" if failed else "ok",
+            "error": m.get("error") if failed else None,
             "ate_rmse": _get(m, "ate", "rmse"),
             "ate_percent": _get(m, "ate", "rmse_percent_of_path"),
             "rpe_trans": _get(m, "rpe", "trans_rmse"),
@@ -67,7 +70,10 @@ def comparison_rows(results: list[tuple[str, RunResult]]) -> list[dict[str, Any]
 
 def comparison_table(results: list[tuple[str, RunResult]]) -> str:
     rows = comparison_rows(results)
-    cols = [("variant", "variant", "s"), ("ATE rmse", "ate_rmse", ".4f"), ("ATE %path", "ate_percent", ".3f"),
+    for r in rows:
+        r["state"] = "FAILED" if r["status"] == "failed" else "ok"
+    cols = [("variant", "variant", "s"), ("status", "state", "s"), ("ATE rmse", "ate_rmse", ".4f"),
+            ("ATE %path", "ate_percent", ".3f"),
             ("RPE", "rpe_trans", ".4f"), ("loops", "loops", "d"), ("PQ", "PQ", ".3f"), ("VPQ", "VPQ", ".3f"),
             ("fps", "fps", ".1f"), ("KFs", "keyframes", "d")]
     table = [[h for h, _, _ in cols]]
@@ -79,6 +85,10 @@ def comparison_table(results: list[tuple[str, RunResult]]) -> str:
         out.append("  ".join(str(c).ljust(widths[i]) for i, c in enumerate(row)))
         if n == 0:
             out.append("  ".join("-" * w for w in widths))
+    failed = [r for r in rows if r["status"] == "failed"]
+    if failed:
+        out.append("\nFAILED variants (the others ran):")
+        out += [f"  {r['variant']}: {r['error']}" for r in failed]
     if rows:
         out.append(f"\nrun directories under: {rows[0]['run_dir'].rsplit('/', 1)[0] if rows[0]['run_dir'] else '-'}")
     return "\n".join(out)

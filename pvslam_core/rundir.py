@@ -19,19 +19,75 @@ from .config import COMPONENTS, ResolvedConfig
 LOG = logging.getLogger("pvslam")
 
 
+def check_name(name: str, what: str = "run.name") -> str:
+    """``name`` as one plain folder name inside the output directory, or ValueError saying why not.
+
+    A run or variant name becomes a directory name under ``run.output_dir``: a separator, ``..`` or an absolute
+    path would let it write (and overwrite) anywhere, so such names are rejected rather than silently rewritten.
+    """
+    if not isinstance(name, str) or not name.strip():
+        raise ValueError(f"{what} must be a non-empty folder name, got {name!r}")
+    problems = [f"contains {c!r}" for c in ("/", "\\", "\x00") if c in name]
+    if any(ord(c) < 32 for c in name.replace("\x00", "")):
+        problems.append("contains control characters")
+    if name in (".", ".."):
+        problems.append("is a dot name")
+    if Path(name).is_absolute():
+        problems.append("is absolute")
+    if len(name) > 200:
+        problems.append("is longer than 200 characters")
+    if problems:
+        raise ValueError(f"{what} {name!r} {', '.join(problems)}: a name must stay inside the output directory, "
+                         "so it is one folder name (no path separators, no '..', not absolute)")
+    return name
+
+
+def inside_dir(base: Path, path: Path) -> bool:
+    """Whether ``path`` resolves (symlinks followed) to ``base`` or below it."""
+    try:
+        return Path(path).resolve().is_relative_to(Path(base).resolve())
+    except (OSError, RuntimeError):
+        return False
+
+
+def ensure_output_dir(output_dir: str | Path, what: str = "run.output_dir") -> Path:
+    """Create ``output_dir`` (and parents); a path that exists as a file, or below a file, is a clear error."""
+    base = Path(output_dir)
+    for p in (base, *base.parents):
+        if p.exists() and not p.is_dir():
+            raise NotADirectoryError(f"{what} {str(base)!r}: {str(p)!r} exists and is not a directory")
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise type(exc)(exc.errno, f"{what}: cannot create the folder ({exc.strerror})", str(base)) from exc
+    return base
+
+
 def make_run_dir(output_dir: str | Path, name: str) -> Path:
     """``<output_dir>/<name>-YYYYmmdd-HHMMSS`` (with a numeric suffix if it exists already)."""
-    base = Path(output_dir)
-    base.mkdir(parents=True, exist_ok=True)
+    check_name(name)
+    base = ensure_output_dir(output_dir)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     for n in range(1000):
         cand = base / (f"{name}-{stamp}" if n == 0 else f"{name}-{stamp}-{n}")
         try:
             cand.mkdir()
-            return cand
         except FileExistsError:
             continue
+        if not inside_dir(base, cand):  # defence in depth: check_name should make this impossible
+            cand.rmdir()
+            raise ValueError(f"run directory {cand} would lie outside {base}")
+        return cand
     raise RuntimeError(f"cannot create a run directory under {base}")
+
+
+def make_variant_dir(base: Path, name: str) -> Path:
+    """``<base>/<name>`` for an ablation variant; the name must stay inside ``base``."""
+    check_name(name, what="variant name")
+    d = base / name
+    if not inside_dir(base, d):
+        raise ValueError(f"variant name {name!r}: {d} resolves outside {base}")
+    return d
 
 
 def git_revision() -> dict[str, Any]:
@@ -77,14 +133,16 @@ def versions(resolved: ResolvedConfig, registry) -> dict[str, Any]:
 
 
 def write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=str))
-    tmp.replace(path)
+    from .outputs._atomic import atomic_write_text
+
+    atomic_write_text(path, json.dumps(obj, indent=2, default=str) + "\n")
 
 
 def init_run_dir(run_dir: Path, resolved: ResolvedConfig, registry, overrides: dict[str, Any]) -> None:
+    from .outputs._atomic import atomic_write_text
+
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(resolved.to_json())
+    atomic_write_text(run_dir / "config.json", resolved.to_json())
     write_json(run_dir / "overrides.json", {"source": resolved.source, "overrides": overrides})
     write_json(run_dir / "versions.json", versions(resolved, registry))
 

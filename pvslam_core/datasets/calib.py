@@ -5,6 +5,7 @@ image size is not part of the file: the caller supplies it (usually from the fir
 """
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 from typing import Sequence
@@ -14,6 +15,7 @@ from .base import DatasetError
 
 _SPLIT = re.compile(r"[\s,]+")
 VALID_COUNTS = (4, 8, 9)
+VALUE_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
 def intrinsics_from_values(values: Sequence[float], width: int, height: int, source: str = "calib") -> Intrinsics:
@@ -43,10 +45,17 @@ def read_calibration_values(path: str | Path) -> list[float]:
             if not tok:
                 continue
             try:
-                vals.append(float(tok))
+                v = float(tok)
             except ValueError:
                 raise DatasetError(f"{p}:{lineno}: not a number: {tok!r}") from None
+            if not math.isfinite(v):  # float() accepts 'inf' and 'nan'; the pipeline would fail much later
+                raise DatasetError(f"{p}:{lineno}: {_value_name(len(vals))}={v} is not a finite number")
+            vals.append(v)
     return vals
+
+
+def _value_name(k: int) -> str:
+    return VALUE_NAMES[k] if k < len(VALUE_NAMES) else f"value {k + 1}"
 
 
 def read_calibration(path: str | Path, width: int, height: int) -> Intrinsics:

@@ -105,7 +105,7 @@ def check_timestamps(ts: np.ndarray, path: str | Path) -> None:
             i = int(bad[0])
             kind = "duplicate" if diff[i] == 0 else "unsorted"
             raise DatasetError(
-                f"{path}: {kind} timestamps at entries {i} and {i + 1} ({ts[i]!r}, {ts[i + 1]!r}); "
+                f"{path}: {kind} timestamps at entries {i} and {i + 1} ({float(ts[i])!r}, {float(ts[i + 1])!r}); "
                 "timestamps must be strictly increasing"
             )
 

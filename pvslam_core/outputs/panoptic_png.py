@@ -3,13 +3,27 @@
 Run directory layout written by :class:`PanopticWriter`::
 
     run_dir/panoptic/000000.png ...        COCO panoptic id PNG of each written frame
-    run_dir/panoptic/segments.json         {"annotations": [{"frame_index", "file_name", "segments_info"}],
-                                            "categories": [...]}   (COCO panoptic style)
+    run_dir/panoptic/segments.json         the COCO panoptic format (below)
     run_dir/panoptic_vis/000000.png ...    colour visualisation (optional)
+
+``segments.json`` is what the COCO panoptic API (``panopticapi``'s ``pq_compute``) reads::
+
+    {"info": {...},
+     "images":      [{"id": frame_index, "file_name": input frame name, "width": W, "height": H}],
+     "annotations": [{"image_id": frame_index, "file_name": "000000.png",
+                      "segments_info": [{"id", "category_id", "iscrowd": 0, "bbox": [x, y, w, h], "area"}]}],
+     "categories":  [{"id", "name", "isthing", "supercategory", "color"}],
+     "pvslam":      {"format_version": 2, "segment_scores": {"<image_id>": {"<segment id>": score}}}}
+
+The image id is the input-frame index.  Every id in a PNG has exactly one ``segments_info`` entry with its pixel
+area and bounding box, and every ``category_id`` is declared in ``categories``; pvslam-only data (segment
+scores) sits under the separate ``"pvslam"`` key, which COCO tools ignore.  Files of the first format
+(``annotations[].frame_index``, per-segment ``score``/``isthing``) are still read.
 """
 from __future__ import annotations
 
 import json
+import logging
 import os
 from typing import Any, Optional, Sequence
 
@@ -25,12 +39,16 @@ __all__ = [
     "save_panoptic",
     "load_panoptic",
     "segments_info",
+    "coco_ids",
     "colorize",
     "PanopticWriter",
     "load_panoptic_dir",
+    "read_segments_json",
 ]
 
 MAX_ID = 256**3 - 1
+FORMAT_VERSION = 2
+LOG = logging.getLogger("pvslam")
 
 
 def _np(x: Any) -> np.ndarray:
@@ -82,42 +100,72 @@ def _read_png_rgb(path: str) -> np.ndarray:
     return bgr[..., ::-1]
 
 
-def segments_info(seg) -> list[dict]:
-    """COCO-style ``segments_info`` of a :class:`~pvslam_core.types.PanopticSegmentation` (segments present in the
-    id map, with ``area`` and ``bbox`` [x, y, w, h])."""
-    ids = _np(seg.ids).astype(np.int64)
-    present, areas = np.unique(ids, return_counts=True)
-    area = dict(zip(present.tolist(), areas.tolist()))
+def _unique_segments(seg) -> list:
+    """``seg.segments`` without repeated ids (the first wins): COCO allows one ``segments_info`` entry per id."""
+    seen: set[int] = set()
     out = []
     for s in seg.segments:
         sid = int(s.id)
-        if sid == 0 or sid not in area:
+        if sid in seen:
+            LOG.warning("panoptic segment id %d is listed twice; keeping the first (category %d)", sid,
+                        next(int(t.category_id) for t in out if int(t.id) == sid))
             continue
-        ys, xs = np.nonzero(ids == sid)
-        out.append(
-            {
-                "id": sid,
-                "category_id": int(s.category_id),
-                "isthing": int(bool(s.isthing)),
-                "score": float(s.score),
-                "area": int(area[sid]),
-                "bbox": [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)],
-            }
-        )
+        seen.add(sid)
+        out.append(s)
+    return out
+
+
+def coco_ids(seg) -> np.ndarray:
+    """int64 ids ``[H, W]`` as written to the PNG: ids without a :class:`Segment` become 0 (void), so that the
+    PNG and ``segments_info`` hold exactly the same ids (the COCO panoptic evaluation rejects any mismatch)."""
+    ids = _np(seg.ids).astype(np.int64)
+    known = np.array(sorted({int(s.id) for s in seg.segments} - {0}), dtype=np.int64)
+    return np.where(np.isin(ids, known), ids, 0)
+
+
+def segments_info(seg, ids: Optional[np.ndarray] = None) -> list[dict]:
+    """COCO ``segments_info`` of a :class:`~pvslam_core.types.PanopticSegmentation`: one entry per non-void id
+    present in the (COCO-cleaned) id map, with ``iscrowd`` 0, pixel ``area`` and ``bbox`` [x, y, w, h]."""
+    ids = coco_ids(seg) if ids is None else ids
+    h, w = ids.shape
+    flat = ids.reshape(-1)
+    present, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    # bounding boxes of every id at once: sort pixels by id, then min/max over each id's run of pixels
+    order = np.argsort(inv.reshape(-1), kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    xs, ys = order % w, order // w
+    x0, x1 = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)
+    y0, y1 = np.minimum.reduceat(ys, starts), np.maximum.reduceat(ys, starts)
+    row = {int(v): k for k, v in enumerate(present.tolist())}
+    out = []
+    for s in _unique_segments(seg):
+        k = row.get(int(s.id))
+        if int(s.id) == 0 or k is None:
+            continue
+        out.append({
+            "id": int(s.id),
+            "category_id": int(s.category_id),
+            "iscrowd": 0,
+            "bbox": [int(x0[k]), int(y0[k]), int(x1[k] - x0[k] + 1), int(y1[k] - y0[k] + 1)],
+            "area": int(counts[k]),
+        })
     return out
 
 
 def save_panoptic(path: str | os.PathLike, seg) -> list[dict]:
-    """Write ``seg.ids`` as a COCO panoptic PNG (atomically); returns its ``segments_info``."""
-    atomic_write_bytes(path, _png_bytes(encode_ids(seg.ids)))
-    return segments_info(seg)
+    """Write ``seg.ids`` as a COCO panoptic PNG (atomically; ids without a segment as void); returns its COCO
+    ``segments_info``."""
+    ids = coco_ids(seg)
+    atomic_write_bytes(path, _png_bytes(encode_ids(ids)))
+    return segments_info(seg, ids)
 
 
-def load_panoptic(path: str | os.PathLike, segments_info: Sequence[Any], categories: Optional[Any] = None):
+def load_panoptic(path: str | os.PathLike, segments_info: Sequence[Any], categories: Optional[Any] = None,
+                  scores: Optional[dict] = None):
     """Read a COCO panoptic PNG into a :class:`~pvslam_core.types.PanopticSegmentation`.
 
-    ``segments_info``: COCO dicts (``id``, ``category_id``, optional ``isthing``/``score``) or ``Segment`` objects;
-    ``isthing`` comes from ``categories`` when given.
+    ``segments_info``: COCO dicts (``id``, ``category_id``; old files also ``isthing``/``score``) or ``Segment``
+    objects; ``isthing`` comes from ``categories`` when given; ``scores``: ``{segment id: score}`` (default 1).
     """
     import torch
 
@@ -129,13 +177,13 @@ def load_panoptic(path: str | os.PathLike, segments_info: Sequence[Any], categor
         for c in categories.values() if isinstance(categories, dict) else categories:
             cid = c["id"] if isinstance(c, dict) else c.id
             thing[int(cid)] = bool(c["isthing"] if isinstance(c, dict) else c.isthing)
+    scores = {int(k): float(v) for k, v in (scores or {}).items()}
     segs = []
     for s in segments_info:
         if isinstance(s, dict):
-            cat = int(s["category_id"])
-            segs.append(
-                Segment(int(s["id"]), cat, thing.get(cat, bool(s.get("isthing", False))), float(s.get("score", 1.0)))
-            )
+            cat, sid = int(s["category_id"]), int(s["id"])
+            score = scores.get(sid, float(s.get("score", 1.0)))
+            segs.append(Segment(sid, cat, thing.get(cat, bool(s.get("isthing", False))), score))
         else:
             segs.append(s)
     return PanopticSegmentation(ids=torch.from_numpy(ids), segments=segs)
@@ -178,9 +226,10 @@ def colorize(seg, categories: Any, void_color=(0, 0, 0)) -> np.ndarray:
 # run-directory writer
 # ----------------------------------------------------------------------------------------------------------------
 class PanopticWriter:
-    """Writes ``run_dir/panoptic/{frame:06d}.png`` per frame and ``panoptic/segments.json`` (rewritten atomically
-    on :meth:`flush` / :meth:`close`, and every ``flush_every`` frames). With ``categories`` and ``vis=True`` it
-    also writes ``run_dir/panoptic_vis/{frame:06d}.png`` colour images."""
+    """Writes ``run_dir/panoptic/{frame:06d}.png`` per frame and ``panoptic/segments.json`` in the COCO panoptic
+    format (rewritten atomically on :meth:`flush` / :meth:`close`, and every ``flush_every`` frames). With
+    ``categories`` and ``vis=True`` it also writes ``run_dir/panoptic_vis/{frame:06d}.png`` colour images.
+    Without ``categories``, the categories are declared from the segments seen (``category_<id>``)."""
 
     def __init__(
         self,
@@ -198,41 +247,65 @@ class PanopticWriter:
         if self.vis:
             os.makedirs(self.vis_dir, exist_ok=True)
         self.flush_every = int(flush_every)
+        self.images: dict[int, dict] = {}
         self.annotations: dict[int, dict] = {}
+        self.scores: dict[int, dict[str, float]] = {}
+        self._seen_cats: dict[int, bool] = {}  # category id -> isthing, of every segment written
         self._since_flush = 0
 
-    def write(self, frame_index: int, seg) -> str:
-        """Write one frame (a later write of the same index replaces it). Returns the PNG path."""
-        name = f"{int(frame_index):06d}.png"
+    def write(self, frame_index: int, seg, image_name: Optional[str] = None) -> str:
+        """Write one frame (a later write of the same index replaces it). ``image_name``: the input image's file
+        name for COCO's ``images[].file_name`` (default ``{frame:06d}.png``). Returns the PNG path."""
+        i = int(frame_index)
+        name = f"{i:06d}.png"
         path = os.path.join(self.dir, name)
         info = save_panoptic(path, seg)
         if self.vis:
             atomic_write_bytes(os.path.join(self.vis_dir, name), _png_bytes(colorize(seg, self.categories)))
-        self.annotations[int(frame_index)] = {"frame_index": int(frame_index), "file_name": name, "segments_info": info}
+        h, w = _np(seg.ids).shape[-2:]
+        self.images[i] = {"id": i, "file_name": image_name or name, "width": int(w), "height": int(h)}
+        self.annotations[i] = {"image_id": i, "file_name": name, "segments_info": info}
+        present = {d["id"] for d in info}
+        self.scores[i] = {str(int(s.id)): float(s.score) for s in _unique_segments(seg) if int(s.id) in present}
+        for s in seg.segments:
+            self._seen_cats.setdefault(int(s.category_id), bool(s.isthing))
         self._since_flush += 1
         if self.flush_every > 0 and self._since_flush >= self.flush_every:
             self.flush()
         return path
 
     def _categories_json(self) -> list[dict]:
-        if self.categories is None:
-            return []
-        out = []
-        for c in self.categories.values() if isinstance(self.categories, dict) else self.categories:
-            if isinstance(c, dict):
-                out.append(dict(c))
-            else:
-                out.append({"id": int(c.id), "name": c.name, "isthing": int(c.isthing), "color": list(c.color)})
+        out: list[dict] = []
+        for c in (self.categories.values() if isinstance(self.categories, dict) else self.categories or ()):
+            d = dict(c) if isinstance(c, dict) else {"id": int(c.id), "name": c.name, "isthing": int(c.isthing),
+                                                     "color": list(c.color)}
+            d["isthing"] = int(bool(d.get("isthing", 0)))
+            d.setdefault("supercategory", "thing" if d["isthing"] else "stuff")
+            d.setdefault("color", [128, 128, 128])
+            out.append(d)
+        declared = {int(d["id"]) for d in out}
+        for cid, isthing in sorted(self._seen_cats.items()):  # COCO: every category_id must be declared
+            if cid not in declared:
+                rng = np.random.default_rng(cid)  # a stable colour per id
+                out.append({"id": cid, "name": f"category_{cid}", "isthing": int(isthing),
+                            "supercategory": "thing" if isthing else "stuff",
+                            "color": [int(v) for v in rng.integers(0, 256, 3)]})
         return out
 
+    def to_json(self) -> dict:
+        """The ``segments.json`` content (COCO panoptic, see the module docstring)."""
+        keys = sorted(self.annotations)
+        return {
+            "info": {"description": "pvslam temporally consistent panoptic segmentation",
+                     "image_id": "input-frame index"},
+            "images": [self.images[k] for k in keys],
+            "annotations": [self.annotations[k] for k in keys],
+            "categories": self._categories_json(),
+            "pvslam": {"format_version": FORMAT_VERSION, "segment_scores": {str(k): self.scores[k] for k in keys}},
+        }
+
     def flush(self) -> None:
-        write_json_atomic(
-            os.path.join(self.dir, "segments.json"),
-            {
-                "annotations": [self.annotations[k] for k in sorted(self.annotations)],
-                "categories": self._categories_json(),
-            },
-        )
+        write_json_atomic(os.path.join(self.dir, "segments.json"), self.to_json())
         self._since_flush = 0
 
     def close(self) -> None:
@@ -250,20 +323,32 @@ class PanopticWriter:
         return False
 
 
+def read_segments_json(panoptic_dir: str | os.PathLike) -> dict:
+    """``panoptic/segments.json`` as ``{"annotations": [{"frame_index", "file_name", "segments_info",
+    "scores"}], "categories": [...]}`` for both the COCO format and the first pvslam format."""
+    with open(os.path.join(os.fspath(panoptic_dir), "segments.json"), "r", encoding="utf-8") as f:
+        meta = json.load(f)
+    scores = (meta.get("pvslam") or {}).get("segment_scores", {})
+    anns = []
+    for ann in meta.get("annotations", []):
+        i = int(ann["image_id"] if "image_id" in ann else ann["frame_index"])
+        anns.append({"frame_index": i, "file_name": ann["file_name"], "segments_info": ann["segments_info"],
+                     "scores": scores.get(str(i), {})})
+    return {"annotations": anns, "categories": meta.get("categories", [])}
+
+
 def load_panoptic_dir(panoptic_dir: str | os.PathLike, categories: Optional[Any] = None,
                       frames: Optional[Any] = None) -> dict[int, Any]:
     """``{frame_index: PanopticSegmentation}`` from a ``panoptic/`` folder written by :class:`PanopticWriter`
     (only the frame indices in ``frames`` when given, to bound memory)."""
     panoptic_dir = os.fspath(panoptic_dir)
-    with open(os.path.join(panoptic_dir, "segments.json"), "r", encoding="utf-8") as f:
-        meta = json.load(f)
-    if categories is None and meta.get("categories"):
+    meta = read_segments_json(panoptic_dir)
+    if categories is None and meta["categories"]:
         categories = meta["categories"]
     out = {}
-    for ann in meta.get("annotations", []):
-        if frames is not None and int(ann["frame_index"]) not in frames:
+    for ann in meta["annotations"]:
+        if frames is not None and ann["frame_index"] not in frames:
             continue
-        out[int(ann["frame_index"])] = load_panoptic(
-            os.path.join(panoptic_dir, ann["file_name"]), ann["segments_info"], categories
-        )
+        out[ann["frame_index"]] = load_panoptic(os.path.join(panoptic_dir, ann["file_name"]), ann["segments_info"],
+                                                categories, scores=ann["scores"])
     return out

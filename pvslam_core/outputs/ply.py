@@ -193,10 +193,8 @@ def _backproject(poses_wc, disps, intr, max_depth, rel_max_depth, stride, mask):
         valid &= z <= max_depth
     elif rel_max_depth is not None:
         # Per keyframe: drop points farther than rel_max_depth x the median depth (sky, near-zero disparity).
-        for i in range(k):
-            zi = z[i][valid[i]]
-            if zi.numel():
-                valid[i] &= z[i] <= rel_max_depth * zi.median()
+        med = torch.nanmedian(torch.where(valid, z, torch.full_like(z, float("nan"))).flatten(1), dim=1).values
+        valid &= z <= rel_max_depth * med[:, None, None]
     if mask is not None:
         m = torch.as_tensor(_np(mask)).bool()
         if m.ndim == 2:
@@ -277,7 +275,8 @@ def panoptic_point_cloud_from_keyframes(
     """Like :func:`point_cloud_from_keyframes`, coloured by panoptic category (thing instances shaded distinctly,
     see :func:`pvslam_core.outputs.panoptic_png.colorize`). ``panoptic``: one
     :class:`~pvslam_core.types.PanopticSegmentation` per keyframe (nearest-resized to the depth resolution).
-    Returns ``points, colors, extra`` with ``extra = {"category_id": int32 [N] (-1 void), "segment_id": int32 [N]}``
+    Returns ``points, colors, extra`` with ``extra = {"category_id": int32 [N] (-1 void), "segment_id": int32 [N],
+    "keyframe": int32 [N] (the point's keyframe, 0..K-1)}``
     (pass ``extra`` to :func:`write_ply`). Void pixels are dropped unless ``keep_void``.
     """
     from .panoptic_png import colorize
@@ -302,5 +301,6 @@ def panoptic_point_cloud_from_keyframes(
     if not keep_void:
         v &= ids != 0
     pts = xw.numpy()[v].astype(np.float32)
-    extra = {"category_id": cats[v].astype(np.int32), "segment_id": ids[v].astype(np.int32)}
+    extra = {"category_id": cats[v].astype(np.int32), "segment_id": ids[v].astype(np.int32),
+             "keyframe": np.nonzero(v)[0].astype(np.int32)}
     return pts, np.ascontiguousarray(cols[v]).astype(np.uint8), extra

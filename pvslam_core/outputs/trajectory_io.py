@@ -92,7 +92,8 @@ def _check_timestamps(path: str, ts: np.ndarray, linenos: Optional[list[int]] = 
         where = f"{path}:{linenos[k]}" if linenos is not None else f"{path}: pose {k}"
         kind = "duplicate" if d[k - 1] == 0 else "unsorted (decreasing)"
         raise TrajectoryFormatError(
-            f"{where}: {kind} timestamp {ts[k]!r} after {ts[k - 1]!r}; timestamps must be strictly increasing"
+            f"{where}: {kind} timestamp {float(ts[k])!r} after {float(ts[k - 1])!r}; timestamps must be strictly "
+            "increasing"
         )
 
 
@@ -254,7 +255,8 @@ class TrajectoryWriter:
             raise ValueError(f"TrajectoryWriter({self.path}).append: non-finite timestamp {t}")
         if self._ts and t <= self._ts[-1]:
             raise ValueError(
-                f"TrajectoryWriter({self.path}).append: timestamp {t!r} is not after the last one {self._ts[-1]!r}"
+                f"TrajectoryWriter({self.path}).append: timestamp {t!r} is not after the last one "
+                f"{float(self._ts[-1])!r}"
             )
         self._ts.append(t)
         self._poses.append(p)

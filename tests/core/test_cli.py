@@ -20,7 +20,7 @@ def test_help_imports_no_heavy_library():
 def test_help_lists_commands(capsys):
     main([])
     out = capsys.readouterr().out
-    for cmd in ("run", "plugins", "config", "synth", "eval"):
+    for cmd in ("run", "plugins", "config", "synth", "eval", "export"):
         assert cmd in out
 
 

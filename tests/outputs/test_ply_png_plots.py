@@ -154,7 +154,8 @@ def test_panoptic_png_round_trip(tmp_path):
 
     rgb = np.asarray(Image.open(tmp_path / "000003.png").convert("RGB")).astype(np.int64)
     np.testing.assert_array_equal(rgb[..., 0] + 256 * rgb[..., 1] + 65536 * rgb[..., 2], ids)
-    back = load_panoptic(tmp_path / "000003.png", info, CATS)
+    assert all(set(d) == {"id", "category_id", "iscrowd", "bbox", "area"} for d in info)  # COCO keys only
+    back = load_panoptic(tmp_path / "000003.png", info, CATS, scores={7: 0.9})  # scores: pvslam's own key
     np.testing.assert_array_equal(back.ids.numpy(), ids)
     assert back.segment(7).category_id == 2 and back.segment(7).isthing and back.segment(7).score == pytest.approx(0.9)
     assert not back.segment(1).isthing

@@ -1,0 +1,280 @@
+"""``pvslam export RUN_DIR --format colmap|nerfstudio|tum-aligned``: a run for 3D reconstruction tools.
+
+Inputs (all in the run directory): ``keyframes/`` (poses, depth, intrinsics; :mod:`.keyframes_io`),
+``cloud_rgb.ply`` (points with the ``frame_index`` of the keyframe that saw them), ``trajectory.txt`` and
+``groundtruth.txt``.  Images are those the pipeline saw (after the reader's resize/crop/undistort, so that they
+match the exported intrinsics), re-read from the run's dataset and written as ``images/NNNNNN.png``
+(input-frame index); without the dataset the models still reference those names.
+
+Camera conventions -- every conversion happens in exactly one function below:
+
+* pvslam: ``T_wc = [t, q_xyzw]`` camera-to-world; camera x right, y down, z forward (OpenCV); the centre of the
+  top-left pixel is (0, 0).
+* COLMAP (:func:`colmap_pose`): world-to-camera ``R_cw = R_wc^T``, ``t_cw = -R_wc^T t_wc``, quaternion
+  ``QW QX QY QZ`` (scalar first); camera axes as OpenCV.  COLMAP puts the top-left pixel's centre at (0.5, 0.5),
+  so ``cx, cy`` and 2D points get ``+0.5`` (:func:`to_corner_pixels`).
+* nerfstudio (:func:`nerfstudio_c2w`): camera-to-world 4x4 in OpenGL camera axes (x right, y up, z back):
+  ``c2w_gl = c2w_cv @ diag(1, -1, -1, 1)``; the world frame stays pvslam's (nerfstudio re-orients and rescales
+  it itself).  Its rays go through pixel centres at ``i + 0.5``, so ``cx, cy`` get ``+0.5`` as for COLMAP.
+* TUM (``tum-aligned``): the trajectory mapped by the Sim(3) (Umeyama, as for the ATE) that best aligns its
+  positions to ``groundtruth.txt``: ``t' = s R t + T``, ``R' = R R_wc``.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from ._atomic import atomic_write_bytes, atomic_write_text
+from .metrics import write_json_atomic
+
+LOG = logging.getLogger("pvslam")
+FORMATS = ("colmap", "nerfstudio", "tum-aligned")
+__all__ = ["FORMATS", "export_run", "colmap_pose", "nerfstudio_c2w", "to_corner_pixels", "project"]
+
+
+# ------------------------------------------------------------------------------------------ conventions --
+def _rotmats(q_xyzw: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q_xyzw, np.float64).reshape(-1, 4)).as_matrix()
+
+
+def colmap_pose(poses_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """pvslam T_wc ``[K, 7]`` -> COLMAP world-to-camera ``(qvec [K, 4] as QW QX QY QZ with QW >= 0, tvec [K, 3])``."""
+    p = np.asarray(poses_wc, np.float64).reshape(-1, 7)
+    R_cw = np.transpose(_rotmats(p[:, 3:]), (0, 2, 1))
+    t_cw = -np.einsum("kij,kj->ki", R_cw, p[:, :3])
+    q = p[:, 3:] / np.linalg.norm(p[:, 3:], axis=1, keepdims=True)
+    q_wxyz = np.stack([q[:, 3], -q[:, 0], -q[:, 1], -q[:, 2]], axis=1)  # the conjugate: R_wc^T, scalar first
+    q_wxyz *= np.where(q_wxyz[:, :1] < 0, -1.0, 1.0)  # q and -q are the same rotation; COLMAP writes QW >= 0
+    return q_wxyz, t_cw
+
+
+def nerfstudio_c2w(poses_wc: np.ndarray) -> np.ndarray:
+    """pvslam T_wc ``[K, 7]`` (OpenCV camera axes) -> nerfstudio ``transform_matrix`` ``[K, 4, 4]`` (OpenGL axes)."""
+    p = np.asarray(poses_wc, np.float64).reshape(-1, 7)
+    m = np.tile(np.eye(4), (len(p), 1, 1))
+    m[:, :3, :3] = _rotmats(p[:, 3:])
+    m[:, :3, 3] = p[:, :3]
+    return m @ np.diag([1.0, -1.0, -1.0, 1.0])  # camera y down -> up, z forward -> back
+
+
+def to_corner_pixels(uv: np.ndarray) -> np.ndarray:
+    """pvslam pixel coordinates (top-left pixel centre at 0) -> COLMAP / nerfstudio ones (centre at 0.5)."""
+    return np.asarray(uv, np.float64) + 0.5
+
+
+def project(points_w: np.ndarray, pose_wc: np.ndarray, fx: float, fy: float, cx: float, cy: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """pvslam pinhole projection of world points ``[N, 3]`` into the camera ``pose_wc [7]``: ``(uv [N, 2], z [N])``."""
+    R = _rotmats(np.asarray(pose_wc)[3:])[0]
+    xc = (np.asarray(points_w, np.float64) - np.asarray(pose_wc)[:3]) @ R  # R^T (X - t), row-wise
+    z = xc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([fx * xc[:, 0] / z + cx, fy * xc[:, 1] / z + cy], axis=1)
+    return uv, z
+
+
+# --------------------------------------------------------------------------------------------- helpers --
+def _image_name(frame_index: int) -> str:
+    return f"{int(frame_index):06d}.png"
+
+
+def _cloud(run_dir: Path) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+    """Points, colours and per-point keyframe ``frame_index`` of ``cloud_rgb.ply`` (empty when absent)."""
+    from .ply import read_ply
+
+    path = run_dir / "cloud_rgb.ply"
+    if not path.is_file():
+        LOG.warning("%s not found: the export has cameras and poses but no 3D points", path)
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), None
+    pts, cols, extra = read_ply(path)
+    if cols is None:
+        cols = np.full((len(pts), 3), 128, np.uint8)
+    return pts, cols, extra.get("frame_index")
+
+
+def write_images(run_dir: Path, out_dir: Path, frame_indices: np.ndarray, registry=None) -> Optional[str]:
+    """Write the keyframes' images (as the pipeline saw them) from the run's dataset; returns why not, or None."""
+    import cv2
+    import torch
+
+    from ..config import load_config
+    from ..interfaces import BuildContext
+    from ..registry import get_registry
+
+    want = {int(i) for i in frame_indices}
+    try:
+        resolved = load_config(run_dir / "config.json", registry=registry)
+        spec = (registry or get_registry()).get("dataset", resolved.pipeline.dataset.plugin)
+        dataset = spec.factory(resolved.models["dataset"], BuildContext(device=torch.device("cpu")))
+    except Exception as exc:  # noqa: BLE001 - the export is still useful without images
+        return f"the run's dataset cannot be opened ({type(exc).__name__}: {exc})"
+    (out_dir / "images").mkdir(parents=True, exist_ok=True)
+    for frame in dataset:
+        if frame.index in want:
+            ok, buf = cv2.imencode(".png", np.ascontiguousarray(frame.image_hwc()[..., ::-1]))  # RGB -> OpenCV's BGR
+            if not ok:
+                raise OSError(f"PNG encoding of frame {frame.index} failed")
+            atomic_write_bytes(out_dir / "images" / _image_name(frame.index), buf.tobytes())
+            want.discard(frame.index)
+        if not want:
+            break
+    return f"frames {sorted(want)[:10]} not found in the dataset" if want else None
+
+
+# ----------------------------------------------------------------------------------------------- COLMAP --
+def _colmap_camera(intr: dict) -> tuple[str, list[float]]:
+    fx, fy = intr["fx"], intr["fy"]
+    cx, cy = to_corner_pixels([intr["cx"], intr["cy"]])
+    dist = list(intr.get("dist", []))
+    if not any(dist):
+        return "PINHOLE", [fx, fy, cx, cy]
+    if len(dist) == 4:
+        return "OPENCV", [fx, fy, cx, cy, *dist]
+    if len(dist) in (5, 8):  # OpenCV (k1, k2, p1, p2, k3[, k4, k5, k6]) = COLMAP FULL_OPENCV's order
+        return "FULL_OPENCV", [fx, fy, cx, cy, *(dist + [0.0] * (8 - len(dist)))]
+    raise ValueError(f"{len(dist)} distortion coefficients have no COLMAP camera model")
+
+
+def export_colmap(run_dir: Path, out_dir: Path, kf: dict) -> dict[str, Any]:
+    """COLMAP text model ``cameras.txt``, ``images.txt``, ``points3D.txt`` (one PINHOLE/OPENCV camera; one image
+    per keyframe; each point observed by the keyframe it came from, at its exact projection)."""
+    intr = kf["intrinsics"]["image"]
+    model, params = _colmap_camera(intr)
+    qvec, tvec = colmap_pose(kf["poses"])
+    pts, cols, src = _cloud(run_dir)
+    image_id = {int(f): n + 1 for n, f in enumerate(kf["frame_index"])}
+    obs: dict[int, list[tuple[float, float, int]]] = {i: [] for i in image_id.values()}
+    track: list[tuple[int, int]] = []  # per point: (image id, index in that image's POINTS2D)
+    keep = np.zeros(len(pts), bool)
+    if src is not None and len(pts):
+        for n, f in enumerate(kf["frame_index"]):  # vectorised per keyframe
+            sel = np.nonzero(src == f)[0]
+            if not len(sel):
+                continue
+            uv, z = project(pts[sel], kf["poses"][n], intr["fx"], intr["fy"], intr["cx"], intr["cy"])
+            uv = to_corner_pixels(uv)
+            ok = z > 0
+            keep[sel[ok]] = True
+            for k, (u, v) in zip(sel[ok].tolist(), uv[ok].tolist()):
+                obs[n + 1].append((u, v, k + 1))
+    elif len(pts):
+        keep[:] = True
+        LOG.warning("cloud_rgb.ply has no frame_index: points3D.txt gets points without tracks")
+    where = {k: (img, j) for img, lst in obs.items() for j, (_, _, k) in enumerate(lst)}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out_dir / "cameras.txt",
+                      "# Camera list with one line of data per camera:\n"
+                      "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n# Number of cameras: 1\n"
+                      f"1 {model} {intr['width']} {intr['height']} " + " ".join(f"{v:.17g}" for v in params) + "\n")
+    lines = ["# Image list with two lines of data per image:",
+             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+             "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+             f"# Number of images: {len(image_id)} (pvslam keyframes; world-to-camera poses)"]
+    for n, f in enumerate(kf["frame_index"]):
+        q, t = qvec[n], tvec[n]
+        lines.append(f"{n + 1} " + " ".join(f"{v:.17g}" for v in (*q, *t)) + f" 1 {_image_name(f)}")
+        lines.append(" ".join(f"{u:.6f} {v:.6f} {k}" for u, v, k in obs[n + 1]))
+    atomic_write_text(out_dir / "images.txt", "\n".join(lines) + "\n")
+    plines = ["# 3D point list with one line of data per point:",
+              "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+              f"# Number of points: {int(keep.sum())}"]
+    for k in np.nonzero(keep)[0].tolist():
+        x, y, z = pts[k]
+        r, g, b = cols[k]
+        tr = f" {where[k + 1][0]} {where[k + 1][1]}" if (k + 1) in where else ""
+        plines.append(f"{k + 1} {x:.9g} {y:.9g} {z:.9g} {r} {g} {b} 0{tr}")
+    atomic_write_text(out_dir / "points3D.txt", "\n".join(plines) + "\n")
+    return {"images": len(image_id), "points": int(keep.sum()), "camera_model": model}
+
+
+# ------------------------------------------------------------------------------------------- nerfstudio --
+def export_nerfstudio(run_dir: Path, out_dir: Path, kf: dict) -> dict[str, Any]:
+    """``transforms.json`` (OpenGL camera-to-world matrices), per-keyframe depth (``depth/NNNNNN.npy``) and the
+    point cloud as ``sparse_pc.ply`` (nerfstudio's seed points)."""
+    intr = kf["intrinsics"]["image"]
+    cx, cy = to_corner_pixels([intr["cx"], intr["cy"]])
+    dist = list(intr.get("dist", [])) + [0.0] * 4
+    c2w = nerfstudio_c2w(kf["poses"])
+    (out_dir / "depth").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for n, f in enumerate(kf["frame_index"]):
+        name = f"{int(f):06d}.npy"
+        # nerfstudio multiplies depth files by depth_unit_scale_factor (default 1e-3, for millimetre PNGs):
+        # store map units x 1000 so the default gives back the map's units
+        np.save(out_dir / "depth" / name, (kf["depth"][n] * 1000.0).astype(np.float32))
+        frames.append({"file_path": f"images/{_image_name(f)}", "transform_matrix": c2w[n].tolist(),
+                       "depth_file_path": f"depth/{name}", "colmap_im_id": n + 1})
+    meta: dict[str, Any] = {
+        "camera_model": "OPENCV", "fl_x": intr["fx"], "fl_y": intr["fy"], "cx": float(cx), "cy": float(cy),
+        "w": intr["width"], "h": intr["height"], "k1": dist[0], "k2": dist[1], "p1": dist[2], "p2": dist[3],
+        "frames": frames,
+    }
+    if len(intr.get("dist", [])) > 4 and any(intr["dist"][4:]):
+        meta["k3"] = intr["dist"][4]
+    if (run_dir / "cloud_rgb.ply").is_file():
+        shutil.copyfile(run_dir / "cloud_rgb.ply", out_dir / "sparse_pc.ply")
+        meta["ply_file_path"] = "sparse_pc.ply"
+    write_json_atomic(out_dir / "transforms.json", meta)
+    return {"images": len(frames), "depth_scale": "map units x 1000 (depth_unit_scale_factor 1e-3)"}
+
+
+# -------------------------------------------------------------------------------------------- TUM aligned --
+def export_tum_aligned(run_dir: Path, out_dir: Path, align: str = "sim3") -> dict[str, Any]:
+    """``trajectory_aligned.txt``: ``trajectory.txt`` mapped onto ``groundtruth.txt`` by the ATE's alignment."""
+    from ..evaluation.trajectory import aligned_positions
+    from .trajectory_io import read_tum, write_tum
+
+    gt_path = run_dir / "groundtruth.txt"
+    if not gt_path.is_file():
+        raise FileNotFoundError(f"{gt_path}: tum-aligned needs the ground truth in the run directory")
+    ts, poses = read_tum(run_dir / "trajectory.txt")
+    gts, gposes = read_tum(gt_path)
+    res = aligned_positions(ts, poses, gts, gposes, align=align)
+    m = np.asarray(res["alignment"], np.float64)  # [4, 4] with s R in the top-left block
+    s = float(np.cbrt(np.linalg.det(m[:3, :3])))
+    R = m[:3, :3] / s
+    from scipy.spatial.transform import Rotation
+
+    out = poses.copy()
+    out[:, :3] = poses[:, :3] @ m[:3, :3].T + m[:3, 3]
+    out[:, 3:] = (Rotation.from_matrix(R) * Rotation.from_quat(poses[:, 3:])).as_quat()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_tum(out_dir / "trajectory_aligned.txt", ts, out)
+    return {"poses": len(ts), "scale": s, "align": align, "ate_rmse": res["stats"].get("rmse")}
+
+
+# ---------------------------------------------------------------------------------------------- entry --
+def export_run(run_dir: str | os.PathLike, fmt: str, out_dir: Optional[str | os.PathLike] = None,
+               images: bool = True, registry=None) -> dict[str, Any]:
+    """Export ``run_dir`` as ``fmt`` (one of :data:`FORMATS`) into ``out_dir`` (default ``RUN_DIR/export/FMT``).
+    Returns a summary (what was written, and ``images_missing`` when the images could not be written)."""
+    from .keyframes_io import read_keyframes
+
+    run_dir = Path(run_dir)
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    if not (run_dir / "trajectory.txt").is_file():
+        raise FileNotFoundError(f"{run_dir}: not a pvslam run directory (no trajectory.txt)")
+    out = Path(out_dir) if out_dir is not None else run_dir / "export" / fmt
+    if fmt == "tum-aligned":
+        return {"format": fmt, "out": str(out), **export_tum_aligned(run_dir, out)}
+    if not (run_dir / "keyframes" / "keyframes.json").is_file():
+        raise FileNotFoundError(f"{run_dir / 'keyframes' / 'keyframes.json'} not found: the run was made without "
+                                "outputs.keyframe_depth (or before it existed), so there are no keyframe cameras")
+    kf = read_keyframes(run_dir)
+    summary = (export_colmap if fmt == "colmap" else export_nerfstudio)(run_dir, out, kf)
+    summary = {"format": fmt, "out": str(out), **summary}
+    if images:
+        why = write_images(run_dir, out, kf["frame_index"], registry=registry)
+        if why:
+            LOG.warning("images not written: %s; the model names them images/NNNNNN.png (input-frame index) at "
+                        "%dx%d", why, kf["intrinsics"]["image"]["width"], kf["intrinsics"]["image"]["height"])
+            summary["images_missing"] = why
+    return summary

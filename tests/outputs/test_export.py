@@ -1,0 +1,215 @@
+"""Exports: COLMAP text model, nerfstudio transforms.json, TUM Sim(3)-aligned trajectory; camera conventions are
+checked numerically with projections written here independently of pvslam's geometry."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pvslam_core.outputs.export import colmap_pose, export_run, nerfstudio_c2w
+from pvslam_core.outputs.keyframes_io import read_keyframes, write_keyframes
+from pvslam_core.outputs.ply import write_ply
+from pvslam_core.outputs.trajectory_io import read_tum, write_tum
+from pvslam_core.types import Intrinsics
+
+K_IMG = Intrinsics(120.0, 118.0, 79.5, 59.5, 160, 120)
+K_DEPTH = [15.0, 14.75, 9.5, 7.0]  # K_IMG.scaled(1/8)
+
+
+def _poses(n=4, seed=0):
+    rng = np.random.default_rng(seed)
+    q = Rotation.from_euler("xyz", rng.uniform(-0.4, 0.4, (n, 3))).as_quat()
+    return np.concatenate([rng.uniform(-2, 2, (n, 3)), q], axis=1)
+
+
+def _pvslam_pixel(X, pose):
+    """u = K R_wc^T (X - t_wc), pixel centres at integers (pvslam/OpenCV)."""
+    Xc = Rotation.from_quat(pose[3:]).as_matrix().T @ (X - pose[:3])
+    return np.array([K_IMG.fx * Xc[0] / Xc[2] + K_IMG.cx, K_IMG.fy * Xc[1] / Xc[2] + K_IMG.cy]), Xc[2]
+
+
+def test_colmap_pose_projects_to_the_same_pixel():
+    poses = _poses(6)
+    qvec, tvec = colmap_pose(poses)
+    assert (qvec[:, 0] >= 0).all()
+    for pose, q, t in zip(poses, qvec, tvec):
+        X = pose[:3] + Rotation.from_quat(pose[3:]).apply([0.3, -0.2, 4.0])  # a point in front of the camera
+        # COLMAP: X_cam = R(q) X + t with q = (qw, qx, qy, qz); cx_colmap = cx + 0.5 (pixel corner convention)
+        R = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
+        Xc = R @ X + t
+        u_colmap = np.array([K_IMG.fx * Xc[0] / Xc[2] + K_IMG.cx + 0.5, K_IMG.fy * Xc[1] / Xc[2] + K_IMG.cy + 0.5])
+        u_pv, _ = _pvslam_pixel(X, pose)
+        np.testing.assert_allclose(u_colmap, u_pv + 0.5, atol=1e-9)
+
+
+def test_nerfstudio_c2w_is_opengl():
+    poses = _poses(6, seed=1)
+    c2w = nerfstudio_c2w(poses)
+    for pose, m in zip(poses, c2w):
+        np.testing.assert_allclose(m[:3, 3], pose[:3])  # camera centre unchanged
+        X = pose[:3] + Rotation.from_quat(pose[3:]).apply([-0.5, 0.4, 3.0])
+        x, y, z = (np.linalg.inv(m) @ np.append(X, 1.0))[:3]
+        assert z < 0  # OpenGL: the camera looks down -z
+        # OpenGL pinhole with y up: u = fx x / -z + cx', v = -fy y / -z + cy' (cx' = cx + 0.5, pixel corners)
+        u = np.array([K_IMG.fx * x / -z + K_IMG.cx + 0.5, -K_IMG.fy * y / -z + K_IMG.cy + 0.5])
+        np.testing.assert_allclose(u, _pvslam_pixel(X, pose)[0] + 0.5, atol=1e-9)
+        # right-handed rotation, camera y axis points up in the world when pvslam's y points down
+        assert np.linalg.det(m[:3, :3]) == pytest.approx(1.0)
+        np.testing.assert_allclose(m[:3, 1], -Rotation.from_quat(pose[3:]).as_matrix()[:, 1])
+
+
+@pytest.fixture
+def run_dir(tmp_path):
+    """A run directory written through pvslam's own writers: 4 keyframes, depth, a cloud with frame_index."""
+    d = tmp_path / "run"
+    d.mkdir()
+    poses = _poses(4, seed=2)
+    fi = np.array([0, 3, 7, 12])
+    disps = np.full((4, 15, 20), 0.25, np.float32)
+    disps[1, 2, 3] = 0.0
+    write_keyframes(d, fi, 0.1 * fi, poses, disps, K_DEPTH, K_IMG, names=[f"img{i}.jpg" for i in fi])
+    rng = np.random.default_rng(3)
+    pts, src = [], []
+    for pose, f in zip(poses, fi):
+        local = np.c_[rng.uniform(-1, 1, (50, 2)), rng.uniform(2, 6, 50)]
+        pts.append(Rotation.from_quat(pose[3:]).apply(local) + pose[:3])
+        src.append(np.full(50, f))
+    pts = np.concatenate(pts).astype(np.float32)
+    cols = rng.integers(0, 256, (len(pts), 3)).astype(np.uint8)
+    write_ply(d / "cloud_rgb.ply", pts, cols, extra={"frame_index": np.concatenate(src).astype(np.int32)})
+    ts = 0.1 * np.arange(13)
+    write_tum(d / "trajectory.txt", ts, np.tile([0, 0, 0, 0, 0, 0, 1.0], (13, 1)))
+    return d
+
+
+def test_keyframes_round_trip(run_dir):
+    kf = read_keyframes(run_dir)
+    assert kf["frame_index"].tolist() == [0, 3, 7, 12] and kf["names"][1] == "img3.jpg"
+    assert kf["depth"].shape == (4, 15, 20) and kf["depth"][0, 0, 0] == pytest.approx(4.0)
+    assert kf["depth"][1, 2, 3] == 0.0  # no depth there
+    assert kf["intrinsics"]["depth"] == {"fx": 15.0, "fy": 14.75, "cx": 9.5, "cy": 7.0, "width": 20, "height": 15}
+    assert kf["intrinsics"]["image"]["width"] == 160
+    assert sorted(p.name for p in (run_dir / "keyframes").glob("*.npy")) == [
+        "000000_depth.npy", "000003_depth.npy", "000007_depth.npy", "000012_depth.npy"]
+
+
+def _read_colmap(out):
+    cams = [ln.split() for ln in (out / "cameras.txt").read_text().splitlines() if not ln.startswith("#")]
+    lines = [ln for ln in (out / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+    images = {}
+    for head, pts2d in zip(lines[0::2], lines[1::2]):
+        h = head.split()
+        v = pts2d.split()
+        images[int(h[0])] = {"q": np.array(h[1:5], float), "t": np.array(h[5:8], float), "name": h[9],
+                             "p2d": np.array(v, float).reshape(-1, 3)}
+    pts = {}
+    for ln in (out / "points3D.txt").read_text().splitlines():
+        if ln.startswith("#"):
+            continue
+        v = ln.split()
+        pts[int(v[0])] = {"X": np.array(v[1:4], float), "track": np.array(v[8:], int).reshape(-1, 2)}
+    return cams, images, pts
+
+
+def test_colmap_export_projects_points_onto_their_observations(run_dir):
+    s = export_run(run_dir, "colmap", images=False)
+    out = run_dir / "export" / "colmap"
+    cams, images, pts = _read_colmap(out)
+    assert cams == [["1", "PINHOLE", "160", "120", "120", "118", "80", "60"]]  # cx, cy + 0.5
+    fx, fy, cx, cy = (float(v) for v in cams[0][4:])
+    assert [im["name"] for im in images.values()] == ["000000.png", "000003.png", "000007.png", "000012.png"]
+    assert len(pts) == 200 and s["points"] == 200
+    kf = read_keyframes(run_dir)
+    for pid, p in pts.items():
+        (img, idx), = p["track"]
+        im = images[img]
+        R = Rotation.from_quat([*im["q"][1:], im["q"][0]]).as_matrix()
+        Xc = R @ p["X"] + im["t"]
+        uv = np.array([fx * Xc[0] / Xc[2] + cx, fy * Xc[1] / Xc[2] + cy])
+        x, y, back = im["p2d"][idx]
+        assert int(back) == pid
+        np.testing.assert_allclose(uv, [x, y], atol=1e-4)  # 6 decimals in the file
+        # and that is pvslam's pixel of the point, in COLMAP's pixel-corner convention
+        np.testing.assert_allclose(uv, _pvslam_pixel(p["X"], kf["poses"][img - 1])[0] + 0.5, atol=1e-4)
+
+
+def test_colmap_camera_with_distortion(run_dir):
+    meta = json.loads((run_dir / "keyframes" / "keyframes.json").read_text())
+    meta["intrinsics"]["image"]["dist"] = [-0.1, 0.01, 0.001, -0.002]
+    (run_dir / "keyframes" / "keyframes.json").write_text(json.dumps(meta))
+    export_run(run_dir, "colmap", images=False)
+    cams, _, _ = _read_colmap(run_dir / "export" / "colmap")
+    assert cams[0][1] == "OPENCV" and [float(v) for v in cams[0][8:]] == [-0.1, 0.01, 0.001, -0.002]
+
+
+def test_nerfstudio_export(run_dir):
+    export_run(run_dir, "nerfstudio", images=False)
+    out = run_dir / "export" / "nerfstudio"
+    meta = json.loads((out / "transforms.json").read_text())
+    assert meta["camera_model"] == "OPENCV" and meta["w"] == 160 and meta["cx"] == 80.0 and meta["fl_y"] == 118.0
+    assert meta["ply_file_path"] == "sparse_pc.ply" and (out / "sparse_pc.ply").is_file()
+    kf = read_keyframes(run_dir)
+    for n, fr in enumerate(meta["frames"]):
+        assert fr["file_path"] == f"images/{kf['frame_index'][n]:06d}.png"
+        m = np.array(fr["transform_matrix"])
+        X = kf["poses"][n][:3] + Rotation.from_quat(kf["poses"][n][3:]).apply([0.2, 0.1, 5.0])
+        x, y, z = (np.linalg.inv(m) @ np.append(X, 1))[:3]
+        u = [meta["fl_x"] * x / -z + meta["cx"], -meta["fl_y"] * y / -z + meta["cy"]]
+        np.testing.assert_allclose(u, _pvslam_pixel(X, kf["poses"][n])[0] + 0.5, atol=1e-9)
+        depth = np.load(out / fr["depth_file_path"])
+        np.testing.assert_allclose(depth * 1e-3, kf["depth"][n], rtol=1e-6)  # nerfstudio's default 1e-3 factor
+
+
+def test_tum_aligned_recovers_the_ground_truth(run_dir):
+    rng = np.random.default_rng(4)
+    n = 40
+    t = np.linspace(0, 3, n)
+    gt = np.c_[np.c_[5 * np.cos(t), 0.3 * np.sin(2 * t), 5 * np.sin(t)],
+               Rotation.from_euler("y", -t[:, None]).as_quat()]
+    # the estimate is the ground truth in another frame and scale: gt = s R est + T
+    s, R, T = 2.5, Rotation.from_euler("xyz", [0.3, -0.7, 1.1]), np.array([1.0, -2.0, 0.5])
+    est = gt.copy()
+    est[:, :3] = R.inv().apply((gt[:, :3] - T) / s)
+    est[:, 3:] = (R.inv() * Rotation.from_quat(gt[:, 3:])).as_quat()
+    est[:, 3:] *= np.sign(rng.normal(size=(n, 1)))  # q and -q: the same rotation
+    ts = 0.1 * np.arange(n)
+    write_tum(run_dir / "trajectory.txt", ts, est)
+    write_tum(run_dir / "groundtruth.txt", ts, gt)
+    summary = export_run(run_dir, "tum-aligned")
+    assert summary["scale"] == pytest.approx(s, rel=1e-9)
+    ats, al = read_tum(run_dir / "export" / "tum-aligned" / "trajectory_aligned.txt")
+    np.testing.assert_allclose(ats, ts)
+    np.testing.assert_allclose(al[:, :3], gt[:, :3], atol=1e-6)
+    angle = (Rotation.from_quat(al[:, 3:]).inv() * Rotation.from_quat(gt[:, 3:])).magnitude()
+    assert angle.max() < 1e-6
+
+
+def test_tum_aligned_without_ground_truth_says_so(run_dir):
+    with pytest.raises(FileNotFoundError, match="groundtruth.txt"):
+        export_run(run_dir, "tum-aligned")
+
+
+def test_export_without_keyframes_says_why(run_dir):
+    import shutil
+
+    shutil.rmtree(run_dir / "keyframes")
+    with pytest.raises(FileNotFoundError, match="keyframe_depth"):
+        export_run(run_dir, "colmap")
+
+
+def test_colmap_model_reads_in_pycolmap(run_dir):
+    """COLMAP's own reader and projection (the `bench` extra installs pycolmap)."""
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap comes with the bench extra")
+    export_run(run_dir, "colmap", images=False)
+    rec = pycolmap.Reconstruction(str(run_dir / "export" / "colmap"))
+    assert len(rec.images) == 4 and len(rec.points3D) == 200
+    cam = rec.cameras[1]
+    kf = read_keyframes(run_dir)
+    for p3 in rec.points3D.values():
+        (el,) = p3.track.elements
+        img = rec.images[el.image_id]
+        uv = np.asarray(cam.img_from_cam(img.cam_from_world() * p3.xyz)).ravel()[:2]
+        np.testing.assert_allclose(uv, img.points2D[el.point2D_idx].xy, atol=1e-4)
+        np.testing.assert_allclose(uv, _pvslam_pixel(p3.xyz, kf["poses"][el.image_id - 1])[0] + 0.5, atol=1e-6)
