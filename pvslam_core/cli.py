@@ -58,6 +58,47 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="recompute the metrics of a run directory")
     p.add_argument("run_dir", help="a run directory written by `pvslam run`")
+
+    p = sub.add_parser("export", help="export a run for COLMAP / nerfstudio, or its trajectory aligned to the GT")
+    p.add_argument("run_dir", help="a run directory written by `pvslam run`")
+    p.add_argument("--format", "-f", required=True, choices=("colmap", "nerfstudio", "tum-aligned"),
+                   help="colmap: cameras/images/points3D.txt; nerfstudio: transforms.json + depth; "
+                        "tum-aligned: trajectory.txt Sim(3)-aligned to groundtruth.txt")
+    p.add_argument("--out", help="output folder (default: RUN_DIR/export/FORMAT)")
+    p.add_argument("--no-images", action="store_true",
+                   help="do not re-read the dataset to write the keyframe images")
+
+    p = sub.add_parser("train", help="train a learned plugin (its registered trainer) on the built-in data")
+    p.add_argument("interface", choices=("frontend", "segmenter", "loop", "vps"), help="which component")
+    p.add_argument("--plugin", "-p", required=True, help="the plugin to train (see `pvslam plugins`)")
+    p.add_argument("--config", "-c", metavar="FILE", help="training TOML (default: the trainer's defaults)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override one training parameter (repeatable)")
+    p.add_argument("--out", help="output folder (default: runs/train-INTERFACE-PLUGIN-TIME)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+
+    p = sub.add_parser("weights", help="list, download (with checksum) and locate the learned plugins' checkpoints")
+    wsub = p.add_subparsers(dest="weights_command", metavar="ACTION")
+    wl = wsub.add_parser("list", help="catalogued checkpoints (registry.toml) and whether each is cached")
+    wl.add_argument("--json", action="store_true", help="machine-readable output")
+    wf = wsub.add_parser("fetch", help="download NAME into the cache and verify its checksum; prints the path")
+    wf.add_argument("name", help="catalogue name or alias (see `pvslam weights list`)")
+    wf.add_argument("--force", action="store_true", help="download again even when cached")
+    wp = wsub.add_parser("path", help="print NAME's cache path (exit status 1 when it is not downloaded yet)")
+    wp.add_argument("name", help="catalogue name or alias")
+
+    p = sub.add_parser("sweep", help="run (or resume) a grid of sequences x seeds x variants, on Ray when installed")
+    p.add_argument("--config", "-c", required=True, metavar="FILE", help="sweep TOML (see configs/sweep_table7.toml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override a base pipeline value for every cell, or a [sweep] value such as "
+                        "sweep.seeds=[0] (repeatable)")
+    p.add_argument("--output-dir", help="folder that holds sweep directories (overrides sweep.output_dir)")
+    p.add_argument("--address", help="join this Ray cluster (e.g. auto or ray://host:10001) instead of a local one")
+    p.add_argument("--workers", type=int, metavar="N", help="runs at a time (default: one per core)")
+    p.add_argument("--serial", action="store_true", help="run the cells one after another in this process")
+    p.add_argument("--retry-failed", action="store_true", help="run failed cells again (default: keep them)")
+    p.add_argument("--report", action="store_true", help="only rebuild the results table and plots")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
     return parser
 
 
@@ -78,7 +119,9 @@ def main(argv: Optional[list[str]] = None) -> int:
         parser.print_help()
         return 0
     from .config import ConfigError
-    from .registry import PluginError
+    from .registry import PluginError, PluginLoadWarning
+
+    _plain_plugin_warnings(PluginLoadWarning)
 
     try:
         if args.command == "run":
@@ -91,6 +134,14 @@ def main(argv: Optional[list[str]] = None) -> int:
             return _cmd_synth(args)
         if args.command == "eval":
             return _cmd_eval(args)
+        if args.command == "export":
+            return _cmd_export(args)
+        if args.command == "train":
+            return _cmd_train(args)
+        if args.command == "weights":
+            return _cmd_weights(args, parser)
+        if args.command == "sweep":
+            return _cmd_sweep(args)
     except (ConfigError, PluginError) as exc:
         return _fail(str(exc), EXIT_CONFIG)
     except KeyboardInterrupt:
@@ -98,6 +149,22 @@ def main(argv: Optional[list[str]] = None) -> int:
     except (FileNotFoundError, ValueError, RuntimeError, OSError) as exc:
         return _fail(f"{type(exc).__name__}: {exc}", EXIT_RUNTIME)
     return 0
+
+
+def _plain_plugin_warnings(category: type) -> None:
+    """Show a skipped plugin as one ``pvslam: warning: ...`` line instead of Python's warning with source line."""
+    import warnings
+
+    previous = warnings.showwarning
+
+    def show(message, cat, filename, lineno, file=None, line=None):  # noqa: ANN001
+        if issubclass(cat, category):
+            print(f"pvslam: warning: {message}", file=sys.stderr)
+        else:
+            previous(message, cat, filename, lineno, file, line)
+
+    if getattr(previous, "__name__", "") != "show":
+        warnings.showwarning = show
 
 
 # ------------------------------------------------------------------------------------------------ run --
@@ -121,6 +188,9 @@ def _cmd_run(args) -> int:
     if args.config and is_ablation_file(args.config):
         results = run_ablation(args.config, overrides=overrides)
         print(comparison_table(results))
+        failed = [n for n, r in results if r.metrics.get("failed")]
+        if failed:
+            return _fail(f"{len(failed)} of {len(results)} variants failed: {', '.join(failed)}", EXIT_RUNTIME)
         return 0
     result = run_config(args.config, overrides=overrides)
     for line in summary_lines(result):
@@ -152,7 +222,10 @@ def _cmd_plugins(args) -> int:
                 "needs_gpu": bool(entry and entry.needs_gpu),
                 "in_registry_toml": entry is not None,
             })
+    broken = getattr(reg, "broken_entry_points", {})
     if args.json:
+        # a broken entry point registered nothing, so its interface is unknown
+        rows += [{"interface": None, "name": ep, "state": "broken", "error": why} for ep, why in broken.items()]
         print(json.dumps(rows, indent=2))
         return 0
     w_name = max(len(r["name"]) for r in rows)
@@ -166,6 +239,10 @@ def _cmd_plugins(args) -> int:
         print(f"{r['interface']:<10} {r['name']:<{w_name}} {r['state']:<10} {r['version']:<8} {r['description']}{extra}")
     if reg.skipped_entry_points:
         print("\nnot loaded (PVSLAM_LOAD_PLUGINS): " + ", ".join(reg.skipped_entry_points))
+    if broken:
+        print("\nbroken entry points (skipped):")
+        for ep, why in broken.items():
+            print(f"  {ep}: {why}")
     return 0
 
 
@@ -210,11 +287,96 @@ def _cmd_synth(args) -> int:
     return 0
 
 
+def _cmd_export(args) -> int:
+    from .outputs.export import export_run
+
+    summary = export_run(args.run_dir, args.format, args.out, images=not args.no_images)
+    for k, v in summary.items():
+        print(f"{k}: {v}")
+    return 0
+
+
 def _cmd_eval(args) -> int:
     from .api import evaluate_run_dir
 
     metrics = evaluate_run_dir(args.run_dir)
+    for kind, src in metrics.get("evaluation_sources", {}).items():  # stderr: stdout stays pure JSON
+        print(f"pvslam eval: {kind} ground truth: {src}" if kind != "dataset" else f"pvslam eval: dataset: {src}",
+              file=sys.stderr)
     print(json.dumps(metrics, indent=2, default=float))
+    return 0
+
+
+def _cmd_sweep(args) -> int:
+    from .sweep import run_sweep
+
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {args.workers}")
+    try:
+        out = run_sweep(args.config, overrides=args.overrides, output_dir=args.output_dir, address=args.address,
+                        workers=args.workers, serial=args.serial, retry_failed=args.retry_failed,
+                        report_only=args.report, progress=not args.quiet)
+    except KeyboardInterrupt:
+        return _fail("sweep interrupted; finished cells are kept, run the same command again to resume", 130)
+    if "summary_md" in out.tables:
+        print(out.tables["summary_md"].read_text())
+        print(f"per-cell table, CSV and plots: {out.tables['markdown'].parent}")
+    print(f"sweep directory: {out.directory}  ({len(out.ran)} cells run, {len(out.skipped)} already finished, "
+          f"{out.seconds:.1f} s)")
+    if out.failed:
+        return _fail(f"{len(out.failed)} cells failed (error.txt in each): " + ", ".join(sorted(out.failed)),
+                     EXIT_RUNTIME)
+    return 0
+
+
+def _cmd_train(args) -> int:
+    from .training import train
+
+    out, summary = train(args.interface, args.plugin, args.config, args.overrides, args.out, args.resume)
+    for k, v in summary.items():
+        print(f"{k}: {v}")
+    print(f"training folder: {out}")
+    return 0
+
+
+def _cmd_weights(args, parser) -> int:
+    from . import weights as W
+
+    if args.weights_command == "list":
+        rows = []
+        for w in W.catalog_weights():
+            chk = W.expected_checksum(w)
+            path = W.cached_path(w)
+            rows.append({"name": w.name, "plugin": w.plugin, "used_by": w.used_by, "cached": path.is_file(),
+                         "path": str(path), "checksum": chk.describe() if chk else "none (not verified)",
+                         "manual": w.manual, "license": w.license, "url": w.url, "aliases": w.aliases})
+        if args.json:
+            print(json.dumps(rows, indent=2))
+            return 0
+        if not rows:
+            print("registry.toml lists no weights")
+            return 0
+        wn = max(len(r["name"]) for r in rows)
+        wp = max(len(r["plugin"]) for r in rows)
+        print(f"{'name':<{wn}} {'plugin':<{wp}} {'state':<10} {'checksum':<25} licence")
+        for r in rows:
+            state = "cached" if r["cached"] else ("manual" if r["manual"] else "-")
+            chk = r["checksum"].split(" (")[0]
+            print(f"{r['name']:<{wn}} {r['plugin']:<{wp}} {state:<10} {chk:<25} {r['license']}")
+        print(f"\ncache: {W.cache_dir()}  (PVSLAM_CACHE moves it)")
+        return 0
+    if args.weights_command == "fetch":
+        path = W.fetch(args.name, force=args.force)
+        print(path)
+        return 0
+    if args.weights_command == "path":
+        path = W.cached_path(args.name)
+        print(path)
+        if not path.is_file():
+            return _fail(f"{args.name!r} is not downloaded yet; run `pvslam weights fetch {args.name}`",
+                         EXIT_RUNTIME)
+        return 0
+    parser.parse_args(["weights", "--help"])
     return 0
 
 
