@@ -79,3 +79,30 @@ def test_frame_distance():
     # camera far ahead: nothing valid -> 1000
     P[1, 2] = 10.0
     assert frame_distance(P, D, intr, torch.tensor([0]), torch.tensor([1]))[0] == 1000.0
+
+
+def test_reprojection_matches_opencv_projectpoints():
+    """An independent check of ``reproject`` (the BA tests build their targets with it): back-project keyframe i's
+    pixels with its depth, then project them into keyframe j with OpenCV's ``projectPoints`` (world-to-camera
+    rotation vector and translation of camera j) and compare."""
+    import cv2
+    import numpy as np
+
+    from pvslam_core.geometry.lie import quat_to_rotmat
+
+    poses, disps, intr = _setup(h=6, w=9)
+    i, j = 0, 2
+    coords, valid = reproject(poses, disps, intr, torch.tensor([i]), torch.tensor([j]))
+    fx, fy, cx, cy = intr.tolist()
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    g = pixel_grid(6, 9, "cpu", torch.float64)
+    z = 1.0 / disps[i]
+    Xc = torch.stack([(g[..., 0] - cx) / fx * z, (g[..., 1] - cy) / fy * z, z], -1).reshape(-1, 3).numpy()
+    R_i, t_i = quat_to_rotmat(poses[i, 3:]).numpy(), poses[i, :3].numpy()  # camera i -> world (T_wc)
+    Xw = Xc @ R_i.T + t_i
+    R_j, t_j = quat_to_rotmat(poses[j, 3:]).numpy(), poses[j, :3].numpy()
+    R_cw, t_cw = R_j.T, -R_j.T @ t_j  # world -> camera j
+    uv, _ = cv2.projectPoints(Xw, cv2.Rodrigues(R_cw)[0], t_cw, K, None)
+    ok = valid[0].reshape(-1).numpy()
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(coords[0].reshape(-1, 2).numpy()[ok], uv.reshape(-1, 2)[ok], atol=1e-8)

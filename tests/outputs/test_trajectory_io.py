@@ -20,8 +20,6 @@ from pvslam_core.outputs.trajectory_io import (
     write_tum,
 )
 
-KITTI_POSES = "/work/shared/data/kitti-odometry/poses/06.txt"
-
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
@@ -118,9 +116,8 @@ def test_kitti_round_trip(tmp_path):
     np.testing.assert_allclose(m[:, :3], Rotation.from_quat(poses[0, 3:]).as_matrix(), atol=1e-12)
 
 
-def test_kitti_real_file():
-    if not os.path.exists(KITTI_POSES):
-        pytest.skip(f"KITTI excerpt not present at {KITTI_POSES}")
+def test_kitti_real_file(shared_dir):
+    KITTI_POSES = shared_dir / "data" / "kitti-odometry" / "poses" / "06.txt"
     poses = read_kitti_poses(KITTI_POSES)
     raw = np.loadtxt(KITTI_POSES).reshape(-1, 3, 4)
     assert poses.shape == (51, 7)

@@ -14,15 +14,14 @@ from pvslam_core.outputs.trajectory_io import pose_to_matrix
 from pvslam_plugins.datasets.kitti.config import KittiConfig
 from pvslam_plugins.datasets.kitti.reader import KittiReader
 
-KITTI = Path("/work/shared/data/kitti-odometry")
-needs_kitti = pytest.mark.skipif(
-    not (KITTI / "sequences" / "06").is_dir(), reason=f"KITTI odometry excerpt not found at {KITTI}"
-)
+@pytest.fixture(scope="module")
+def KITTI(shared_dir) -> Path:
+    """The shared KITTI odometry excerpts (a missing shared folder fails the test, see the root conftest)."""
+    return shared_dir / "data" / "kitti-odometry"
 
 
 # ------------------------------------------------------------------------------------------- real excerpts ----
-@needs_kitti
-def test_sequence_06_excerpt():
+def test_sequence_06_excerpt(KITTI):
     r = KittiReader(KittiConfig(path=str(KITTI), sequence="06"))
     info = r.info()
     assert info.num_frames == 51 and info.has_gt_pose
@@ -41,8 +40,7 @@ def test_sequence_06_excerpt():
     assert np.allclose(pose_to_matrix(f3.gt_pose.numpy())[:3], gt[3], atol=1e-6)
 
 
-@needs_kitti
-def test_sequence_01_without_times_falls_back_to_10hz(caplog):
+def test_sequence_01_without_times_falls_back_to_10hz(caplog, KITTI):
     with caplog.at_level(logging.WARNING):
         r = KittiReader(KittiConfig(path=str(KITTI), sequence="01", stride=5, resize=(620, 188)))
     assert "no times.txt" in caplog.text and "10 Hz" in caplog.text
@@ -54,8 +52,7 @@ def test_sequence_01_without_times_falls_back_to_10hz(caplog):
     assert k.fx == pytest.approx(718.856 * 620 / 1241)
 
 
-@needs_kitti
-def test_missing_camera_folder():
+def test_missing_camera_folder(KITTI):
     with pytest.raises(DatasetError, match="image_2"):
         KittiReader(KittiConfig(path=str(KITTI), sequence="06", camera="image_2"))
 
@@ -175,3 +172,17 @@ def test_registered_through_the_hook(monkeypatch):
     monkeypatch.setenv("PVSLAM_LOAD_PLUGINS", "")
     assert build_registry(extra_modules=(plugin,)).get("dataset", "kitti").config_model is KittiConfig
 
+
+
+def test_invalid_projection_matrix_names_the_calibration_file(tmp_path):
+    fake_kitti(tmp_path)
+    calib = tmp_path / "sequences/07/calib.txt"
+    lines = calib.read_text().splitlines()
+    vals = lines[0].split()
+    vals[1] = "0.0"  # P0: fx = 0
+    lines[0] = " ".join(vals)
+    calib.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError) as err:
+        KittiReader(KittiConfig(path=str(tmp_path), sequence="07"))
+    msg = str(err.value)
+    assert str(calib) in msg and "P0" in msg and "fx=0.0" in msg
