@@ -121,7 +121,7 @@ def fb_consistency(fwd: np.ndarray, bwd: np.ndarray, sigma: float) -> tuple[np.n
 
     Returns ``conf = exp(-fb^2 / (2 sigma^2))`` (0 where ``x + f(x)`` leaves the image) and ``fb`` (the error
     ``|f(x) + b(x + f(x))|``, ``inf`` where ``x + f(x)`` leaves the image), both float32 ``[H, W]``; ``sigma``
-    is in flow-resolution pixels.  OpenCV element-wise ops throughout (~0.5 ms at 320x240).
+    is in flow-resolution pixels.  OpenCV element-wise ops (~0.5 ms at 320x240).
     """
     h, w = fwd.shape[:2]
     _, _, xy = _grids(h, w)
@@ -130,7 +130,9 @@ def fb_consistency(fwd: np.ndarray, bwd: np.ndarray, sigma: float) -> tuple[np.n
     bw = cv2.remap(bwd, pos, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     d = cv2.add(fwd, bw)
     dx, dy = cv2.split(d)
-    fb = cv2.magnitude(dx, dy)
+    # numpy, not cv2.magnitude: OpenCV 4.x's SIMD magnitude returned run-to-run different values for the last
+    # elements of an array (an out-of-bounds tail read), which made whole runs non-reproducible
+    fb = np.sqrt(dx * dx + dy * dy)
     conf = cv2.exp(cv2.multiply(fb, fb, scale=-1.0 / (2.0 * sigma * sigma)))
     outside = inside == 0
     conf[outside] = 0.0
