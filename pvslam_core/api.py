@@ -1,8 +1,13 @@
-"""The Python API: run a pipeline or an ablation from code, re-evaluate a run directory.
+"""The Python API: run a pipeline or an ablation from code, run on a path, track live frames, re-evaluate a run.
 
     from pvslam_core import load_config, run_config
     result = run_config("configs/default.toml", overrides=["loop.plugin=none"])
     print(result.metrics["ate"]["rmse"], result.run_dir)
+
+    from pvslam_core.api import run_path, Tracker
+    result = run_path("clip.mp4", calib="calib.txt")          # what `pvslam run clip.mp4 --calib calib.txt` does
+    with Tracker(intrinsics="calib.txt") as tracker:           # frames one at a time (see pvslam_core.tracker)
+        pose, frame_result = tracker.track(image, timestamp)
 """
 from __future__ import annotations
 
@@ -12,6 +17,7 @@ from pathlib import Path
 from typing import Any, Optional, Union
 
 from .config import PipelineConfig, ResolvedConfig, load_ablation, load_config, _normalise_overrides
+from .tracker import TrackedFrame, Tracker  # noqa: F401 - re-exported: the streaming API
 from .types import RunResult
 
 LOG = logging.getLogger("pvslam")
@@ -20,9 +26,10 @@ ConfigLike = Union[None, str, Path, dict, PipelineConfig, ResolvedConfig]
 
 
 def run_config(config: ConfigLike = None, overrides=None, run_dir: Optional[Union[str, Path]] = None,
-               registry=None) -> RunResult:
+               registry=None, observer=None) -> RunResult:
     """Run one pipeline. ``config`` is a TOML/JSON path, a dict shaped like the TOML (``{"dataset": {"plugin":
-    "kitti", ...}, ...}``), a :class:`PipelineConfig`, a :class:`ResolvedConfig`, or None (built-in default)."""
+    "kitti", ...}, ...}``), a :class:`PipelineConfig`, a :class:`ResolvedConfig`, or None (built-in default).
+    ``observer``: a :class:`~pvslam_core.observer.RunObserver` (e.g. the rerun viewer) that watches the run."""
     from .pipeline import run
 
     if isinstance(config, ResolvedConfig):
@@ -31,7 +38,37 @@ def run_config(config: ConfigLike = None, overrides=None, run_dir: Optional[Unio
         resolved = config
     else:
         resolved = load_config(config, overrides=overrides, registry=registry)
-    return run(resolved, run_dir=run_dir, registry=registry, overrides=_normalise_overrides(overrides))
+    return run(resolved, run_dir=run_dir, registry=registry, overrides=_normalise_overrides(overrides),
+               observer=observer)
+
+
+def path_overrides(path: Union[str, Path], calib: Optional[Union[str, Path]] = None, overrides=None,
+                   registry=None) -> tuple[dict[str, Any], Any]:
+    """The overrides that point a pipeline at ``path`` (the reader detected from it, ``calib`` as its calibration,
+    a run name from the file name unless ``overrides`` set one), and the detection."""
+    from .datasets.detect import dataset_section, run_name_for
+
+    det = dataset_section(path, calib, registry)
+    ov = _normalise_overrides(overrides)
+    out = {"dataset": det.section()}  # the whole [dataset] table: a config's other reader keys do not apply
+    if "run.name" not in ov:
+        out["run.name"] = run_name_for(path)
+    return {**out, **{k: v for k, v in ov.items() if not k.startswith("dataset.") and k != "dataset"},
+            **{k: v for k, v in ov.items() if k.startswith("dataset.")}}, det
+
+
+def run_path(path: Union[str, Path], calib: Optional[Union[str, Path]] = None, config: ConfigLike = None,
+             overrides=None, run_dir: Optional[Union[str, Path]] = None, registry=None, observer=None) -> RunResult:
+    """Run on a video file, an image folder or a dataset layout detected from ``path`` (see
+    :mod:`pvslam_core.datasets.detect`); ``config`` supplies everything but the dataset (None: the default).
+    Components that need labels the data lacks are switched off (see :mod:`pvslam_core.adapt`)."""
+    from .adapt import NOTICE
+
+    ov, det = path_overrides(path, calib, overrides, registry)
+    NOTICE.warning("input: %s (%s reader)", det.description, det.plugin)
+    if isinstance(config, ResolvedConfig):
+        raise ValueError("run_path takes a config path, dict or PipelineConfig (the dataset is replaced)")
+    return run_config(config, overrides=ov, run_dir=run_dir, registry=registry, observer=observer)
 
 
 def run_ablation(path: Union[str, Path], overrides=None, registry=None) -> list[tuple[str, RunResult]]:
@@ -86,13 +123,16 @@ def evaluate_run_dir(run_dir: Union[str, Path], registry=None) -> dict[str, Any]
     timing = {}
     if (run_dir / "metrics.json").is_file():
         timing = json.loads((run_dir / "metrics.json").read_text()).get("timing", {})
+    raw = read_json(run_dir / "config.json")
+    fed = str((raw.get("dataset") or {}).get("plugin", "?")) == "none"  # a Tracker's run: frames were fed
     try:
+        if fed:
+            raise ConfigError("frames were fed through the streaming API (Tracker): there is no dataset to reopen")
         resolved = load_config(run_dir / "config.json", registry=registry)
     except ConfigError as exc:  # e.g. the dataset plugin is not installed here: evaluate from the run directory
-        raw = read_json(run_dir / "config.json")
         pcfg = PipelineConfig(evaluation=EvaluationSection.model_validate(raw.get("evaluation", {})),
                               outputs=OutputsSection.model_validate(raw.get("outputs", {})))
         pcfg.dataset.plugin = str((raw.get("dataset") or {}).get("plugin", "?"))
-        return evaluate_saved_run(run_dir, None, timing, registry=registry, pcfg=pcfg,
-                                  dataset_error=f"the run's config no longer resolves here: {exc}")
+        why = str(exc) if fed else f"the run's config no longer resolves here: {exc}"
+        return evaluate_saved_run(run_dir, None, timing, registry=registry, pcfg=pcfg, dataset_error=why)
     return evaluate_saved_run(run_dir, resolved, timing, registry=registry)

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from pathlib import Path
 from typing import Optional
 
 EXIT_CONFIG = 2
 EXIT_RUNTIME = 1
+EXIT_NO_MOTION = 3  # the run finished but estimated no motion
 
 
 def _add_config_args(p: argparse.ArgumentParser, required: bool = False) -> None:
@@ -34,6 +36,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output-dir", help="folder for run directories (overrides run.output_dir)")
     p.add_argument("--name", help="run name (overrides run.name)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar, only the summary")
+    p.add_argument("path", nargs="?", metavar="PATH",
+                   help="input: a video file, a folder of images, a KITTI / EuRoC / TUM sequence folder or a camera "
+                        "index; the reader is detected from it (replaces the config's [dataset])")
+    p.add_argument("--calib", metavar="FILE",
+                   help="calibration of PATH: 'fx fy cx cy [k1 k2 p1 p2 [k3 [k4 k5 k6]]]' (DROID-SLAM), an "
+                        "ORB-SLAM YAML or an OpenCV FileStorage YAML/XML (default: calib.txt beside the data)")
+    p.add_argument("--viz", action="store_true", help="watch the run live in the rerun viewer (pvslam[viz])")
+    p.add_argument("--viz-save", metavar="FILE.rrd", help="write the live view to a rerun recording file")
 
     p = sub.add_parser("plugins", help="list installed and catalogued plugins")
     p.add_argument("--json", action="store_true", help="machine-readable output")
@@ -58,6 +68,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="recompute the metrics of a run directory")
     p.add_argument("run_dir", help="a run directory written by `pvslam run`")
+
+    p = sub.add_parser("view", help="replay a finished run in the rerun viewer (pvslam[viz])")
+    p.add_argument("run_dir", help="a run directory written by `pvslam run`")
+    p.add_argument("--save", metavar="FILE.rrd", help="write a rerun recording file instead of opening the viewer")
+    p.add_argument("--spawn", action="store_true", help="with --save: also open the viewer")
 
     p = sub.add_parser("export", help="export a run for COLMAP / nerfstudio, or its trajectory aligned to the GT")
     p.add_argument("run_dir", help="a run directory written by `pvslam run`")
@@ -122,6 +137,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     from .registry import PluginError, PluginLoadWarning
 
     _plain_plugin_warnings(PluginLoadWarning)
+    _console_notices()
 
     try:
         if args.command == "run":
@@ -134,6 +150,8 @@ def main(argv: Optional[list[str]] = None) -> int:
             return _cmd_synth(args)
         if args.command == "eval":
             return _cmd_eval(args)
+        if args.command == "view":
+            return _cmd_view(args)
         if args.command == "export":
             return _cmd_export(args)
         if args.command == "train":
@@ -180,22 +198,86 @@ def _run_overrides(args) -> list[str]:
 
 
 def _cmd_run(args) -> int:
-    from .api import run_ablation, run_config
-    from .config import is_ablation_file
+    from .api import path_overrides, run_ablation, run_config
+    from .config import ConfigError, is_ablation_file
     from .report import comparison_table, summary_lines
 
     overrides = _run_overrides(args)
+    if args.calib and not args.path:
+        raise ConfigError("--calib goes with an input PATH (pvslam run PATH --calib FILE); in a config file set "
+                          "dataset.calib")
     if args.config and is_ablation_file(args.config):
+        if args.path or args.viz or args.viz_save:
+            raise ConfigError("PATH, --viz and --viz-save apply to single runs, not to ablation files")
         results = run_ablation(args.config, overrides=overrides)
         print(comparison_table(results))
         failed = [n for n, r in results if r.metrics.get("failed")]
         if failed:
             return _fail(f"{len(failed)} of {len(results)} variants failed: {', '.join(failed)}", EXIT_RUNTIME)
         return 0
-    result = run_config(args.config, overrides=overrides)
+    if args.path:
+        overrides, det = path_overrides(args.path, args.calib, overrides)
+        print(f"pvslam: input: {det.description} ({det.plugin} reader)", file=sys.stderr)
+    viewer = _viewer(spawn=args.viz, save=args.viz_save) if (args.viz or args.viz_save) else None
+    try:
+        result = run_config(args.config, overrides=overrides, observer=viewer)
+    finally:
+        if viewer is not None:
+            viewer.close()
+            if args.viz_save:
+                print(f"pvslam: viewer recording: {args.viz_save} (open it with: rerun {args.viz_save})",
+                      file=sys.stderr)
     for line in summary_lines(result):
         print(line)
+    if result.metrics.get("tracking", {}).get("initialized") is False:
+        return _fail("no motion was estimated: the map never initialised (too little parallax, too few frames or no "
+                     "texture); trajectory.txt holds placeholder poses", EXIT_NO_MOTION)
     return 0
+
+
+def _viewer(spawn: bool, save: Optional[str]):
+    """The rerun viewer (a RunObserver); a missing rerun is a clear error, not a traceback."""
+    try:
+        from .viz.rerun_viewer import RerunViewer
+
+        return RerunViewer(spawn=spawn, save=save)
+    except ImportError as exc:
+        raise RuntimeError(str(exc)) from None
+
+
+def _cmd_view(args) -> int:
+    from .viz.replay import replay_run
+
+    viewer = _viewer(spawn=args.spawn or not args.save, save=args.save)
+    try:
+        summary = replay_run(args.run_dir, viewer)
+    finally:
+        viewer.close()
+    missing = summary.pop("missing")
+    print("replayed: " + ", ".join(f"{k} {v}" for k, v in summary.items()))
+    if missing:
+        print("not in the run directory: " + ", ".join(missing), file=sys.stderr)
+    if args.save:
+        print(f"recording: {args.save} (open it with: rerun {args.save})")
+    return 0
+
+
+class _StderrNotice(logging.StreamHandler):
+    """Writes to the current ``sys.stderr`` (captured or redirected streams included)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+def _console_notices() -> None:
+    """Choices the core makes for the user (``pvslam.notice``: e.g. no segmenter on unlabelled data) go to the
+    console as ``pvslam: ...`` lines, besides log.txt."""
+    log = logging.getLogger("pvslam.notice")
+    if not any(isinstance(h, _StderrNotice) for h in log.handlers):
+        h = _StderrNotice()
+        h.setFormatter(logging.Formatter("pvslam: %(message)s"))
+        log.addHandler(h)
 
 
 def _cmd_plugins(args) -> int:

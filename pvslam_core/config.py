@@ -82,6 +82,10 @@ class RunSection(PluginConfig):
     max_frames: Optional[int] = Field(None, ge=1, description="stop after this many input frames")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level of log.txt")
     checkpoint_every: int = Field(20, ge=1, description="rewrite the trajectory files every N keyframes")
+    read_ahead: int = Field(2, ge=0, description="frames read and decoded ahead on a background thread (0: none); "
+                            "decoding overlaps the mapping on a second core, memory stays bounded")
+    write_behind: int = Field(4, ge=0, description="panoptic PNG writes queued to a background thread (0: written "
+                              "in the pipeline thread); a write error still stops the run, one frame later")
 
     @field_validator("name")
     @classmethod
@@ -110,6 +114,17 @@ class GraphSection(PluginConfig):
     active_window: int = Field(10, ge=2, description="edges touching the last N keyframes are observed in each update")
     remove_redundant: bool = Field(True, description="drop a keyframe that is too close to its predecessor")
     redundant_thresh: float = Field(1.5, ge=0, description="frame distance (BA px) under which a keyframe is redundant")
+    defer_redundant: bool = Field(
+        True, description="a frame the frontend proposes as a keyframe stays a non-keyframe while its frame distance "
+        "to the last keyframe, under its motion-only pose, is below redundant_thresh: it would be removed as "
+        "redundant after paying for its edges and BA (on the driving loop more than half the proposals were)")
+    defer_max_flow: float = Field(
+        2.0, ge=0, description="defer only proposals whose measured mean flow to the last keyframe is at most this "
+        "(BA px): in turns the image moves fast while the frame distance (mostly translation) stays small, and "
+        "tracking needs a recent reference")
+    defer_max_frames: int = Field(
+        3, ge=0, description="at most this many consecutive proposals deferred (tracking against an older "
+        "reference degrades)")
     reinit_after: int = Field(4, ge=1, description="consecutive failed frames before the map is re-initialised")
     max_active_edges: int = Field(
         256, ge=8, description="cap on active edges: beyond it the oldest edges not touching the newest keyframe "

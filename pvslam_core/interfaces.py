@@ -55,7 +55,10 @@ class DatasetReader(ABC):
         """Frames in time order with ``Frame.index`` counting from 0."""
 
     def __len__(self) -> int:
-        return self.info().num_frames
+        n = self.info().num_frames
+        if n is None:  # a camera, a growing folder: len() of a live source is undefined
+            raise TypeError(f"{self.info().name}: the number of frames is not known until the source ends")
+        return n
 
 
 class Segmenter(ABC):

@@ -12,7 +12,10 @@ at the end (:meth:`Pipeline.finish`): optimizer.finalize (offline global BA), ou
 
 The pipeline never calls a hook per frame: plugins are built once from the registry and called directly.
 :meth:`Pipeline.run` iterates the configured dataset; :meth:`start` / :meth:`step` / :meth:`finish` serve callers
-that feed frames themselves.  Poses are T_wc ``[t, q_xyzw]`` (see :mod:`pvslam_core.types`).
+that feed frames themselves (:class:`pvslam_core.tracker.Tracker`).  Before the plugins are built the config is
+fitted to the data (:mod:`pvslam_core.adapt`: no ``labels`` segmenter on unlabelled data).  An optional
+:class:`~pvslam_core.observer.RunObserver` (a live viewer) is told of every frame, keyframe and loop.  Poses are
+T_wc ``[t, q_xyzw]`` (see :mod:`pvslam_core.types`).
 """
 from __future__ import annotations
 
@@ -86,10 +89,12 @@ def _signals_deferred():
 class Pipeline:
     """Builds the configured plugins and runs Algorithm 1 over the dataset (or over frames fed by the caller)."""
 
-    def __init__(self, config: ResolvedConfig, run_dir: Optional[Path] = None, registry=None, dataset=None):
+    def __init__(self, config: ResolvedConfig, run_dir: Optional[Path] = None, registry=None, dataset=None,
+                 observer=None):
         self.cfg = config
         self.pcfg = config.pipeline
         self.registry = registry or get_registry()
+        self.observer = observer  # a RunObserver (pvslam_core.observer), or None
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.device = torch.device(self.pcfg.run.device)
         if self.device.type == "cuda" and not torch.cuda.is_available():
@@ -99,6 +104,11 @@ class Pipeline:
         self.dataset = dataset if dataset is not None else self._build("dataset", ctx)
         self.info: SequenceInfo = self.dataset.info()
         ctx.info = self.info  # the other plugins may size themselves to the sequence
+        from .adapt import fit_to_sequence
+
+        # e.g. no labels segmenter on data without labels; self.cfg is what runs (and what config.json records)
+        self.cfg, self.notes = fit_to_sequence(self.cfg, self.info, self.registry)
+        self.pcfg = self.cfg.pipeline
         self.segmenter = self._build("segmenter", ctx)
         self.frontend = self._build("frontend", ctx)
         self.loop_detector = self._build("loop", ctx)
@@ -144,44 +154,81 @@ class Pipeline:
         self.frames_done = 0
         self.frame_seconds: list[float] = []
         self.stage = dict.fromkeys(STAGES, 0.0)  # seconds per stage
+        # CPU seconds per stage of the calling thread (wall time means little on a shared machine), and of the
+        # whole process over the run (includes helper threads)
+        self.stage_cpu = dict.fromkeys(STAGES, 0.0)
         self.t_start = time.perf_counter()
+        self.cpu_start = time.process_time()
         self.ever_initialized = False
+        self._loops_seen = 0
+        if self.observer is not None:
+            self._notify("on_start", self.info, self.categories())
 
     def step(self, frame: Frame) -> FrameResult:
         """Process one frame (segmentation, mapping, VPS, outputs); returns the mapper's result for it."""
         from .slam.motion_cue import motion_cue
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         seg = self.segmenter.segment(frame) if self.segmenter is not None else None
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.thread_time()
         result = self.mapper.process(frame, seg)
         self.ever_initialized |= result.initialized
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.thread_time()
         panoptic: Optional[PanopticSegmentation] = None  # this frame's temporally consistent segmentation
         if self.vps is not None and seg is not None:
             self.vps_state = self.vps.update(self.vps_state, frame, seg, motion_cue(self.last, result))
             panoptic = self.vps_state.panoptic
         self.last = result
-        t3 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.thread_time()
         if self.outputs is not None:
             if panoptic is not None:
                 self.outputs.panoptic(frame, panoptic)
             self.outputs.frame(frame, seg)
             if result.is_keyframe and self.mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
                 self.outputs.checkpoint(self.mapper, self.frames_done + 1)
+        if self.observer is not None:
+            self._observe(frame, result, panoptic)
         self.frames_done += 1
-        now = time.perf_counter()
+        now, cnow = time.perf_counter(), time.thread_time()
         for name, dt in (("segment", t1 - t0), ("map", t2 - t1), ("vps", t3 - t2), ("outputs", now - t3)):
             self.stage[name] += dt
+        for name, dt in (("segment", c1 - c0), ("map", c2 - c1), ("vps", c3 - c2), ("outputs", cnow - c3)):
+            self.stage_cpu[name] += dt
         return result
+
+    def _observe(self, frame: Frame, result: FrameResult, panoptic: Optional[PanopticSegmentation]) -> None:
+        from .observer import KeyframeSnapshot
+
+        self._notify("on_frame", frame, result, panoptic)
+        mapper = self.mapper
+        snap = None
+        if result.is_keyframe and mapper.initialized:
+            snap = KeyframeSnapshot.of(mapper)
+            self._notify("on_keyframes", snap)
+        loops = mapper.loops
+        for loop in loops[self._loops_seen:]:
+            self._notify("on_loop", loop, snap or KeyframeSnapshot.of(mapper))
+        self._loops_seen = len(loops)
+
+    def _notify(self, method: str, *args) -> None:
+        """Call the observer; one that raises is switched off (a viewer must not end the run)."""
+        if self.observer is None:
+            return
+        try:
+            getattr(self.observer, method)(*args)
+        except Exception as exc:  # noqa: BLE001
+            LOG.error("viewer switched off: its %s raised %s: %s", method, type(exc).__name__, exc)
+            self.observer = None
 
     def finish(self) -> RunResult:
         """Final optimisation, outputs and evaluation."""
         mapper = self.mapper
-        t_fin = time.perf_counter()
+        t_fin, c_fin = time.perf_counter(), time.thread_time()
         mapper.finalize()
         self.stage["finalize"] = time.perf_counter() - t_fin
+        self.stage_cpu["finalize"] = time.thread_time() - c_fin
         elapsed = time.perf_counter() - self.t_start
+        cpu = time.process_time() - self.cpu_start
         ts, poses = mapper.trajectory()
         g = mapper.graph
         timing = {
@@ -192,6 +239,8 @@ class Pipeline:
             "tracking_failures": mapper.failures,
             "reinitialisations": mapper.reinits,
             "stage_seconds": {k: round(v, 3) for k, v in self.stage.items()},  # read = dataset iteration
+            "cpu_seconds": round(cpu, 3),  # process CPU time (all threads), start to end of the final BA
+            "stage_cpu_seconds": {k: round(v, 3) for k, v in self.stage_cpu.items()},  # the pipeline thread's
         }
         tracking = {"initialized": bool(self.ever_initialized), "active_edges": g.num_edges,
                     "retired_edges": g.num_retired}
@@ -206,7 +255,7 @@ class Pipeline:
             from .outputs.metrics import MetricsFile
 
             MetricsFile(self.run_dir / "metrics.json").update({"tracking": tracking})
-        return RunResult(
+        result = RunResult(
             run_dir=str(self.run_dir) if self.run_dir else None,
             timestamps=ts,
             poses=poses,
@@ -216,6 +265,11 @@ class Pipeline:
             loops=list(mapper.loops),
             frame_seconds=self.frame_seconds,
         )
+        if self.observer is not None:
+            from .observer import KeyframeSnapshot
+
+            self._notify("on_finish", result, KeyframeSnapshot.of(mapper))
+        return result
 
     def abort(self, exc: BaseException) -> None:
         """Keep what was written: the trajectory of every completed frame and a partial metrics.json."""
@@ -234,22 +288,34 @@ class Pipeline:
     # ------------------------------------------------------------------------------------------- run --
     def run(self) -> RunResult:
         self.start()
+        # num_frames is the progress bar's total only (None: a live source; a video container's count is a claim):
+        # the run ends with the dataset's iteration, or at run.max_frames
+        limit = self.pcfg.run.max_frames
         total = self.info.num_frames
-        if self.pcfg.run.max_frames is not None:
-            total = min(total, self.pcfg.run.max_frames)
-        LOG.info("sequence %s: %d frames %dx%d", self.info.name, total, self.info.intrinsics.width,
-                 self.info.intrinsics.height)
+        if limit is not None:
+            total = limit if total is None else min(total, limit)
+        LOG.info("sequence %s: %s frames %dx%d", self.info.name, "unknown number of" if total is None else total,
+                 self.info.intrinsics.width, self.info.intrinsics.height)
+        from contextlib import closing
+        from itertools import islice
+
+        from .background import read_ahead
+
         try:
-            with _sigterm_as_interrupt(), _progress(total, self.pcfg.run.progress, "pvslam") as bar:
-                t_prev = time.perf_counter()
-                for frame in self.dataset:
-                    if self.frames_done >= total:
+            # frames are decoded on a background thread, at most run.read_ahead ahead (see background.py)
+            frames = read_ahead(islice(self.dataset, limit), self.pcfg.run.read_ahead)
+            with _sigterm_as_interrupt(), _progress(total, self.pcfg.run.progress, "pvslam") as bar, \
+                    closing(frames):
+                t_prev, c_prev = time.perf_counter(), time.thread_time()
+                for frame in frames:
+                    if limit is not None and self.frames_done >= limit:
                         break
                     self.stage["read"] += time.perf_counter() - t_prev
+                    self.stage_cpu["read"] += time.thread_time() - c_prev
                     self.step(frame)
                     now = time.perf_counter()
                     self.frame_seconds.append(now - t_prev)
-                    t_prev = now
+                    t_prev, c_prev = now, time.thread_time()
                     bar.update(1)
                     if self.frames_done % 50 == 0:
                         bar.set_postfix(kf=self.mapper.graph.n, loops=len(self.mapper.loops))
@@ -260,8 +326,9 @@ class Pipeline:
 
 
 def run(config: ResolvedConfig, run_dir: Optional[Path | str] = None, registry=None,
-        overrides: Optional[dict[str, Any]] = None, make_dir: bool = True) -> RunResult:
-    """Run a resolved config. With ``make_dir`` a new run directory is created under ``run.output_dir``."""
+        overrides: Optional[dict[str, Any]] = None, make_dir: bool = True, observer=None) -> RunResult:
+    """Run a resolved config. With ``make_dir`` a new run directory is created under ``run.output_dir``;
+    ``observer`` (a :class:`~pvslam_core.observer.RunObserver`) watches the run."""
     from .rundir import RunLog, init_run_dir, make_run_dir
 
     registry = registry or get_registry()
@@ -273,8 +340,10 @@ def run(config: ResolvedConfig, run_dir: Optional[Path | str] = None, registry=N
         init_run_dir(run_dir, config, registry, overrides or {})
     with RunLog(run_dir, rcfg.log_level):
         try:
-            pipe = Pipeline(config, run_dir, registry)
+            pipe = Pipeline(config, run_dir, registry, observer=observer)
         except BaseException as exc:  # e.g. the dataset cannot be opened: say so in log.txt too
             LOG.error("could not start the run: %s: %s", type(exc).__name__, exc)
             raise
+        if pipe.notes and run_dir is not None:  # config.json records what runs, after fitting it to the data
+            init_run_dir(run_dir, pipe.cfg, registry, overrides or {})
         return pipe.run()

@@ -47,11 +47,17 @@ class RunOutputs:
             self._write("groundtruth_loops.json", _write_json, self.dir / "groundtruth_loops.json",
                         {"pairs": [[int(i), int(j)] for i, j in info.loop_pairs], "source": info.source or info.name})
         self.pan_writer = None
+        self.behind = None  # background thread of the per-frame panoptic writes
         if pcfg.outputs.panoptic_png:
             from .outputs.panoptic_png import PanopticWriter
 
+            # a journal line per frame, segments.json once at the end (see PanopticWriter)
             self.pan_writer = PanopticWriter(self.dir, categories=self.categories or None,
-                                             vis=pcfg.outputs.panoptic_vis)
+                                             vis=pcfg.outputs.panoptic_vis, flush_every=0, journal=True)
+            if pcfg.run.write_behind > 0:
+                from .background import BackgroundWriter
+
+                self.behind = BackgroundWriter(pcfg.run.write_behind, name="pvslam-panoptic-writer")
 
     def frame(self, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
         self.names[frame.index] = frame.name
@@ -61,8 +67,17 @@ class RunOutputs:
 
     def panoptic(self, frame: Frame, seg: PanopticSegmentation) -> None:
         if self.pan_writer is not None:
-            self._write(f"panoptic/{frame.index:06d}.png", self.pan_writer.write, frame.index, seg, frame.name or None)
-            self._raise_write_errors()
+            args = (f"panoptic/{frame.index:06d}.png", self.pan_writer.write, frame.index, seg, frame.name or None)
+            if self.behind is not None:  # `seg` is this frame's own object: nothing changes it afterwards
+                self.behind.submit(self._write, *args)
+            else:
+                self._write(*args)
+            self._raise_write_errors()  # also the errors of writes finished in the background
+
+    def drain(self) -> None:
+        """Wait for the background writes (their write errors are then in ``write_errors``)."""
+        if self.behind is not None:
+            self.behind.drain()
 
     def checkpoint(self, mapper, frames_done: Optional[int] = None) -> None:
         """Rewrite the trajectory files; ``frames_done``: only the first so many frames (a run stopped mid-frame
@@ -93,7 +108,12 @@ class RunOutputs:
         """Final files: segments.json, the point clouds, keyframe depth; with ``partial`` a metrics.json that says
         the run stopped early. Write failures are collected as in :meth:`checkpoint`."""
         if self.pan_writer is not None:
-            self._write("panoptic/segments.json", self.pan_writer.close)
+            behind, self.behind = self.behind, None
+            try:
+                if behind is not None:
+                    behind.close()  # every queued frame is written before segments.json
+            finally:
+                self._write("panoptic/segments.json", self.pan_writer.close)
         g = mapper.graph
         if g.n and mapper.initialized and (self.cfg.outputs.ply or self.cfg.outputs.keyframe_depth):
             poses, disps, intr = g.poses.double().cpu(), g.disps.float().cpu(), g.intrinsics.cpu()
@@ -149,7 +169,7 @@ class RunOutputs:
         if not self.write_errors:
             return
         self._partial_metrics()
-        lines = [f"{p}: {m}" for p, m in self.write_errors.items()]
+        lines = [f"{p}: {m}" for p, m in dict(self.write_errors).items()]  # a copy: the writer thread may add
         raise OutputWriteError("could not write " + "; ".join(lines))
 
     def evaluate(self, mapper, timing: dict, dataset) -> dict[str, Any]:
@@ -189,7 +209,9 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     if loops_file.is_file():
         loop_gt = [tuple(p) for p in read_json(loops_file)["pairs"]]
         sources["loops"] = "groundtruth_loops.json (run directory)"
-    has_pred_panoptic = (run_dir / "panoptic" / "segments.json").is_file()
+    from .outputs.panoptic_png import has_segments
+
+    has_pred_panoptic = has_segments(run_dir / "panoptic")  # segments.json, or the journal of a killed run
     if dataset is None and dataset_error is None and (loop_gt is None or has_pred_panoptic) and resolved is not None:
         dataset, dataset_error = _open_dataset(resolved, registry)
     info = dataset.info() if dataset is not None else None

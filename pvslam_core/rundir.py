@@ -158,14 +158,20 @@ class RunLog:
             self.handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
             self.handler.setLevel(self.level)
 
+    # the core logs to "pvslam.*", plugins (readers, frontends) to "pvslam_plugins.*": log.txt gets both
+    LOGGERS = ("pvslam", "pvslam_plugins")
+
     def __enter__(self) -> "RunLog":
-        if self.handler is not None:
-            LOG.addHandler(self.handler)
-        if LOG.level == logging.NOTSET or LOG.level > self.level:
-            LOG.setLevel(self.level)
+        for name in self.LOGGERS:
+            log = logging.getLogger(name)
+            if self.handler is not None:
+                log.addHandler(self.handler)
+            if log.level == logging.NOTSET or log.level > self.level:
+                log.setLevel(self.level)
         return self
 
     def __exit__(self, *exc) -> None:
         if self.handler is not None:
-            LOG.removeHandler(self.handler)
+            for name in self.LOGGERS:
+                logging.getLogger(name).removeHandler(self.handler)
             self.handler.close()

@@ -115,10 +115,15 @@ class Category:
 
 @dataclass(frozen=True)
 class Segment:
+    """One segment of a panoptic id map.  ``movable``: whether its category can move on its own (a car, a person;
+    not a building, nor furniture).  Only movable thing segments vote in dynamic masking (PV-SLAM eq. 4); a
+    segmenter that knows which of its categories move says so here, the default keeps every thing a candidate."""
+
     id: int
     category_id: int
     isthing: bool
     score: float = 1.0
+    movable: bool = True
 
 
 @dataclass
@@ -208,7 +213,7 @@ class SequenceInfo:
     """What a reader knows about a sequence before iterating it."""
 
     name: str
-    num_frames: int
+    num_frames: Optional[int]  # None: not known until the source ends (a camera, a folder still being written)
     intrinsics: Intrinsics  # of the frames as yielded (after resize/crop/undistort)
     categories: Sequence[Category] = ()
     has_gt_pose: bool = False

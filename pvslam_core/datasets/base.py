@@ -11,6 +11,11 @@ resolution; :class:`BaseReader` turns them into the :class:`~pvslam_core.interfa
   and dynamic masks: exact nearest neighbour) with ``Intrinsics.scaled`` (pixel centres at integers);
 * a centre crop to multiples of ``crop_multiple`` with ``Intrinsics.cropped``.
 
+Sources whose length is not known up front (a camera, a folder that is still being written) return None from
+``_raw_count`` and yield their frames from ``_stream``; ``SequenceInfo.num_frames`` is then None and ``len()``
+raises TypeError.  A reader that must decode sequentially (a video: a container's frame count is only a claim)
+sets ``sequential = True`` and iterates through ``_stream`` too, so a wrong count ends the run gracefully.
+
 The same geometric transform is applied to the image, the ground-truth depth, panoptic ids and dynamic mask,
 and to the intrinsics, so a 3D point projects onto the same image content before and after.
 """
@@ -174,8 +179,11 @@ class BaseReader(DatasetReader):
     """Frame selection and geometric preprocessing shared by every reader.
 
     Subclasses call ``super().__init__(options)`` and implement ``_raw_count``, ``_raw_intrinsics``, ``_load``
-    and ``_sequence_name``; ``_categories``, ``_loop_pairs`` and ``_has_gt`` are optional.
+    and ``_sequence_name``; ``_categories``, ``_loop_pairs`` and ``_has_gt`` are optional.  Sources of unknown
+    length (``_raw_count`` None) and ``sequential`` readers implement ``_stream`` instead of (or besides) ``_load``.
     """
+
+    sequential = False  # iterate through _stream (sequential decoding) even when the count is known
 
     def __init__(self, options: ReaderOptions):
         self.options = options
@@ -185,8 +193,8 @@ class BaseReader(DatasetReader):
 
     # ---- to implement ------------------------------------------------------------------------------------
     @abstractmethod
-    def _raw_count(self) -> int:
-        """Number of raw frames (known up front)."""
+    def _raw_count(self) -> Optional[int]:
+        """Number of raw frames, or None when it is not known until the source ends (a camera, a growing folder)."""
 
     @abstractmethod
     def _raw_intrinsics(self) -> Intrinsics:
@@ -207,8 +215,15 @@ class BaseReader(DatasetReader):
         """Ground-truth revisit pairs in raw indices, if known."""
         return None
 
+    def _stream(self, start: int, stride: int) -> Iterator[Frame]:
+        """Native-resolution frames ``start, start + stride, ...`` (``Frame.index`` = raw index) until the source
+        ends; needed when ``_raw_count`` is None or ``sequential`` is set."""
+        raise NotImplementedError(f"{type(self).__name__} does not stream")
+
     def _has_gt(self) -> tuple[bool, bool, bool]:
-        """(pose, depth, panoptic); by default found out by loading the first selected frame."""
+        """(pose, depth, panoptic); by default found out by loading the first selected frame (none for streams)."""
+        if self._count() is None:
+            return (False, False, False)
         f = self._load(self.frame_range()[0])
         return (f.gt_pose is not None, f.gt_depth is not None, f.gt_panoptic is not None)
 
@@ -217,11 +232,19 @@ class BaseReader(DatasetReader):
         return str(getattr(self.options, "path", "") or "")
 
     # ---- provided ------------------------------------------------------------------------------------------
+    def _count(self) -> Optional[int]:
+        if not hasattr(self, "_count_cache"):
+            n = self._raw_count()
+            self._count_cache = None if n is None else int(n)
+        return self._count_cache
+
     def frame_range(self) -> range:
-        """The raw indices yielded, in order."""
+        """The raw indices yielded, in order (TypeError for a source of unknown length)."""
         if self._range is None:
-            n = int(self._raw_count())
+            n = self._count()
             where = self._source() or self._sequence_name()
+            if n is None:
+                raise TypeError(f"{where}: the number of frames is not known until the source ends")
             if n <= 0:
                 raise DatasetError(f"{where}: the sequence has no frames")
             o = self.options
@@ -240,6 +263,8 @@ class BaseReader(DatasetReader):
 
     def output_index(self, raw_index: int) -> Optional[int]:
         """The output index of the selected frame nearest to ``raw_index`` (None outside start..end)."""
+        if self._count() is None:
+            return None
         r = self.frame_range()
         if raw_index < r.start or raw_index >= r.stop:
             return None
@@ -248,7 +273,7 @@ class BaseReader(DatasetReader):
 
     def info(self) -> SequenceInfo:
         if self._info is None:
-            r = self.frame_range()
+            num = None if self._count() is None else len(self.frame_range())
             pose, depth, pan = self._has_gt()
             loops = self._loop_pairs()
             mapped: Optional[list[tuple[int, int]]] = None
@@ -263,7 +288,7 @@ class BaseReader(DatasetReader):
                     mapped.append((a, b))
             self._info = SequenceInfo(
                 name=self._sequence_name(),
-                num_frames=len(r),
+                num_frames=num,
                 intrinsics=self.geometry().out,
                 categories=tuple(self._categories()),
                 has_gt_pose=pose,
@@ -287,8 +312,23 @@ class BaseReader(DatasetReader):
 
     def __iter__(self) -> Iterator[Frame]:
         geo = self.geometry()
+        if self.sequential or self._count() is None:
+            yield from self._iter_stream(geo)
+            return
         for i, raw in enumerate(self.frame_range()):
             yield transform_frame(self._load(raw), geo, i)
+
+    def _iter_stream(self, geo: ReaderGeometry) -> Iterator[Frame]:
+        o = self.options
+        i = 0
+        for frame in self._stream(o.start, o.stride):
+            if o.end is not None and frame.index >= o.end:
+                break
+            yield transform_frame(frame, geo, i)
+            i += 1
+        if i == 0:
+            where = self._source() or self._sequence_name()
+            raise DatasetError(f"{where}: the sequence has no frames" + (f" from start={o.start}" if o.start else ""))
 
 
 class ImageFileReader(BaseReader):

@@ -1,7 +1,14 @@
-"""Reading the simple one-line calibration format ``fx fy cx cy [k1 k2 p1 p2 [k3]]``.
+"""Calibration files: DROID-SLAM's one-line format, ORB-SLAM / OpenCV YAML, and calibration values in configs.
 
-Values are separated by whitespace and/or commas; lines starting with ``#`` and blank lines are ignored.  The
-image size is not part of the file: the caller supplies it (usually from the first image).
+* **Values** (DROID-SLAM's ``calib.txt``): ``fx fy cx cy [k1 k2 p1 p2 [k3 [k4 k5 k6]]]`` -- 4, 8, 9 or 12 numbers,
+  the counts DROID-SLAM's demo passes to ``cv2.undistort`` (OpenCV's 4, 5 and 8 distortion coefficients).  Values
+  are separated by whitespace and/or commas; lines starting with ``#`` and blank lines are ignored.  The image size
+  is not part of the file: the caller supplies it (usually from the first image).
+* **YAML / XML** (ORB-SLAM2 ``Camera.fx``..., ORB-SLAM3 ``Camera1.fx``..., OpenCV FileStorage ``camera_matrix`` /
+  ``distortion_coefficients``): see :mod:`pvslam_core.datasets.calib_yaml`.
+
+:func:`read_calibration` tells the formats apart by content; anything else is an error that names the file and
+lists what was expected.
 """
 from __future__ import annotations
 
@@ -14,16 +21,20 @@ from ..types import Intrinsics
 from .base import DatasetError
 
 _SPLIT = re.compile(r"[\s,]+")
-VALID_COUNTS = (4, 8, 9)
-VALUE_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+VALID_COUNTS = (4, 8, 9, 12)
+VALUE_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+VALUES_FORMAT = "fx fy cx cy [k1 k2 p1 p2 [k3 [k4 k5 k6]]]"
+#: what a calibration file may be, for error messages
+EXPECTED_FORMATS = (f"one line '{VALUES_FORMAT}' (DROID-SLAM), an ORB-SLAM YAML (Camera.fx ... or Camera1.fx ...) "
+                    "or an OpenCV FileStorage YAML/XML with camera_matrix and distortion_coefficients")
 
 
 def intrinsics_from_values(values: Sequence[float], width: int, height: int, source: str = "calib") -> Intrinsics:
-    """``[fx, fy, cx, cy, (k1, k2, p1, p2, (k3))]`` -> :class:`Intrinsics`; errors name ``source``."""
+    """``[fx, fy, cx, cy, (k1, k2, p1, p2, (k3, (k4, k5, k6)))]`` -> :class:`Intrinsics`; errors name ``source``."""
     vals = [float(v) for v in values]
     if len(vals) not in VALID_COUNTS:
         raise DatasetError(
-            f"{source}: expected 4, 8 or 9 calibration values (fx fy cx cy [k1 k2 p1 p2 [k3]]), found {len(vals)}"
+            f"{source}: expected 4, 8, 9 or 12 calibration values ({VALUES_FORMAT}), found {len(vals)}"
         )
     try:
         return Intrinsics(vals[0], vals[1], vals[2], vals[3], int(width), int(height), tuple(vals[4:]))
@@ -32,12 +43,23 @@ def intrinsics_from_values(values: Sequence[float], width: int, height: int, sou
 
 
 def read_calibration_values(path: str | Path) -> list[float]:
-    """The numbers of a calibration file (all non-comment lines together)."""
+    """The numbers of a values-format calibration file (all non-comment lines together)."""
     p = Path(path)
+    return _values_from_text(p, _read_text(p))
+
+
+def _read_text(p: Path) -> str:
     if not p.is_file():
-        raise DatasetError(f"{p}: calibration file not found")
+        raise DatasetError(f"{p}: calibration file not found" + (" (it is a folder)" if p.is_dir() else ""))
+    try:
+        return p.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise DatasetError(f"{p}: not a text file; expected {EXPECTED_FORMATS}") from None
+
+
+def _values_from_text(p: Path, text: str, hint: bool = False) -> list[float]:
     vals: list[float] = []
-    for lineno, line in enumerate(p.read_text().splitlines(), 1):
+    for lineno, line in enumerate(text.splitlines(), 1):
         s = line.split("#", 1)[0].strip()
         if not s:
             continue
@@ -47,11 +69,24 @@ def read_calibration_values(path: str | Path) -> list[float]:
             try:
                 v = float(tok)
             except ValueError:
-                raise DatasetError(f"{p}:{lineno}: not a number: {tok!r}") from None
+                more = f"; expected {EXPECTED_FORMATS}" if hint else ""
+                raise DatasetError(f"{p}:{lineno}: not a number: {tok!r}{more}") from None
             if not math.isfinite(v):  # float() accepts 'inf' and 'nan'; the pipeline would fail much later
                 raise DatasetError(f"{p}:{lineno}: {_value_name(len(vals))}={v} is not a finite number")
             vals.append(v)
     return vals
+
+
+_KEY_LINE = re.compile(r"^\s*[A-Za-z_][\w.\-]*\s*:")
+
+
+def is_structured(path: Path, text: str) -> bool:
+    """Whether a calibration file is YAML/XML (FileStorage) rather than plain values."""
+    if path.suffix.lower() in (".yaml", ".yml", ".xml"):
+        return True
+    head = text.lstrip()
+    return head.startswith(("%YAML", "<?xml", "<opencv_storage")) or any(
+        _KEY_LINE.match(line) for line in text.splitlines() if not line.lstrip().startswith("#"))
 
 
 def _value_name(k: int) -> str:
@@ -59,8 +94,17 @@ def _value_name(k: int) -> str:
 
 
 def read_calibration(path: str | Path, width: int, height: int) -> Intrinsics:
-    """Read ``fx fy cx cy [k1 k2 p1 p2 [k3]]`` from ``path`` for an image of ``width`` x ``height`` pixels."""
-    return intrinsics_from_values(read_calibration_values(path), width, height, source=str(path))
+    """The intrinsics in ``path`` (values, ORB-SLAM or OpenCV YAML/XML) for an image of ``width`` x ``height``."""
+    p = Path(path)
+    text = _read_text(p)
+    if is_structured(p, text):
+        from .calib_yaml import intrinsics_from_filestorage
+
+        return intrinsics_from_filestorage(p, text, width, height)
+    vals = _values_from_text(p, text, hint=True)
+    if not vals:
+        raise DatasetError(f"{p}: no calibration values; expected {EXPECTED_FORMATS}")
+    return intrinsics_from_values(vals, width, height, source=str(p))
 
 
 def calibration_from_option(
@@ -75,7 +119,8 @@ def calibration_from_option(
                 return read_calibration(p, width, height)
         where = ", ".join(str(Path(d) / "calib.txt") for d in search) or "(nowhere)"
         raise DatasetError(
-            f"{owner}: no calibration: set 'calib' to a file or to [fx, fy, cx, cy, (k1, k2, p1, p2, (k3))]; "
+            f"{owner}: no calibration: set 'calib' (--calib) to a file or to [fx, fy, cx, cy, (k1, k2, p1, p2, "
+            "(k3, (k4, k5, k6)))]; "
             f"looked for {where}"
         )
     if isinstance(calib, (str, Path)):

@@ -137,16 +137,16 @@ def evaluate_run(
     # --- panoptic -----------------------------------------------------------------------------------------------
     pan_dir = run_dir / "panoptic"
     gt_frames = _panoptic_sequence(panoptic_gt)
-    if gt_frames and (pan_dir / "segments.json").is_file():
+    from pvslam_core.outputs.panoptic_png import has_segments
+
+    if gt_frames and has_segments(pan_dir):
         from pvslam_core.evaluation.panoptic import pq, vpq
-        from pvslam_core.outputs.panoptic_png import load_panoptic_dir
+        from pvslam_core.outputs.panoptic_png import load_panoptic_dir, read_segments_json
 
         try:
             preds = load_panoptic_dir(pan_dir, categories, frames=set(gt_frames))
             if categories is None:
-                import json
-
-                categories = json.loads((pan_dir / "segments.json").read_text()).get("categories") or None
+                categories = read_segments_json(pan_dir).get("categories") or None
             if categories is None:
                 raise ValueError("no panoptic categories: pass categories= or write them to segments.json")
             idx = sorted(set(preds) & set(gt_frames))

@@ -43,13 +43,36 @@ def test_config_show_applies_set(capsys):
     assert data["frontend"]["plugin"] == "flow" and len(data["frontend"]) > 3
 
 
-def test_plugins_json(capsys):
+PLANNED = """
+[[plugin]]
+name = "flow"
+interface = "frontend"
+entry_point = "pvslam_plugins.frontends.flow"
+description = "DIS optical flow"
+builtin = true
+
+[[plugin]]
+name = "future_loop"
+interface = "loop"
+entry_point = "someone_else.future_loop"
+description = "a catalogued plugin that is not installed"
+install = "pip install future-loop"
+status = "planned"
+[[plugin.weights]]
+name = "future-loop-weights"
+url = "https://example.org/w.pth"
+"""
+
+
+def test_plugins_json(capsys, tmp_path, monkeypatch):
+    (tmp_path / "registry.toml").write_text(PLANNED)
+    monkeypatch.setenv("PVSLAM_REGISTRY", str(tmp_path / "registry.toml"))
     assert main(["plugins", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
     by = {(r["interface"], r["name"]): r for r in rows}
     assert by[("frontend", "flow")]["state"] == "installed"
     assert by[("dataset", "npz")]["state"] == "installed" and by[("dataset", "npz")]["distribution"] == "pvslam-npz"
-    assert by[("loop", "deit")]["state"] == "planned" and by[("loop", "deit")]["needs_weights"]
+    assert by[("loop", "future_loop")]["state"] == "planned" and by[("loop", "future_loop")]["needs_weights"]
 
 
 def test_unknown_plugin_exit_code(capsys):

@@ -44,13 +44,18 @@ def test_wrong_type_and_literal_values(tmp_path):
     assert "evaluation.align" in msg and "'sim3'" in msg and "'se3'" in msg and "affine" in msg
 
 
-def test_unknown_plugin_in_config(tmp_path):
+def test_unknown_plugin_in_config(tmp_path, monkeypatch):
+    """A catalogued but uninstalled plugin: the error lists what is installed and how to install it."""
+    reg = tmp_path / "registry.toml"
+    reg.write_text('[[plugin]]\nname = "future_loop"\ninterface = "loop"\nentry_point = "x.y"\n'
+                   'description = "not installed"\ninstall = "pip install future-loop"\nstatus = "planned"\n')
+    monkeypatch.setenv("PVSLAM_REGISTRY", str(reg))
     p = tmp_path / "bad.toml"
-    p.write_text('[loop]\nplugin = "deit"\n')
+    p.write_text('[loop]\nplugin = "future_loop"\n')
     with pytest.raises(ConfigError) as err:
         load_config(p)
     msg = str(err.value)
-    assert "loop.plugin" in msg and "classical" in msg and "deit" in msg and "install" in msg
+    assert "loop.plugin" in msg and "classical" in msg and "future_loop" in msg and "pip install future-loop" in msg
 
 
 def test_required_component_cannot_be_none():

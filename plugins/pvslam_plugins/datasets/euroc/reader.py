@@ -220,5 +220,24 @@ class EurocReader(ImageFileReader):
         return str(self.cam_dir)
 
 
+def detect(path: Path):  # type: ignore[no-untyped-def]
+    """A sequence folder holding ``mav0/``, ``mav0`` itself, or ``mav0/cam0|cam1`` (with data.csv and sensor.yaml)."""
+    from pvslam_core.datasets.detect import DatasetMatch
+
+    p = path.resolve()
+    camera = "cam0"
+    if p.name in ("cam0", "cam1") and p.parent.name == "mav0":
+        camera, mav = p.name, p.parent
+    elif p.name == "mav0":
+        mav = p
+    else:
+        mav = p / "mav0"
+    cam = mav / camera
+    if not ((cam / "data.csv").is_file() and (cam / "sensor.yaml").is_file()):
+        return None
+    name = mav.parent.name if mav.name == "mav0" else mav.name
+    return DatasetMatch(1.0, {"path": str(mav.parent), "camera": camera}, f"EuRoC MAV sequence {name} ({camera})")
+
+
 def make_reader(config: EurocConfig, context=None) -> EurocReader:  # type: ignore[no-untyped-def]
     return EurocReader(config)

@@ -21,3 +21,8 @@ class ImagesConfig(ReaderOptions):
     )
     groundtruth: Optional[str] = Field(None, description="TUM trajectory file associated by timestamp")
     gt_max_diff: float = Field(0.02, ge=0, description="max timestamp difference (s) for ground truth")
+    follow: bool = Field(
+        False, description="a folder that is still being written (a camera dumping frames): read images as they "
+        "appear, in natural order, until none has appeared for `wait_timeout` seconds; the length is unknown")
+    wait_timeout: float = Field(5.0, gt=0, description="follow: seconds without a new image that end the sequence "
+                                "(also how long to wait for the first image)")

@@ -115,9 +115,12 @@ class KittiReader(ImageFileReader):
             raise DatasetError(f"{self.seq_dir / 'calib.txt'}: no {pname} for camera {options.camera!r}")
         self.P = calib[pname]
         w, h = image_size(self.files[0])
-        self._intr = Intrinsics(
-            float(self.P[0, 0]), float(self.P[1, 1]), float(self.P[0, 2]), float(self.P[1, 2]), w, h
-        )
+        try:
+            self._intr = Intrinsics(
+                float(self.P[0, 0]), float(self.P[1, 1]), float(self.P[0, 2]), float(self.P[1, 2]), w, h
+            )
+        except ValueError as exc:
+            raise DatasetError(f"{self.seq_dir / 'calib.txt'}: {pname}: {exc}") from exc
 
         self.poses: Optional[np.ndarray] = None
         pose_path = root / "poses" / f"{seq}.txt"
@@ -143,6 +146,39 @@ class KittiReader(ImageFileReader):
 
     def _source(self) -> str:
         return str(self.seq_dir)
+
+
+CAMERAS = ("image_0", "image_1", "image_2", "image_3")
+
+
+def detect(path: Path):  # type: ignore[no-untyped-def]
+    """``<root>/sequences/NN`` (or one of its image folders, or a root holding sequences/) with a P0..P3 calib.txt."""
+    from pvslam_core.datasets.detect import DatasetMatch
+
+    p = path.resolve()
+    camera = None
+    if p.name in CAMERAS and p.parent.parent.name == "sequences":
+        camera, seq_dir = p.name, p.parent
+    elif p.parent.name == "sequences":
+        seq_dir = p
+    elif (p / "sequences").is_dir():
+        seqs = sorted(d for d in (p / "sequences").iterdir() if (d / "calib.txt").is_file())
+        if not seqs:
+            return None
+        seq_dir = seqs[0]
+    else:
+        return None
+    calib = seq_dir / "calib.txt"
+    if not calib.is_file() or not any(line.startswith("P0:") for line in calib.read_text().splitlines()):
+        return None
+    if camera is None:
+        camera = next((c for c in CAMERAS if any((seq_dir / c).glob("*.png"))), None)
+        if camera is None:
+            return None
+    others = sorted(d.name for d in seq_dir.parent.iterdir() if (d / "calib.txt").is_file() and d != seq_dir)
+    more = f"; other sequences there: {', '.join(others[:8])} (--set dataset.sequence=NN)" if others else ""
+    return DatasetMatch(1.0, {"path": str(seq_dir.parent.parent), "sequence": seq_dir.name, "camera": camera},
+                        f"KITTI odometry sequence {seq_dir.name} ({camera}){more}")
 
 
 def make_reader(config: KittiConfig, context=None) -> KittiReader:  # type: ignore[no-untyped-def]

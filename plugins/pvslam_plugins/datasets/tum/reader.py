@@ -30,7 +30,7 @@ from typing import Optional
 import numpy as np
 
 from pvslam_core.datasets.base import BaseReader, DatasetError
-from pvslam_core.datasets.calib import intrinsics_from_values, read_calibration_values
+from pvslam_core.datasets.calib import calibration_from_option, intrinsics_from_values, read_calibration_values
 from pvslam_core.datasets.io import (
     associate_nearest,
     associate_poses,
@@ -100,7 +100,7 @@ class TumReader(BaseReader):
 
     def _intrinsics(self, w: int, h: int) -> Intrinsics:
         if self.cfg.calib is not None:
-            return intrinsics_from_values(self.cfg.calib, w, h, source="tum config 'calib'")
+            return calibration_from_option(self.cfg.calib, w, h, owner="tum reader")
         calib_txt = self.root / "calib.txt"
         if calib_txt.is_file():
             return intrinsics_from_values(read_calibration_values(calib_txt), w, h, source=str(calib_txt))
@@ -144,6 +144,15 @@ class TumReader(BaseReader):
             gt_depth=depth,
             name=path.name,
         )
+
+
+def detect(path: Path):  # type: ignore[no-untyped-def]
+    """A folder with TUM's ``rgb.txt``."""
+    from pvslam_core.datasets.detect import DatasetMatch
+
+    if not (path.is_dir() and (path / "rgb.txt").is_file()):
+        return None
+    return DatasetMatch(0.9, {"path": str(path)}, f"TUM RGB-D sequence {path.resolve().name}")
 
 
 def make_reader(config: TumConfig, context=None) -> TumReader:  # type: ignore[no-untyped-def]

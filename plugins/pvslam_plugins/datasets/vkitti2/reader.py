@@ -185,7 +185,10 @@ class Vkitti2Reader(BaseReader):
         if not intr_path.is_file():
             raise DatasetError(f"{intr_path}: intrinsics file not found")
         fx, fy, cx, cy = read_intrinsics(intr_path, options.camera)
-        self._intr = Intrinsics(fx, fy, cx, cy, w, h)
+        try:
+            self._intr = Intrinsics(fx, fy, cx, cy, w, h)
+        except ValueError as exc:
+            raise DatasetError(f"{intr_path}: {exc}") from exc
 
         colors = self.text_dir / "colors.txt"
         self.cats: list[Category] = read_colors(colors) if colors.is_file() else []

@@ -17,4 +17,5 @@ def register_segmenters(register):  # type: ignore[no-untyped-def]
         make_segmenter,
         LabelsSegmenterConfig,
         description="oracle: the dataset's ground-truth panoptic labels (needs a dataset with panoptic GT)",
+        needs_gt_panoptic=True,  # the core switches it off (or picks a ready learned segmenter) on unlabelled data
     )

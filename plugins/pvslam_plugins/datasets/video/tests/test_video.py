@@ -20,7 +20,7 @@ def write_video(path: Path, n: int = N, fps: float = FPS) -> Path:
     assert wr.isOpened(), "opencv cannot write MJPG/AVI here"
     for i in range(n):
         img = np.zeros((H, W, 3), np.uint8)
-        img[:, :, 2] = 20 * i  # red channel encodes the frame number
+        img[:, :, 2] = 20 * (i % 13)  # red channel encodes the frame number (mod 13)
         img[:, :, 1] = 100
         wr.write(img)
     wr.release()
@@ -63,24 +63,123 @@ def test_resize_and_crop(tmp_path):
     assert k.fx == pytest.approx(50 * 36 / 64) and k.cx == pytest.approx((31.5 + 0.5) * 36 / 64 - 0.5 - 2)
 
 
-def test_container_frame_count_is_verified(tmp_path, monkeypatch, caplog):
-    v = write_video(tmp_path / "clip.avi")
+class Counting:
+    """cv2.VideoCapture wrapper that counts decode calls and can lie about the frame count."""
+
     real = cv2.VideoCapture
+    grabs = 0
+    claim: float | None = None
 
-    class Lying:
-        def __init__(self, *a):
-            self.cap = real(*a)
+    def __init__(self, *a):
+        self.cap = Counting.real(*a)
 
-        def get(self, prop):
-            return 99.0 if prop == cv2.CAP_PROP_FRAME_COUNT else self.cap.get(prop)
+    def get(self, prop):
+        if prop == cv2.CAP_PROP_FRAME_COUNT and Counting.claim is not None:
+            return Counting.claim
+        return self.cap.get(prop)
 
-        def __getattr__(self, name):
-            return getattr(self.cap, name)
+    def grab(self):
+        Counting.grabs += 1
+        return self.cap.grab()
 
-    monkeypatch.setattr(cv2, "VideoCapture", Lying)
+    def read(self):
+        Counting.grabs += 1
+        return self.cap.read()
+
+    def __getattr__(self, name):
+        return getattr(self.cap, name)
+
+
+@pytest.fixture
+def counting(monkeypatch):
+    monkeypatch.setattr(Counting, "grabs", 0)
+    monkeypatch.setattr(Counting, "claim", None)
+    monkeypatch.setattr(cv2, "VideoCapture", Counting)
+    return Counting
+
+
+def test_building_the_reader_decodes_nothing(tmp_path, counting):
+    v = write_video(tmp_path / "clip.avi", n=40)
+    r = VideoReader(VideoConfig(path=str(v), calib=[50, 50, 31.5, 23.5]))
+    assert r.info().num_frames == 40 and counting.grabs == 0  # the container's count, no pass over the file
+    assert [round(red(f) / 20) % 13 for f in r][:3] == [0, 1, 2] and counting.grabs == 41  # + the end-of-file grab
+
+
+@pytest.mark.parametrize("claim", [99.0, 4.0])
+def test_a_wrong_container_count_ends_gracefully(tmp_path, counting, caplog, claim):
+    v = write_video(tmp_path / "clip.avi")
+    counting.claim = claim
+    r = VideoReader(VideoConfig(path=str(v), calib=[50, 50, 31.5, 23.5]))
+    assert r.info().num_frames == int(claim)  # the claim, until the video is read
     with caplog.at_level(logging.WARNING):
-        r = VideoReader(VideoConfig(path=str(v), calib=[50, 50, 31.5, 23.5]))
-    assert len(r) == N and "container says 99 frames, 9 could be decoded" in caplog.text
+        frames = list(r)
+    assert [round(red(f) / 20) for f in frames] == list(range(N))  # every decodable frame, no error
+    assert f"the container claims {int(claim)} frames, {N} were decoded" in caplog.text
+
+
+def test_unknown_container_count_is_an_unknown_length(tmp_path, counting):
+    v = write_video(tmp_path / "clip.avi")
+    counting.claim = 0.0
+    r = VideoReader(VideoConfig(path=str(v), calib=[50, 50, 31.5, 23.5], stride=2))
+    assert r.info().num_frames is None
+    with pytest.raises(TypeError, match="not known"):
+        len(r)
+    assert [f.index for f in r] == [0, 1, 2, 3, 4]
+    assert [round(red(f) / 20) for f in r] == [0, 2, 4, 6, 8]
+
+
+def test_truncated_file_ends_where_decoding_stops(tmp_path, caplog):
+    v = write_video(tmp_path / "clip.avi", n=30)
+    data = v.read_bytes()
+    v.write_bytes(data[: len(data) * 2 // 3])  # the header still claims 30 frames; the index is gone
+    r = VideoReader(VideoConfig(path=str(v), calib=[50, 50, 31.5, 23.5]))
+    with caplog.at_level(logging.WARNING):
+        frames = list(r)
+    assert 5 < len(frames) < 30
+    assert [round(red(f) / 20) % 13 for f in frames] == [i % 13 for i in range(len(frames))]
+    assert r.info().num_frames == 30  # the header's claim
+    assert f"the container claims 30 frames, {len(frames)} were decoded" in caplog.text
+
+
+class FakeCamera:
+    """What cv2.VideoCapture(0) gives: no frame count, a size, frames until the device stops."""
+
+    def __init__(self, index, frames=7):
+        assert isinstance(index, int)
+        self.left = frames
+        self.i = 0
+
+    def isOpened(self):
+        return True
+
+    def get(self, prop):
+        return {cv2.CAP_PROP_FRAME_WIDTH: W, cv2.CAP_PROP_FRAME_HEIGHT: H, cv2.CAP_PROP_FPS: 30.0}.get(prop, 0.0)
+
+    def read(self):
+        if self.left == 0:
+            return False, None
+        self.left -= 1
+        img = np.zeros((H, W, 3), np.uint8)
+        img[:, :, 2] = 20 * self.i
+        self.i += 1
+        return True, img
+
+    def release(self):
+        self.left = 0
+
+
+def test_camera_index_is_a_live_source_of_unknown_length(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no file named "0" here
+    monkeypatch.setattr(cv2, "VideoCapture", FakeCamera)
+    r = VideoReader(VideoConfig(path="0", calib=[50, 50, 31.5, 23.5], crop_multiple=1))
+    info = r.info()
+    assert info.num_frames is None and info.name == "camera_0" and info.intrinsics.width == W
+    frames = list(r)
+    assert [round(red(f) / 20) for f in frames] == list(range(7))
+    ts = [f.timestamp for f in frames]
+    assert ts[0] == 0.0 and all(b > a for a, b in zip(ts, ts[1:]))  # wall clock since the first frame
+    with pytest.raises(DatasetError, match="no random access"):
+        r._load(0)
 
 
 # ------------------------------------------------------------------------------------------------ errors ----

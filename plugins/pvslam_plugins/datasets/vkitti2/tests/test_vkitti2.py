@@ -206,3 +206,12 @@ def test_registered_through_the_hook(monkeypatch):
 
     monkeypatch.setenv("PVSLAM_LOAD_PLUGINS", "")
     assert build_registry(extra_modules=(plugin,)).get("dataset", "vkitti2").config_model is Vkitti2Config
+
+
+def test_invalid_intrinsics_name_the_file(tmp_path):
+    fake_vkitti2(tmp_path)
+    intr = next(tmp_path.rglob("intrinsic.txt"))
+    intr.write_text(intr.read_text().replace("30.5 30.5 19.5 11.5", "30.5 30.5 19.5 900.0"))
+    with pytest.raises(DatasetError) as err:
+        reader(tmp_path)
+    assert str(intr) in str(err.value) and "cy=900.0" in str(err.value)

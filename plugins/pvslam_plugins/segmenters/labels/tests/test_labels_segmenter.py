@@ -78,9 +78,11 @@ def test_registered_hook_and_config():
     import pvslam_plugins.segmenters.labels as plugin
 
     got = []
-    plugin.register_segmenters(register=lambda name, factory, model, description="": got.append((name, factory, model)))
-    name, factory, model = got[0]
+    plugin.register_segmenters(register=lambda name, factory, model, description="", **extras: got.append(
+        (name, factory, model, extras)))
+    name, factory, model, extras = got[0]
     assert name == "labels" and isinstance(factory(model(), None), LabelsSegmenter)
+    assert extras == {"needs_gt_panoptic": True}  # the core switches it off on data without panoptic labels
     assert isinstance(make_segmenter(LabelsSegmenterConfig(), None), LabelsSegmenter)
     with pytest.raises(Exception):
         model(drop_instance=True)  # typo -> error

@@ -1,0 +1,68 @@
+"""Fitting a resolved config to the data it runs on, before the plugins are built.
+
+The default pipeline segments with the ``labels`` oracle (the dataset's own panoptic ground truth), which suits
+the built-in synthetic data and Virtual KITTI 2 but not a user's video.  A segmenter plugin that needs labels says
+so with the registration extra ``needs_gt_panoptic=True``; when the data has none (``SequenceInfo.has_gt_panoptic``
+False) the segmenter is replaced, instead of failing at frame 0:
+
+* by an installed learned segmenter that declares itself ready -- the extra ``auto_ready``, a zero-argument
+  callable that is true when the plugin runs with its default config (e.g. its weights are on disk);
+* else by none: segmentation and VPS are off, and so is panoptic evaluation (it needs labels too).
+
+A segmenter the user chose that needs no labels is never touched.  Each change is one line on the
+``pvslam.notice`` logger, which the command line prints on the console (and log.txt keeps).
+"""
+from __future__ import annotations
+
+import logging
+from typing import Optional
+
+from .config import DISABLED, Component, ResolvedConfig
+from .types import SequenceInfo
+
+NOTICE = logging.getLogger("pvslam.notice")  # choices made for the user; the CLI shows them on the console
+
+
+def _ready_segmenters(registry, exclude: str) -> list[str]:
+    ready = []
+    for name in registry.names("segmenter"):
+        spec = registry.get("segmenter", name)
+        check = spec.extras.get("auto_ready")
+        if name == exclude or spec.extras.get("needs_gt_panoptic") or not callable(check):
+            continue
+        try:
+            if check():
+                ready.append(name)
+        except Exception as exc:  # noqa: BLE001 - a plugin that cannot tell is not ready
+            NOTICE.debug("segmenter %r: auto_ready() raised %s: %s", name, type(exc).__name__, exc)
+    return ready
+
+
+def fit_to_sequence(resolved: ResolvedConfig, info: SequenceInfo, registry) -> tuple[ResolvedConfig, list[str]]:
+    """``resolved`` with the components the data cannot feed replaced (a new object), and one note per change;
+    ``(resolved, [])`` unchanged when nothing needs to change."""
+    seg = resolved.pipeline.segmenter
+    if not seg.enabled or info.has_gt_panoptic:
+        return resolved, []
+    if not registry.get("segmenter", seg.plugin).extras.get("needs_gt_panoptic"):
+        return resolved, []
+    pcfg = resolved.pipeline.model_copy(deep=True)
+    models = dict(resolved.models)
+    ready = _ready_segmenters(registry, seg.plugin)
+    why = f"the '{seg.plugin}' segmenter needs panoptic labels, which {info.name} does not have"
+    replacement: Optional[str] = ready[0] if ready else None
+    if replacement is not None:
+        model = registry.get("segmenter", replacement).config_model()
+        pcfg.segmenter = Component(plugin=replacement, params=model.model_dump(mode="json"))
+        models["segmenter"] = model
+        note = f"segmenter: {replacement} ({why}; {replacement} is installed and ready)"
+    else:
+        pcfg.segmenter = Component(plugin=DISABLED)
+        models["segmenter"] = None
+        if pcfg.vps.enabled:  # VPS tracks the segmenter's segments: nothing to track
+            pcfg.vps = Component(plugin=DISABLED)
+            models["vps"] = None
+        note = (f"segmenter: none ({why}): segmentation, video panoptic segmentation and panoptic evaluation are "
+                "off; for panoptic output install a learned segmenter and set segmenter.plugin")
+    NOTICE.warning(note)
+    return ResolvedConfig(pcfg, models, resolved.source), [note]

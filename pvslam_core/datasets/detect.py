@@ -1,0 +1,110 @@
+"""Which dataset reader opens a path: ``pvslam run clip.mp4`` / ``pvslam run frames/`` / a KITTI or TUM folder.
+
+The core knows no reader by name.  Each dataset plugin may register an extra ``detect(path) -> DatasetMatch | None``
+(``register("name", factory, Config, detect=detect)``) that looks at the path -- cheaply: names and small text
+files, never decoding a whole video -- and says how specific its match is and which config options open it.  The
+most specific match wins (a KITTI ``image_2`` folder is also a plain image folder: the ``kitti`` match scores
+higher).  Scores: 1.0 for a layout identified by its own files (``rgb.txt``, ``mav0/``, ``sequences/NN``), 0.9 for
+a file type (a video extension), 0.5 for a generic folder of images.
+"""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+from ..config import ConfigError
+
+LOG = logging.getLogger("pvslam")
+
+
+@dataclass
+class DatasetMatch:
+    """A plugin's answer: how specific the match is (0..1), the config options that open it, and what it is."""
+
+    score: float
+    options: dict[str, Any] = field(default_factory=dict)
+    description: str = ""
+
+
+@dataclass
+class Detection:
+    plugin: str
+    options: dict[str, Any]
+    score: float
+    description: str
+    others: list[tuple[str, float]] = field(default_factory=list)  # the other plugins that matched, with scores
+
+    def section(self) -> dict[str, Any]:
+        """The ``[dataset]`` table of a config: ``{"plugin": ..., **options}``."""
+        return {"plugin": self.plugin, **self.options}
+
+
+class DetectionError(ConfigError):
+    """No installed dataset plugin recognises the path (the message lists what was asked); a usage error, like a
+    configuration error (exit status 2 on the command line)."""
+
+
+def detect_dataset(path: str | Path, registry=None) -> Detection:
+    """Ask every dataset plugin with a ``detect`` extra about ``path``; the highest score wins."""
+    from ..registry import get_registry
+
+    reg = registry or get_registry()
+    p = Path(str(path)).expanduser()
+    matches: list[tuple[float, str, DatasetMatch]] = []
+    asked: list[str] = []
+    for name in reg.names("dataset"):
+        detect = reg.get("dataset", name).extras.get("detect")
+        if detect is None:
+            continue
+        asked.append(name)
+        try:
+            m = detect(p)
+        except Exception as exc:  # noqa: BLE001 - one plugin's bug must not hide the others' answers
+            LOG.debug("dataset plugin %r failed to inspect %s: %s: %s", name, p, type(exc).__name__, exc)
+            continue
+        if m is not None and m.score > 0:
+            matches.append((float(m.score), name, m))
+    if not matches:
+        if not p.exists():
+            raise DetectionError(f"{p}: no such file or folder")
+        kind = "folder" if p.is_dir() else "file"
+        raise DetectionError(
+            f"{p}: no dataset plugin recognises this {kind}; expected a video file, a folder of images or a dataset "
+            f"layout one of the installed readers knows ({', '.join(asked) or 'none can detect'}); or give a config "
+            "with a [dataset] table (--config)")
+    matches.sort(key=lambda t: (-t[0], t[1]))
+    score, name, best = matches[0]
+    if len(matches) > 1 and matches[1][0] == score:
+        tied = ", ".join(n for s, n, _ in matches if s == score)
+        LOG.warning("%s: recognised equally well by %s; using %s", p, tied, name)
+    return Detection(name, dict(best.options), score, best.description or name,
+                     [(n, s) for s, n, _ in matches[1:]])
+
+
+def dataset_section(path: str | Path, calib: Optional[str | Path] = None, registry=None) -> Detection:
+    """:func:`detect_dataset` plus ``calib``: the calibration file goes to the reader's ``calib`` option; a reader
+    that has no such option (its layout carries the calibration) is an error rather than a silently ignored file."""
+    from ..registry import get_registry
+
+    reg = registry or get_registry()
+    det = detect_dataset(path, reg)
+    if calib is not None:
+        c = Path(str(calib)).expanduser()
+        if not c.is_file():
+            raise ConfigError(f"--calib {calib}: calibration file not found")
+        model = reg.get("dataset", det.plugin).config_model
+        if "calib" not in getattr(model, "model_fields", {}):
+            raise ConfigError(f"--calib {calib}: the {det.plugin} reader takes its calibration from the dataset "
+                              f"({det.description}); it has no 'calib' option")
+        det.options["calib"] = str(c)
+    return det
+
+
+def run_name_for(path: str | Path) -> str:
+    """A run name from the input path (``clip.mp4`` -> ``clip``), safe as one folder name."""
+    p = Path(str(path)).expanduser()
+    stem = (p.stem if p.is_file() else p.name) or p.resolve().name or "run"
+    return re.sub(r"[^\w.-]+", "_", stem).strip("._")[:80] or "run"
