@@ -9,13 +9,15 @@ from pvslam_core.registry import hookimpl
 def register_datasets(register):  # type: ignore[no-untyped-def]
     from .config import SyntheticConfig
     from .generator import SCENARIOS, generate
-    from .reader import make_reader
+    from .reader import detect, make_reader
 
     register(
         "synthetic",
         make_reader,
         SyntheticConfig,
-        description="built-in synthetic sequences (driving loop, moving vehicles, indoor) with exact ground truth",
+        description="built-in synthetic sequences (driving, moving vehicles, indoor, benchmark scenarios) with exact "
+        "ground truth",
         generate=generate,
         scenarios=SCENARIOS,
+        detect=detect,
     )

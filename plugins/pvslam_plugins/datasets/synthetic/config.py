@@ -1,7 +1,7 @@
 """Configuration of the ``synthetic`` dataset plugin."""
 from __future__ import annotations
 
-from typing import Optional
+from typing import Literal, Optional
 
 from pydantic import Field, field_validator
 
@@ -13,7 +13,8 @@ from .scenarios import DEFAULT_SCENARIO, check_name
 class SyntheticConfig(ReaderOptions):
     """Generate (and cache) a built-in synthetic sequence, or read one already written (``path``)."""
 
-    scenario: str = Field(DEFAULT_SCENARIO, description="driving_loop | moving_vehicles | indoor_handheld")
+    scenario: str = Field(DEFAULT_SCENARIO, description="driving_loop | moving_vehicles | indoor_handheld | "
+                          "handheld_fast | indoor_textureless | busy_street | forward_low_parallax | driving_city")
     path: Optional[str] = Field(None, description="read this existing synthetic folder instead of generating")
     num_frames: Optional[int] = Field(None, ge=1, description="frames to generate; None = the scenario's default")
     laps: Optional[float] = Field(None, gt=0, description="loop scenarios: laps to drive when num_frames is None")
@@ -21,6 +22,11 @@ class SyntheticConfig(ReaderOptions):
     height: int = Field(240, ge=16, description="image height to generate")
     seed: int = Field(0, description="scene/trajectory seed (same seed, same sequence)")
     progress: bool = Field(True, description="progress bar while generating (only on a terminal)")
+    gt_maps: list[Literal["depth", "panoptic", "dynamic"]] = Field(
+        default_factory=lambda: ["panoptic"],
+        description="ground-truth maps decoded with each frame (one PNG each): panoptic feeds the `labels` segmenter "
+        "and PQ/VPQ; depth and dynamic masks only serve oracles and tests, so they are not read by default",
+    )
 
     @field_validator("scenario")
     @classmethod

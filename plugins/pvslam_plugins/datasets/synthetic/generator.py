@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Optional
 
-from .scenarios import DEFAULT_SCENARIO, SCENARIOS, UnknownScenarioError, build, check_name
+from .scenarios import DEFAULT_SCENARIO, SCENARIOS, UnknownScenarioError, build, check_name, revision
 from .writer import GENERATOR_VERSION, write_sequence
 
 __all__ = ["SCENARIOS", "DEFAULT_SCENARIO", "UnknownScenarioError", "generate", "ensure_cached", "cache_root",
@@ -33,8 +33,11 @@ def cache_root() -> Path:
 
 def _params(scenario: str, num_frames: Optional[int], width: int, height: int, seed: int,
             laps: Optional[float]) -> dict:
-    return {"scenario": scenario, "num_frames": num_frames, "width": int(width), "height": int(height),
-            "seed": int(seed), "laps": laps, "version": GENERATOR_VERSION}
+    p = {"scenario": scenario, "num_frames": num_frames, "width": int(width), "height": int(height),
+         "seed": int(seed), "laps": laps, "version": GENERATOR_VERSION}
+    if revision(scenario, seed):  # only where the content changed: every other cache key stays as it was
+        p["revision"] = revision(scenario, seed)
+    return p
 
 
 def cache_path(scenario: str = DEFAULT_SCENARIO, *, num_frames: Optional[int] = None, width: int = 320,
@@ -58,7 +61,8 @@ def _matches(root: Path, scenario: str, num_frames: Optional[int], width: int, h
     except (OSError, ValueError):
         return False
     same = (meta.get("scenario") == scenario and meta.get("width") == width and meta.get("height") == height
-            and meta.get("seed") == seed and meta.get("version") == GENERATOR_VERSION and meta.get("laps") == laps)
+            and meta.get("seed") == seed and meta.get("version") == GENERATOR_VERSION and meta.get("laps") == laps
+            and meta.get("revision", 0) == revision(scenario, seed))
     return same and (num_frames is None or meta.get("num_frames") == num_frames)
 
 

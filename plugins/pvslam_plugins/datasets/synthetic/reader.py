@@ -2,14 +2,16 @@
 
 :class:`SyntheticSequence` reads the folder as plain arrays (used by tests and tools); :class:`SyntheticReader`
 is the :class:`~pvslam_core.datasets.base.BaseReader` of the ``synthetic`` plugin, which generates (or finds in
-the cache) the configured scenario unless ``path`` names an existing folder.
+the cache) the configured scenario unless ``path`` names an existing folder.  The reader decodes only the
+ground-truth maps its ``gt_maps`` option asks for (by default the panoptic labels: depth and dynamic masks are
+two more PNGs per frame that only oracles and tests read).
 """
 from __future__ import annotations
 
 import json
 from functools import cached_property
 from pathlib import Path
-from typing import Optional
+from typing import Iterable, Optional
 
 import cv2
 import numpy as np
@@ -19,6 +21,18 @@ from pvslam_core.datasets.base import BaseReader, DatasetError
 from pvslam_core.types import Category, Frame, Intrinsics, PanopticSegmentation, Segment
 
 from .config import SyntheticConfig
+
+
+#: the per-frame ground-truth maps of the layout (besides the RGB image and the pose)
+GT_MAPS = ("depth", "panoptic", "dynamic")
+
+
+def _check_maps(maps: Iterable[str]) -> frozenset[str]:
+    maps = frozenset(maps)
+    unknown = sorted(maps - set(GT_MAPS))
+    if unknown:
+        raise ValueError(f"unknown ground-truth maps {unknown}; choose among {list(GT_MAPS)}")
+    return maps
 
 
 def _read_list(path: Path) -> list[tuple[float, list[str]]]:
@@ -73,7 +87,10 @@ class SyntheticSequence:
         if len(vals) != 4:
             raise DatasetError(f"{self.root / 'calib.txt'}: expected 'fx fy cx cy', found {len(vals)} values")
         fx, fy, cx, cy = (float(v) for v in vals)
-        self.intrinsics = Intrinsics(fx, fy, cx, cy, int(self.meta["width"]), int(self.meta["height"]))
+        try:
+            self.intrinsics = Intrinsics(fx, fy, cx, cy, int(self.meta["width"]), int(self.meta["height"]))
+        except ValueError as exc:
+            raise DatasetError(f"{self.root / 'calib.txt'}: {exc}") from exc
 
     def __len__(self) -> int:
         return len(self.rgb_files)
@@ -98,22 +115,28 @@ class SyntheticSequence:
         info = self.panoptic_json["frames"][i]["segments_info"]
         return [Segment(int(s["id"]), int(s["category_id"]), bool(s["isthing"])) for s in info]
 
-    def arrays(self, i: int) -> dict[str, np.ndarray]:
-        """``rgb`` uint8 [H,W,3], ``depth`` float32 metres, ``panoptic`` int64, ``dynamic`` bool, ``pose`` [7]."""
+    def arrays(self, i: int, maps: Iterable[str] = GT_MAPS) -> dict[str, np.ndarray]:
+        """``rgb`` uint8 [H,W,3], ``pose`` [7], and of the ground-truth ``maps`` asked for: ``depth`` float32
+        metres, ``panoptic`` int64, ``dynamic`` bool (each one more PNG to decode)."""
+        maps = _check_maps(maps)
         name = Path(self.rgb_files[i]).name
-        rgb = cv2.cvtColor(_imread(self.root / self.rgb_files[i], cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-        depth = _imread(self.root / self.depth_files[i], cv2.IMREAD_UNCHANGED)
-        if depth.dtype != np.uint16:
-            raise DatasetError(f"{self.root / self.depth_files[i]}: expected a 16-bit PNG, got {depth.dtype}")
-        pan = cv2.cvtColor(_imread(self.root / "panoptic" / name, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-        dyn = _imread(self.root / "dynamic" / name, cv2.IMREAD_GRAYSCALE)
-        pan = pan.astype(np.int64)
-        return {"rgb": rgb, "depth": (depth.astype(np.float32) / np.float32(self.depth_scale)),
-                "panoptic": pan[..., 0] + 256 * pan[..., 1] + 65536 * pan[..., 2], "dynamic": dyn > 127,
-                "pose": self.poses[i]}
+        out = {"rgb": cv2.cvtColor(_imread(self.root / self.rgb_files[i], cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB),
+               "pose": self.poses[i]}
+        if "depth" in maps:
+            depth = _imread(self.root / self.depth_files[i], cv2.IMREAD_UNCHANGED)
+            if depth.dtype != np.uint16:
+                raise DatasetError(f"{self.root / self.depth_files[i]}: expected a 16-bit PNG, got {depth.dtype}")
+            out["depth"] = depth.astype(np.float32) / np.float32(self.depth_scale)
+        if "panoptic" in maps:
+            # BGR as decoded: id = R + 256 G + 65536 B = bgr[2] + 256 bgr[1] + 65536 bgr[0]
+            pan = _imread(self.root / "panoptic" / name, cv2.IMREAD_COLOR).astype(np.int64)
+            out["panoptic"] = pan[..., 2] + 256 * pan[..., 1] + 65536 * pan[..., 0]
+        if "dynamic" in maps:
+            out["dynamic"] = _imread(self.root / "dynamic" / name, cv2.IMREAD_GRAYSCALE) > 127
+        return out
 
-    def frame(self, i: int) -> Frame:
-        a = self.arrays(i)
+    def frame(self, i: int, maps: Iterable[str] = GT_MAPS) -> Frame:
+        a = self.arrays(i, maps)
         shape = (self.intrinsics.height, self.intrinsics.width)
         if a["rgb"].shape[:2] != shape:
             raise DatasetError(f"{self.root / self.rgb_files[i]}: image is {a['rgb'].shape[1]}x{a['rgb'].shape[0]} "
@@ -124,9 +147,10 @@ class SyntheticSequence:
             image=torch.from_numpy(np.ascontiguousarray(a["rgb"])).permute(2, 0, 1).contiguous(),
             intrinsics=self.intrinsics,
             gt_pose=torch.from_numpy(a["pose"].copy()),
-            gt_depth=torch.from_numpy(a["depth"]),
-            gt_panoptic=PanopticSegmentation(ids=torch.from_numpy(a["panoptic"]), segments=self.segments(i)),
-            gt_dynamic=torch.from_numpy(a["dynamic"]),
+            gt_depth=torch.from_numpy(a["depth"]) if "depth" in a else None,
+            gt_panoptic=(PanopticSegmentation(ids=torch.from_numpy(a["panoptic"]), segments=self.segments(i))
+                         if "panoptic" in a else None),
+            gt_dynamic=torch.from_numpy(a["dynamic"]) if "dynamic" in a else None,
             name=Path(self.rgb_files[i]).name,
         )
 
@@ -162,7 +186,7 @@ class SyntheticReader(BaseReader):
         return self.sequence.intrinsics
 
     def _load(self, raw_index: int) -> Frame:
-        return self.sequence.frame(raw_index)
+        return self.sequence.frame(raw_index, self.options.gt_maps)
 
     def _sequence_name(self) -> str:
         m = self.sequence.meta
@@ -175,7 +199,8 @@ class SyntheticReader(BaseReader):
         return self.sequence.loop_pairs
 
     def _has_gt(self) -> tuple[bool, bool, bool]:
-        return (True, True, True)
+        maps = self.options.gt_maps  # what the yielded frames carry
+        return (True, "depth" in maps, "panoptic" in maps)
 
     def _source(self) -> str:
         return str(self.sequence.root)
@@ -183,3 +208,12 @@ class SyntheticReader(BaseReader):
 
 def make_reader(config: SyntheticConfig, context=None) -> SyntheticReader:  # type: ignore[no-untyped-def]
     return SyntheticReader(config)
+
+
+def detect(path: Path):  # type: ignore[no-untyped-def]
+    """A folder written by ``pvslam synth`` (meta.json, rgb.txt, panoptic.json): more specific than TUM's rgb.txt."""
+    from pvslam_core.datasets.detect import DatasetMatch
+
+    if not all((path / n).is_file() for n in ("meta.json", "rgb.txt", "panoptic.json")):
+        return None
+    return DatasetMatch(1.0, {"path": str(path)}, f"synthetic sequence {path.resolve().name} (exact ground truth)")

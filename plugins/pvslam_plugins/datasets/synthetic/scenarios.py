@@ -7,17 +7,25 @@
   car, overtaking cars, oncoming cars and a bus, and crossing vehicles move independently.
 * ``indoor_handheld``: an 8 x 6 x 2.8 m room with posters and furniture; a handheld camera loops around it
   with smooth random 6-DoF wobble and revisits its start.
+* the benchmark scenarios of :mod:`.scenarios_indoor` (``handheld_fast``, ``indoor_textureless``),
+  :mod:`.scenarios_street` (``busy_street``, ``forward_low_parallax``) and :mod:`.scenarios_city`
+  (``driving_city``).
+
+Seed 0 of the first three is what the published figures were measured on and never changes.  Other seeds of
+``moving_vehicles`` and ``indoor_handheld`` also vary vehicle placement (collision-free) / wall textures and
+furniture since a later content revision (:func:`revision`; the cache key includes it, so an older cached folder
+is not reused).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import numpy as np
 
 from .layout import Ids, StreetProfile, add_building, add_pole, add_tree, car_parts, populate_side, road_ground
 from .render import Camera
+from .scenario_base import Scenario, count_frames, vehicles_collide
 from .scene import (BoxBuilder, GroundSample, MovingObject, RoundedRect, Scene, camera_rotation, pose_matrices,
                     smooth_heading, smooth_noise, stuff_id)
 from .textures import tex_id
@@ -27,26 +35,25 @@ SCENARIOS: dict[str, str] = {
                     "the end revisits the start",
     "moving_vehicles": "car camera on a straight four-lane street with overtaking, oncoming and crossing vehicles",
     "indoor_handheld": "handheld 6-DoF camera looping around a furnished room with posters; revisits its start",
+    "handheld_fast": "handheld camera at 30 Hz in a furnished room: fast turns up to ~300 deg/s, some of them "
+                     "near-pure rotations while standing still",
+    "indoor_textureless": "handheld camera at 30 Hz in a texture-poor room: large plain walls, few posters",
+    "busy_street": "car camera on a street full of large moving vehicles (buses, trucks, cars: crossing, oncoming, "
+                   "overtaking, a lead vehicle) covering up to ~35 % of the image",
+    "forward_low_parallax": "car camera at highway speed on a long straight road, structure mostly far away "
+                            "(little parallax in the image centre, like KITTI 01)",
+    "driving_city": "car camera driving a figure-eight through a grid of city blocks (left and right turns); "
+                    "revisits the middle street and its start",
 }
 DEFAULT_SCENARIO = "driving_loop"
+# Content revision of a scenario's non-zero seeds (0 = as first published).  Part of the cache key and of
+# meta.json when non-zero: a folder cached before the change is regenerated instead of being reused.
+_REVISIONS = {"moving_vehicles": 2, "indoor_handheld": 1}
 
 
-@dataclass
-class Scenario:
-    name: str
-    scene: Scene
-    poses: np.ndarray  # float64 [N, 4, 4] T_wc
-    timestamps: np.ndarray  # float64 [N] seconds
-    camera: Camera
-    depth_scale: float  # depth PNG value = metres * depth_scale
-    loop_radius: float  # revisit criterion: camera centres within this many metres ...
-    loop_angle_deg: float = 20.0  # ... and optical axes within this angle
-    loop_min_gap: int = 50  # ... and i > j + loop_min_gap
-    params: dict = field(default_factory=dict)
-
-    @property
-    def num_frames(self) -> int:
-        return int(self.poses.shape[0])
+def revision(name: str, seed: int) -> int:
+    """Content revision of ``(name, seed)``: 0 for every seed 0 and for scenarios never changed."""
+    return _REVISIONS.get(name, 0) if int(seed) != 0 else 0
 
 
 class UnknownScenarioError(ValueError):
@@ -59,6 +66,16 @@ def check_name(name: str) -> None:
         raise UnknownScenarioError(f"unknown synthetic scenario {name!r}; available scenarios:\n{listing}")
 
 
+def _builders() -> dict[str, Callable[..., Scenario]]:
+    from .scenarios_city import driving_city
+    from .scenarios_indoor import handheld_fast, indoor_textureless
+    from .scenarios_street import busy_street, forward_low_parallax
+
+    return {"driving_loop": _driving_loop, "moving_vehicles": _moving_vehicles, "indoor_handheld": _indoor_handheld,
+            "handheld_fast": handheld_fast, "indoor_textureless": indoor_textureless, "busy_street": busy_street,
+            "forward_low_parallax": forward_low_parallax, "driving_city": driving_city}
+
+
 def build(name: str, num_frames: Optional[int] = None, width: int = 320, height: int = 240, seed: int = 0,
           laps: Optional[float] = None) -> Scenario:
     """Build scenario ``name``.  ``num_frames`` None = the scenario's default length (``laps`` may set it)."""
@@ -67,17 +84,14 @@ def build(name: str, num_frames: Optional[int] = None, width: int = 320, height:
         raise ValueError(f"image size must be at least 16x16, got {width}x{height}")
     if num_frames is not None and num_frames < 1:
         raise ValueError(f"num_frames must be positive, got {num_frames}")
-    builder: Callable[..., Scenario] = {"driving_loop": _driving_loop, "moving_vehicles": _moving_vehicles,
-                                        "indoor_handheld": _indoor_handheld}[name]
-    sc = builder(num_frames, Camera.default(width, height), seed, laps)
+    sc = _builders()[name](num_frames, Camera.default(width, height), seed, laps)
     sc.params = dict(scenario=name, num_frames=sc.num_frames, width=width, height=height, seed=seed, laps=laps)
+    if revision(name, seed):
+        sc.params["revision"] = revision(name, seed)
     return sc
 
 
-def _count(num_frames: Optional[int], laps: Optional[float], per_lap: float, default_laps: float) -> int:
-    if num_frames is not None:
-        return int(num_frames)
-    return max(1, int(round((default_laps if laps is None else laps) * per_lap)))
+_count = count_frames
 
 
 # ------------------------------------------------------------------------------------------------ driving loop
@@ -154,7 +168,12 @@ def _moving_vehicles(num_frames, cam, seed, laps) -> Scenario:
     t = np.arange(n) / fps
     length = speed * t[-1] + 140.0
     x_start = -40.0
+    # seed 0 is the published sequence; other seeds also move the cross streets and every vehicle (their own
+    # stream, so the layout stream below is the same as before for every seed)
+    vr = np.random.default_rng([seed, 22]) if seed != 0 else None
     crossings = (100.0, 150.0)
+    if vr is not None:
+        crossings = (100.0 + float(vr.uniform(-15, 10)), 150.0 + float(vr.uniform(-10, 15)))
     b = BoxBuilder()
     ids = Ids()
     prof = StreetProfile(parking=8.6, tree=11.2, facade=13.2, margin=0.0)
@@ -179,27 +198,47 @@ def _moving_vehicles(num_frames, cam, seed, laps) -> Scenario:
     ground = road_ground(lateral, lambda x, y: x, half_width=7.5, sidewalk=4.5,
                          lane_lines=((0.0, False), (-3.5, True), (3.5, True)), inner_tex="gravel",
                          extra_road=extra)
-    movers = []
-
-    def vehicle(kind: str, x0: float, y0: float, vx: float, vy: float, t0: float = 0.0) -> None:
+    t1 = (crossings[0] - 12.0) / speed  # crossing when the camera is 12 m before the intersection
+    t2 = (crossings[1] - 14.0) / speed
+    specs = [("car", 16.0, -1.75, 8.6, 0.0, 0.0),  # lead car, slowly pulling away
+             ("car", -12.0, -5.25, 12.5, 0.0, 0.0),  # overtaking on the right
+             ("car", -30.0, -5.25, 13.0, 0.0, 6.0),  # a second overtaker
+             ("truck", 90.0, 1.75, -9.0, 0.0, 0.0),  # oncoming bus, close lane
+             ("car", 150.0, 5.25, -10.0, 0.0, 0.0),  # oncoming car, far lane
+             ("car", 230.0, 1.75, -9.0, 0.0, 0.0),
+             ("car", crossings[0] + 1.75, -1.75, 0.0, -7.0, t1),
+             ("truck", crossings[1] - 1.75, -1.75, 0.0, 6.0, t2)]
+    parts = []  # in the published order: the layout stream draws sizes and colours as it always did
+    for kind, *_ in specs:
         cat = "truck" if kind == "truck" else "car"
         pid = ids.new(cat)
-        parts, size = car_parts(rng, pid, dynamic=True, kind=kind)
-        px = x0 + vx * (t - t0)
-        py = y0 + vy * (t - t0)
-        yaw = np.full(n, math.atan2(vy, vx))
-        movers.append(MovingObject(pid, cat, parts, np.stack([px, py, yaw], 1), size))
+        parts.append((cat, pid) + car_parts(rng, pid, dynamic=True, kind=kind))
 
-    vehicle("car", 16.0, -1.75, 8.6, 0.0)  # lead car, slowly pulling away
-    vehicle("car", -12.0, -5.25, 12.5, 0.0)  # overtaking on the right
-    vehicle("car", -30.0, -5.25, 13.0, 0.0, t0=6.0)  # a second overtaker
-    vehicle("truck", 90.0, 1.75, -9.0, 0.0)  # oncoming bus, close lane
-    vehicle("car", 150.0, 5.25, -10.0, 0.0)  # oncoming car, far lane
-    vehicle("car", 230.0, 1.75, -9.0, 0.0)
-    t1 = (crossings[0] - 12.0) / speed  # crossing when the camera is 12 m before the intersection
-    vehicle("car", crossings[0] + 1.75, -1.75, 0.0, -7.0, t0=t1)
-    t2 = (crossings[1] - 14.0) / speed
-    vehicle("truck", crossings[1] - 1.75, -1.75, 0.0, 6.0, t0=t2)
+    def place(spec) -> np.ndarray:
+        _, x0, y0, vx, vy, t0 = spec
+        return np.stack([x0 + vx * (t - t0), y0 + vy * (t - t0), np.full(n, math.atan2(vy, vx))], 1)
+
+    def jitter(spec):
+        kind, x0, y0, vx, vy, t0 = spec
+        if vx != 0.0:  # along the street: another start and speed
+            x0 += float(vr.uniform(-8.0, 8.0))
+            vx *= float(vr.uniform(0.85, 1.15))
+            if y0 == -1.75 and vx > 0:  # in the camera's lane: stays ahead, never driven into
+                x0, vx = max(x0, 10.0), max(vx, 1.03 * speed)
+        else:  # crossing: another moment and speed
+            t0 += float(vr.uniform(-0.8, 0.8))
+            vy *= float(vr.uniform(0.85, 1.15))
+        return kind, x0, y0, vx, vy, t0
+
+    paths = [place(s) for s in specs]
+    sizes = [p[3] for p in parts]
+    cam_xy = np.stack([speed * t, np.full(n, -1.75)], 1)
+    for _ in range(20 if vr is not None else 0):  # jittered placements until no two vehicles overlap
+        cand = [place(jitter(s)) for s in specs]
+        if not vehicles_collide(cand, sizes, cam_xy):
+            paths = cand
+            break
+    movers = [MovingObject(pid, cat, p, path, size) for (cat, pid, p, size), path in zip(parts, paths)]
     scene = Scene(static=b.build(), ground=ground, movers=movers, sky=True)
     yaw = smooth_noise(t, seed * 11 + 1, np.deg2rad(1.2), freqs=(0.05, 0.09, 0.15, 0.2))
     pitch = np.deg2rad(-1.0) + smooth_noise(t, seed * 11 + 2, np.deg2rad(0.4), freqs=(0.3, 0.55, 0.9, 1.3))
@@ -217,11 +256,18 @@ def _indoor_handheld(num_frames, cam, seed, laps) -> Scenario:
     ids = Ids()
     wall = stuff_id("wall")
     wall_tints = [(0.86, 0.82, 0.74), (0.7, 0.78, 0.85), (0.85, 0.74, 0.7), (0.76, 0.84, 0.72)]
+    wall_tex = ["plaster", "brick", "fine_noise", "wood"]
+    mx = my = 1.0  # furniture layout mirrored in x / y
+    if seed != 0:  # seed 0 is the published sequence; other seeds also vary the walls and the furniture layout
+        vr = np.random.default_rng([seed, 33])
+        wall_tex = [wall_tex[k] for k in vr.permutation(4)]
+        wall_tints = [wall_tints[k] for k in vr.permutation(4)]
+        mx, my = (float(v) for v in vr.choice([-1.0, 1.0], 2))
     th = 0.2
     walls = [((A + th / 2, 0.0), (th, 2 * B + 2 * th), 0), ((-A - th / 2, 0.0), (th, 2 * B + 2 * th), 1),
              ((0.0, B + th / 2), (2 * A, th), 2), ((0.0, -B - th / 2), (2 * A, th), 3)]
     for (cx, cy), (sx, sy), k in walls:
-        b.add((cx, cy, Hh / 2), (sx, sy, Hh), tex=("plaster", "brick", "fine_noise", "wood")[k],
+        b.add((cx, cy, Hh / 2), (sx, sy, Hh), tex=wall_tex[k],
               tint=wall_tints[k], scale=float(rng.uniform(1.5, 3.0)), pid=wall,
               off=(float(rng.uniform(0, 9)), float(rng.uniform(0, 9))))
     b.add((0.0, 0.0, Hh + 0.1), (2 * A + 0.4, 2 * B + 0.4, 0.2), tex="plaster", tint=(0.93, 0.93, 0.9), scale=3.0,
@@ -252,7 +298,7 @@ def _indoor_handheld(num_frames, cam, seed, laps) -> Scenario:
             ("plant", (-3.4, 2.4), (0.5, 0.5, 1.4), "grass", (0.35, 0.6, 0.3))]
     for name, (x, y), size, tex, tint in furn:
         jx, jy = rng.uniform(-0.1, 0.1, 2)
-        b.add_on_ground(float(x + (jx if name == "table" else 0)), float(y + jy * 0.5), size, tex=tex,
+        b.add_on_ground(float(mx * x + (jx if name == "table" else 0)), float(my * y + jy * 0.5), size, tex=tex,
                         tint=tuple(float(c) for c in np.clip(np.array(tint) + rng.uniform(-0.05, 0.05, 3), 0, 1)),
                         scale=float(rng.uniform(0.8, 1.6)), pid=ids.new("furniture"),
                         off=(float(rng.uniform(0, 5)), float(rng.uniform(0, 5))), key=int(rng.integers(1 << 30)))

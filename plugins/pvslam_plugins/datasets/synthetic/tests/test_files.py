@@ -100,7 +100,8 @@ def _file_consistency(seq: SyntheticSequence, i: int, j: int, shift=(0.0, 0.0, 0
     return both.sum() / max(plane.sum(), 1), float(np.median(err[match])) if match.any() else 255.0
 
 
-@pytest.mark.parametrize("name", ["driving_loop", "indoor_handheld"])
+@pytest.mark.parametrize("name", ["driving_loop", "indoor_handheld", "handheld_fast", "indoor_textureless",
+                                  "busy_street", "forward_low_parallax", "driving_city"])
 def test_files_alone_are_geometrically_consistent(tmp_path, name):
     root = generator.generate(name, tmp_path / name, num_frames=4, width=320, height=240, seed=2, progress=False)
     seq = SyntheticSequence(root)
@@ -183,7 +184,7 @@ def test_reader_plugin_yields_frames(moving_seq, tmp_path, monkeypatch):
     reg = build_registry(extra_modules=(plugin,))
     spec = reg.get("dataset", "synthetic")
     assert spec.extras["generate"] is generator.generate and "driving_loop" in spec.extras["scenarios"]
-    reader = spec.factory(spec.config_model(path=str(moving_seq)), None)
+    reader = spec.factory(spec.config_model(path=str(moving_seq), gt_maps=["depth", "panoptic", "dynamic"]), None)
     info = reader.info()
     assert info.num_frames == 12 and info.has_gt_pose and info.has_gt_depth and info.has_gt_panoptic
     assert (info.intrinsics.fx, info.intrinsics.cx, info.intrinsics.width) == (0.85 * W, (W - 1) / 2, W)
@@ -217,3 +218,20 @@ def test_loop_pairs_reach_the_reader(tmp_path):
 
     info = SyntheticReader(SyntheticConfig(path=str(root), crop_multiple=1)).info()
     assert info.loop_pairs and set(info.loop_pairs) == set(pairs)
+
+
+
+def test_invalid_calibration_names_the_file(tmp_path):
+    """A hand-written minimal folder (no generator): the calibration is read before any image."""
+    from pvslam_core.datasets.base import DatasetError
+
+    root = tmp_path / "seq"
+    root.mkdir()
+    (root / "meta.json").write_text(json.dumps({"width": 32, "height": 24}))
+    (root / "rgb.txt").write_text("0.0 rgb/000000.png\n0.1 rgb/000001.png\n")
+    (root / "depth.txt").write_text("0.0 depth/000000.png\n0.1 depth/000001.png\n")
+    (root / "groundtruth.txt").write_text("0.0 0 0 0 0 0 0 1\n0.1 0.1 0 0 0 0 0 1\n")
+    (root / "calib.txt").write_text("27.2 27.2 nan 11.5\n")
+    with pytest.raises(DatasetError) as err:
+        SyntheticSequence(root)
+    assert str(root / "calib.txt") in str(err.value) and "cx=nan" in str(err.value)

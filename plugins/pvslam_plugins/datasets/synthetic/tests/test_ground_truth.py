@@ -26,14 +26,14 @@ def _project(Xw, cam, T):
     return cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy, z
 
 
-def _reproject_check(sc, i, j, min_consistent=0.7):
+def _reproject_check(sc, i, j, min_consistent=0.7, min_inside=0.3):
     cam = sc.camera
     a = render(sc.scene, i, sc.poses[i], cam)
     static = (a.depth > 0) & ~a.dynamic
     u, v, Xw = _unproject(np.where(static, a.depth, 0), cam, sc.poses[i])
     pu, pv, z = _project(Xw, cam, sc.poses[j])
     inside = (z > 0.1) & (pu >= 0) & (pu <= cam.width - 1) & (pv >= 0) & (pv <= cam.height - 1)
-    assert inside.sum() > 0.3 * len(u)
+    assert inside.sum() > min_inside * len(u)
     u, v, pu, pv, z = u[inside], v[inside], pu[inside], pv[inside], z[inside]
     col, depth, pid, dyn = render_points(sc.scene, j, sc.poses[j], cam, pu, pv)
     rel = np.abs(depth - z) / z
@@ -55,12 +55,15 @@ def _reproject_check(sc, i, j, min_consistent=0.7):
 @pytest.mark.parametrize("name", list(scenarios.SCENARIOS))
 def test_reprojection_with_gt_poses_is_exact(name):
     sc = scenarios.build(name, num_frames=12, width=W, height=H, seed=3)
+    # at highway speed (2 m a frame) most of the near road leaves the view in one frame
+    min_inside = 0.15 if name == "forward_low_parallax" else 0.3
     for i, j in ((0, 1), (5, 6), (4, 10)):
-        _reproject_check(sc, i, j, min_consistent=0.6 if j - i > 1 else 0.75)
+        _reproject_check(sc, i, j, min_consistent=0.6 if j - i > 1 else 0.75, min_inside=min_inside)
 
 
-def test_moving_objects_follow_their_recorded_poses():
-    sc = scenarios.build("moving_vehicles", num_frames=80, width=W, height=H, seed=0)
+@pytest.mark.parametrize("name", ["moving_vehicles", "busy_street"])
+def test_moving_objects_follow_their_recorded_poses(name):
+    sc = scenarios.build(name, num_frames=80, width=W, height=H, seed=0)
     cam = sc.camera
     movers = {m.pid: m for m in sc.scene.movers}
     checked = 0
@@ -90,8 +93,9 @@ def test_moving_objects_follow_their_recorded_poses():
     assert checked >= 2
 
 
-def test_dynamic_mask_is_exactly_the_moving_instances():
-    sc = scenarios.build("moving_vehicles", num_frames=120, width=W, height=H, seed=1)
+@pytest.mark.parametrize("name", ["moving_vehicles", "busy_street"])
+def test_dynamic_mask_is_exactly_the_moving_instances(name):
+    sc = scenarios.build(name, num_frames=120, width=W, height=H, seed=1)
     moving = sc.scene.moving_ids()
     assert len(moving) >= 5
     seen = 0

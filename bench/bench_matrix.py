@@ -1,0 +1,352 @@
+"""The benchmark matrix of issue 13: pvslam's default pipeline, as a new user runs it, on every built-in synthetic
+scenario x seeds plus the KITTI excerpts, beside the textbook VO peer (and COLMAP with ``--colmap``).
+
+    python bench/bench_matrix.py --set report                  # the figures to report (seeds 3-5)
+    python bench/bench_matrix.py --set tune --jobs 2           # the seeds to choose parameters on (1-2)
+    python bench/bench_matrix.py --scenarios busy_street kitti_06 --seeds 3 --frames 60   # a smoke run
+    python bench/bench_matrix.py --set report --labels --colmap --json out.json
+    python bench/bench_matrix.py --reprint out.json [--markdown]  # the table, summary and targets of a saved run
+
+**Seed sets.**  ``tune`` = seeds 1, 2: choose parameters on these.  ``report`` = seeds 3, 4, 5: report on these,
+never tune on them.  ``default`` = seed 0 (the sequences ``pvslam run`` and the published figures use).  ``all`` =
+all three.  The KITTI excerpts (06 and 01, 51 frames each) have no seeds: they are in every set, so whoever tunes
+sees them too.  The printout and the JSON say which set ran.
+
+**What runs per cell** (see :mod:`bench.matrix_jobs`): the synthetic folder is generated (cached); pvslam runs
+with the default config and the ``images`` reader (no labels: ``segmenter.plugin = "none"``, ``vps.plugin =
+"none"``; ``--labels`` adds a run with the ``synthetic`` reader, oracle ``labels`` and the VPS); the textbook VO
+(``bench/peers/textbook_vo.py``); a constant-velocity straight line fitted to the ground truth (the trivial
+baseline, meaningful on the short KITTI excerpts); COLMAP (``bench/peers/colmap_peer.py``, pycolmap) with
+``--colmap`` only: it is slow.  ATE is Sim(3)-aligned over every frame, as % of the ground-truth path length.
+
+Columns: ``posed`` frames with a pose estimate (not a placeholder: tracking did not fail and the map fragment
+initialised), ``init`` the frame where the map first initialised and the seconds of camera motion before it,
+``reinit`` re-initialisations, ``fps`` pvslam's frames per second (one torch thread; wall time, so a loaded machine
+lowers it), ``VO %`` with ``*`` when the textbook VO never initialised (identity poses), ``VO/pv`` textbook VO ATE /
+pvslam ATE (the issue's target is >= 3), ``line`` the straight line.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.matrix_jobs import KITTI, run_cell  # noqa: E402
+
+SEED_SETS = {"default": (0,), "tune": (1, 2), "report": (3, 4, 5)}
+KITTI_SEQS = ("kitti_06", "kitti_01")
+INIT_TARGET_S = 2.0
+
+
+def synthetic_scenarios() -> list[str]:
+    from pvslam_plugins.datasets.synthetic.scenarios import SCENARIOS
+
+    return list(SCENARIOS)
+
+
+def seed_set_of(seed: int) -> str:
+    return next((k for k, v in SEED_SETS.items() if seed in v), "other")
+
+
+def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool, colmap: bool,
+         jobs: int) -> list[dict]:
+    """One job per (synthetic scenario, seed) and one per KITTI excerpt, longest first (parallel efficiency)."""
+    default_len = {"driving_city": 550, "driving_loop": 488, "handheld_fast": 360, "indoor_handheld": 330}
+    cells = []
+    for sc in scenarios:
+        for seed in ([0] if sc.startswith("kitti_") else seeds):
+            cells.append({"scenario": sc, "seed": None if sc.startswith("kitti_") else seed, "frames": frames,
+                          "out": str(out), "labels": labels, "colmap": colmap,
+                          "colmap_threads": 1 if jobs > 1 else -1,
+                          "set": "shared" if sc.startswith("kitti_") else seed_set_of(seed)})
+    return sorted(cells, key=lambda c: -(min(frames or 10 ** 9, default_len.get(c["scenario"], 300))))
+
+
+# ------------------------------------------------------------------------------------------------ formatting
+def _f(x, fmt="{:.2f}", none="-") -> str:
+    return none if x is None or (isinstance(x, float) and not math.isfinite(x)) else fmt.format(x)
+
+
+def _get(row, key, field):
+    v = row.get(key) or {}
+    return None if "error" in v else v.get(field)
+
+
+def ratio(row):
+    pv, vo = _get(row, "pvslam", "ate_pct"), _get(row, "vo", "ate_pct")
+    return vo / pv if pv and vo is not None and pv > 0 else None
+
+
+def table(rows: list[dict], labels: bool, colmap: bool) -> list[str]:
+    head = (f"{'scenario':<21}{'seed':>5}{'frames':>7}{'path m':>8} | {'pvslam %':>9}{'posed':>9}{'init (s)':>14}"
+            f"{'reinit':>7}{'fps':>6} | {'VO %':>7}{'VO/pv':>7} | {'line %':>7}")
+    if colmap:
+        head += f" | {'COLMAP %':>9}{'reg':>5}"
+    if labels:
+        head += f" | {'labels %':>9}{'init':>6}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        seed = "-" if r["seed"] is None else str(r["seed"])
+        if "error" in r:
+            lines.append(f"{r['scenario']:<21}{seed:>5}  ERROR {r['error']}")
+            continue
+        pv = r.get("pvslam", {})
+        if "error" in pv:
+            mid = f"{'ERROR':>9} {pv['error'][:60]}"
+        else:
+            init = "never" if pv["init_frame"] is None else f"{pv['init_frame']} ({pv['init_s']:.1f})"
+            mid = (f"{_f(pv['ate_pct']):>9}{str(pv['posed']) + '/' + str(pv['frames']):>9}{init:>14}"
+                   f"{pv['reinits']:>7}{_f(pv['fps'], '{:.1f}'):>6}")
+        vo = _f(_get(r, "vo", "ate_pct")) + ("*" if _get(r, "vo", "init_frame") == -1 else " ")
+        line = (f"{r['scenario']:<21}{seed:>5}{r['frames']:>7}{r['path_m']:>8.1f} | {mid} | "
+                f"{vo:>8}{_f(ratio(r), '{:.1f}x'):>6} | {_f(r['line']['ate_pct']):>7}")
+        if colmap:
+            line += f" | {_f(_get(r, 'colmap', 'ate_pct')):>9}{_f(_get(r, 'colmap', 'registered'), '{}'):>5}"
+        if labels:
+            lf = _get(r, "labels", "init_frame")
+            lf = "-" if _get(r, "labels", "ate_pct") is None else ("never" if lf is None else str(lf))
+            line += f" | {_f(_get(r, 'labels', 'ate_pct')):>9}{lf:>6}"
+        lines.append(line)
+    return lines
+
+
+def table_md(rows: list[dict], labels: bool, colmap: bool) -> list[str]:
+    """The same table as Markdown (for bench/RESULTS.md)."""
+    cols = ["scenario", "seed", "frames", "path m", "pvslam ATE %", "posed", "init frame (s)", "reinit", "fps",
+            "textbook VO ATE %", "VO / pvslam", "line %"] + (["COLMAP ATE % (registered)"] if colmap else []) + (
+        ["pvslam + labels ATE % (init)"] if labels else [])
+    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * 3 + "---:|" * (len(cols) - 3)]
+    for r in rows:
+        if "error" in r or "error" in r.get("pvslam", {}):
+            out.append(f"| {r['scenario']} | {r['seed']} | error: {r.get('error') or r['pvslam']['error']} |")
+            continue
+        pv = r["pvslam"]
+        init = "never" if pv["init_frame"] is None else f"{pv['init_frame']} ({pv['init_s']:.1f})"
+        vo = _f(_get(r, "vo", "ate_pct")) + (" *" if _get(r, "vo", "init_frame") == -1 else "")
+        cells = [r["scenario"], "-" if r["seed"] is None else str(r["seed"]), str(r["frames"]), f"{r['path_m']:.1f}",
+                 _f(pv["ate_pct"]), f"{pv['posed']}/{pv['frames']}", init, str(pv["reinits"]), _f(pv["fps"], "{:.1f}"),
+                 vo, _f(ratio(r), "{:.2f}x"), _f(r["line"]["ate_pct"])]
+        if colmap:
+            cm = _get(r, "colmap", "registered")
+            cells.append("-" if cm is None else f"{_f(_get(r, 'colmap', 'ate_pct'))} ({cm})")
+        if labels:
+            lf = _get(r, "labels", "init_frame")
+            cells.append("-" if "labels" not in r else f"{_f(_get(r, 'labels', 'ate_pct'))} "
+                         f"({'never' if lf is None else lf})")
+        out.append("| " + " | ".join(cells) + " |")
+    return out
+
+
+def _ms(v: list[float]) -> str:
+    v = [x for x in v if x is not None and math.isfinite(x)]
+    if not v:
+        return "-"
+    return f"{np.mean(v):.2f} ± {np.std(v):.2f}" if len(v) > 1 else f"{v[0]:.2f}"
+
+
+def summary(rows: list[dict]) -> tuple[list[str], dict]:
+    lines, out = [], {}
+    ok = [r for r in rows if "error" not in r]
+    for sc in dict.fromkeys(r["scenario"] for r in ok):
+        rs = [r for r in ok if r["scenario"] == sc]
+        pv = [_get(r, "pvslam", "ate_pct") for r in rs]
+        vo = [_get(r, "vo", "ate_pct") for r in rs]
+        rat = [x for x in (ratio(r) for r in rs) if x is not None]
+        never = sum(_get(r, "pvslam", "init_frame") is None for r in rs)
+        out[sc] = {"pvslam_mean": float(np.nanmean([x if x is not None else np.nan for x in pv])),
+                   "pvslam_std": float(np.nanstd([x if x is not None else np.nan for x in pv])),
+                   "vo_mean": float(np.nanmean([x if x is not None else np.nan for x in vo])), "n": len(rs),
+                   "min_ratio": min(rat) if rat else None, "never_initialised": never}
+        worst = _f(min(rat) if rat else None, "{:.1f}x")
+        lines.append(f"  {sc:<21} n={len(rs)}  pvslam {_ms(pv):>15} %   VO {_ms(vo):>15} %   worst VO/pv {worst:>6}"
+                     + (f"   never initialised: {never}" if never else ""))
+    errors = [(r["scenario"], r["seed"], k, (r.get(k) or {}).get("error")) for r in rows
+              for k in ("pvslam", "labels", "vo", "colmap") if (r.get(k) or {}).get("error")]
+    errors += [(r["scenario"], r["seed"], "sequence", r["error"]) for r in rows if "error" in r]
+    for sc, seed, k, e in errors:
+        lines.append(f"  ERROR {sc} seed {seed} {k}: {e}")
+    allpv = [x for x in (_get(r, "pvslam", "ate_pct") for r in ok) if x is not None]
+    out["median_pvslam_pct"] = float(np.median(allpv)) if allpv else None
+    allvo = [x for x in (_get(r, "vo", "ate_pct") for r in ok) if x is not None]
+    out["median_vo_pct"] = float(np.median(allvo)) if allvo else None
+    lines.append(f"  median over the matrix ({len(allpv)} sequences): pvslam {_f(out['median_pvslam_pct'])} %, "
+                 f"textbook VO {_f(out['median_vo_pct'])} %")
+    return lines, out
+
+
+def targets(rows: list[dict]) -> list[dict]:
+    """The issue's targets, each PASS / MISS with the measured value (or 'not measured')."""
+    ok = [r for r in rows if "error" not in r and "error" not in r.get("pvslam", {})]
+    name = lambda r: r["scenario"] + ("" if r["seed"] is None else f"/{r['seed']}")  # noqa: E731
+    res = []
+
+    def add(title, passed, measured, goal):
+        res.append({"name": title, "ok": passed, "measured": measured, "target": goal})
+
+    bad_init = [r for r in ok if r["pvslam"]["init_s"] is None or r["pvslam"]["init_s"] > INIT_TARGET_S
+                or r["pvslam"]["posed"] < r["frames"]]
+    worst = sorted(bad_init, key=lambda r: -(r["pvslam"]["init_s"] if r["pvslam"]["init_s"] is not None else 1e9))
+    examples = ", ".join(f"{name(r)} init {_f(r['pvslam']['init_s'], '{:.1f} s', 'never')} "
+                         f"posed {r['pvslam']['posed']}/{r['frames']}" for r in worst[:4])
+    add("initialises within 2 s of motion, every frame posed", not bad_init and len(ok) == len(rows),
+        f"{len(ok) - len(bad_init)}/{len(rows)} sequences" + (f"; e.g. {examples}" if bad_init else ""),
+        "every sequence")
+    rats = [(ratio(r), r) for r in ok]
+    low = sorted([(x, r) for x, r in rats if x is None or x < 3.0], key=lambda p: p[0] if p[0] is not None else -1)
+    add("ATE >= 3x lower than the textbook VO on every sequence", not low and len(ok) == len(rows),
+        f"{len(ok) - len(low)}/{len(rows)} sequences" + (
+            "; worst " + ", ".join(f"{name(r)} {_f(x, '{:.2f}x')}" for x, r in low[:4]) if low else ""), ">= 3x each")
+    pv = [r["pvslam"]["ate_pct"] for r in ok]
+    med = float(np.median(pv)) if pv else math.nan
+    add("median ATE over the matrix", bool(pv) and med <= 1.0, f"{med:.2f} % of path", "<= 1 %")
+    busy = [r for r in ok if r["scenario"] == "busy_street" and _get(r, "colmap", "ate_pct") is not None]
+    if busy:
+        worst_b = max(r["pvslam"]["ate_pct"] / max(r["colmap"]["ate_pct"], 1e-9) for r in busy)
+        add("busy street, no segmenter: within 2x of COLMAP", worst_b <= 2.0, f"worst {worst_b:.1f}x COLMAP's", "<= 2x")
+    else:
+        add("busy street, no segmenter: within 2x of COLMAP", None, "not measured (run busy_street with --colmap)",
+            "<= 2x")
+    dl = [r for r in ok if r["scenario"] == "driving_loop"]
+    if dl:
+        w = max(r["pvslam"]["ate_pct"] for r in dl)
+        lab = [_get(r, "labels", "ate_pct") for r in dl if _get(r, "labels", "ate_pct") is not None]
+        add("driving loop: no regression", w <= 0.5, f"worst {w:.2f} % (no labels)" + (
+            f"; with labels worst {max(lab):.2f} %" if lab else ""), "<= 0.5 %")
+    add("3000-frame driving loop <= 0.5 %, no fragment left unmerged", None,
+        "not in this matrix: python bench/bench_pipeline.py --only long", "<= 0.5 %")
+    return res
+
+
+def commit() -> str:
+    """``git rev-parse HEAD`` of this tree; ``$PVSLAM_BENCH_COMMIT`` when the tree is an exported copy."""
+    if os.environ.get("PVSLAM_BENCH_COMMIT"):
+        return os.environ["PVSLAM_BENCH_COMMIT"]
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+# ------------------------------------------------------------------------------------------------ main
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--set", choices=["tune", "report", "default", "all"], default="report",
+                    help="seed set (default: report)")
+    ap.add_argument("--scenarios", nargs="+", help="synthetic scenario names and/or kitti_06 kitti_01 "
+                    "(kitti = both); default: every built-in scenario and both KITTI excerpts")
+    ap.add_argument("--seeds", nargs="+", type=int, help="seeds instead of the set's (the output says which set "
+                    "each belongs to)")
+    ap.add_argument("--frames", type=int, help="first N frames of every sequence (a shorter, cheaper matrix)")
+    ap.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
+    ap.add_argument("--labels", action="store_true", help="also run pvslam with the oracle labels (synthetic only)")
+    ap.add_argument("--colmap", action="store_true", help="also run COLMAP (pycolmap; slow)")
+    ap.add_argument("--json", help="write the rows, summary and targets to this JSON file")
+    ap.add_argument("--out", help="folder for run directories and the KITTI peer folders (default: temporary)")
+    ap.add_argument("--reprint", metavar="JSON", help="print the table, summary and targets of a saved --json run")
+    ap.add_argument("--markdown", action="store_true", help="with --reprint: the table as Markdown")
+    args = ap.parse_args(argv)
+    if args.reprint:
+        saved = json.loads(Path(args.reprint).read_text())
+        print(f"seed set: {saved['set'].upper()} -- seeds {', '.join(map(str, saved['seeds']))}; commit "
+              f"{saved['commit']}; jobs {saved['jobs']}; frames {saved['frames'] or 'default lengths'}")
+        rows = saved["rows"]
+        labels, colmap = any("labels" in r for r in rows), any("colmap" in r for r in rows)
+        if args.markdown:
+            print("\n".join(table_md(rows, labels, colmap)))
+        report(rows, labels, colmap)
+        return 0
+
+    synth = synthetic_scenarios()
+    names = args.scenarios or synth + list(KITTI_SEQS)
+    names = [k for n in names for k in (KITTI_SEQS if n == "kitti" else (n,))]
+    unknown = [n for n in names if n not in synth and n not in KITTI_SEQS]
+    if unknown:
+        ap.error(f"unknown scenario(s) {unknown}; known: {', '.join(synth + list(KITTI_SEQS))} (or kitti)")
+    if any(n in KITTI_SEQS for n in names) and not (KITTI / "sequences").is_dir():
+        print(f"KITTI excerpts not found in {KITTI}: skipped")
+        names = [n for n in names if n not in KITTI_SEQS]
+    seeds = args.seeds if args.seeds else ([s for v in SEED_SETS.values() for s in v] if args.set == "all"
+                                           else list(SEED_SETS[args.set]))
+    label = "custom" if args.seeds else args.set
+    sets = sorted({seed_set_of(s) for s in seeds})
+    out = Path(args.out or tempfile.mkdtemp(prefix="pvslam-matrix-"))
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"seed set: {label.upper()} -- seeds {', '.join(map(str, seeds))} ({'/'.join(sets)}; tune = "
+          f"{SEED_SETS['tune']}, report = {SEED_SETS['report']}, default = {SEED_SETS['default']}; KITTI is in every "
+          f"set)")
+    if "report" in sets:
+        print("REPORT seeds: measure on them, never tune on them.")
+    print(f"commit {commit()}; {platform.node()} {os.cpu_count()} CPUs; jobs {args.jobs}; frames "
+          f"{args.frames or 'default lengths'}; run directories in {out}", flush=True)
+    cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs)
+    t0 = time.perf_counter()
+    rows = []
+    if args.jobs > 1:
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(args.jobs, mp_context=mp.get_context("spawn")) as ex:
+            futs = [ex.submit(run_cell, c) for c in cells]
+            for f in as_completed(futs):
+                rows.append(f.result())
+                _progress(rows[-1], len(rows), len(cells), t0)
+    else:
+        for c in cells:
+            rows.append(run_cell(c))
+            _progress(rows[-1], len(rows), len(cells), t0)
+    order = {n: k for k, n in enumerate(names)}
+    rows.sort(key=lambda r: (order[r["scenario"]], -1 if r["seed"] is None else r["seed"]))
+    summ, tg = report(rows, args.labels, args.colmap)
+    wall = time.perf_counter() - t0
+    print(f"\nmatrix wall time {wall:.0f} s")
+    if args.json:
+        Path(args.json).write_text(json.dumps({
+            "set": label, "seeds": seeds, "seed_sets": SEED_SETS, "argv": sys.argv[1:] if argv is None else argv,
+            "commit": commit(), "host": platform.node(), "cpus": os.cpu_count(), "jobs": args.jobs,
+            "frames": args.frames, "wall_s": wall, "rows": rows, "summary": summ, "targets": tg}, indent=1,
+            default=str))
+        print(f"results written to {args.json}")
+    return 0
+
+
+def report(rows: list[dict], labels: bool, colmap: bool) -> tuple[dict, list[dict]]:
+    """Print the table, the per-scenario summary and the targets; returns (summary, targets)."""
+    print()
+    print("\n".join(table(rows, labels, colmap)))
+    if any(_get(r, "vo", "init_frame") == -1 for r in rows):
+        print("  * the textbook VO never initialised: its poses are all the identity")
+    print("\nper scenario (mean ± std over seeds, ATE % of path):")
+    sl, summ = summary(rows)
+    print("\n".join(sl))
+    print("\ntargets (issue 13):")
+    tg = targets(rows)
+    for t in tg:
+        status = "n/a " if t["ok"] is None else ("PASS" if t["ok"] else "MISS")
+        print(f"  [{status}] {t['name']}: {t['measured']}   (target: {t['target']})")
+    return summ, tg
+
+
+def _progress(row: dict, k: int, n: int, t0: float) -> None:
+    pv = row.get("pvslam") or {}
+    txt = row.get("error") or pv.get("error") or (f"pvslam {_f(pv.get('ate_pct'))} %, VO "
+                                                    f"{_f(_get(row, 'vo', 'ate_pct'))} %")
+    seed = "" if row["seed"] is None else f" seed {row['seed']}"
+    print(f"[{k}/{n} {time.perf_counter() - t0:6.0f} s] {row['scenario']}{seed}: {txt}", flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
