@@ -33,6 +33,8 @@ from .textures import tex_id
 SCENARIOS: dict[str, str] = {
     "driving_loop": "car camera driving 1.1 laps around a 96x56 m city block (buildings, parked cars, trees); "
                     "the end revisits the start",
+    "driving_block": "the driving loop around a small 44x26 m block: 1.1 laps, about 210 frames (short loop "
+                     "closure tests)",
     "moving_vehicles": "car camera on a straight four-lane street with overtaking, oncoming and crossing vehicles",
     "indoor_handheld": "handheld 6-DoF camera looping around a furnished room with posters; revisits its start",
     "handheld_fast": "handheld camera at 30 Hz in a furnished room: fast turns up to ~300 deg/s, some of them "
@@ -71,7 +73,7 @@ def _builders() -> dict[str, Callable[..., Scenario]]:
     from .scenarios_indoor import handheld_fast, indoor_textureless
     from .scenarios_street import busy_street, forward_low_parallax
 
-    return {"driving_loop": _driving_loop, "moving_vehicles": _moving_vehicles, "indoor_handheld": _indoor_handheld,
+    return {"driving_loop": _driving_loop, "driving_block": _driving_block, "moving_vehicles": _moving_vehicles, "indoor_handheld": _indoor_handheld,
             "handheld_fast": handheld_fast, "indoor_textureless": indoor_textureless, "busy_street": busy_street,
             "forward_low_parallax": forward_low_parallax, "driving_city": driving_city}
 
@@ -95,9 +97,10 @@ _count = count_frames
 
 
 # ------------------------------------------------------------------------------------------------ driving loop
-def _driving_loop(num_frames, cam, seed, laps) -> Scenario:
+def _driving_loop(num_frames, cam, seed, laps, road: Optional[RoundedRect] = None,
+                  name: str = "driving_loop") -> Scenario:
     rng = np.random.default_rng([seed, 1])
-    road = RoundedRect(48.0, 28.0, 12.0)  # road centreline
+    road = road or RoundedRect(48.0, 28.0, 12.0)  # road centreline
     prof = StreetProfile()
     b = BoxBuilder()
     ids = Ids()
@@ -157,7 +160,13 @@ def _driving_loop(num_frames, cam, seed, laps) -> Scenario:
     z = 1.5 + smooth_noise(t, seed * 7 + 3, 0.01, freqs=(0.7, 1.1, 1.7, 2.3))
     R = camera_rotation(yaw, pitch, roll)
     poses = pose_matrices(R, np.stack([x, y, z], axis=1))
-    return Scenario("driving_loop", scene, poses, t, cam, depth_scale=256.0, loop_radius=3.0)
+    return Scenario(name, scene, poses, t, cam, depth_scale=256.0, loop_radius=3.0)
+
+
+def _driving_block(num_frames, cam, seed, laps) -> Scenario:
+    """The driving loop around a small block (44 x 26 m road centreline): a revisit after about 190 frames, short
+    enough for end-to-end tests of loop closure."""
+    return _driving_loop(num_frames, cam, seed, laps, road=RoundedRect(22.0, 13.0, 8.0), name="driving_block")
 
 
 # ------------------------------------------------------------------------------------------------ moving vehicles

@@ -210,3 +210,14 @@ def test_driving_city_turns_both_ways_stays_on_the_road_and_revisits():
     gap = pairs[:, 0] - pairs[:, 1]
     assert ((gap > 0.3 * lap) & (gap < 0.7 * lap)).any()  # the middle street, driven twice
     assert ((pairs[:, 1] < 20) & (pairs[:, 0] > lap - 5)).any()  # the end revisits the start
+
+
+def test_driving_block_revisits_within_a_short_sequence():
+    """The small block: the start is revisited after about 190 frames (end-to-end loop-closure tests use it)."""
+    sc = scenarios.build("driving_block", width=64, height=48, seed=0)
+    assert 200 <= sc.num_frames <= 260
+    pairs = np.array(scenarios.revisit_pairs(sc.poses, sc.loop_radius, sc.loop_angle_deg, sc.loop_min_gap))
+    assert ((pairs[:, 1] < 10) & (pairs[:, 0] > 180)).any()
+    assert pairs[:, 0].min() > 150  # nothing is a revisit before the lap is done
+    g = sc.scene.ground(sc.poses[:, 0, 3], sc.poses[:, 1, 3], np.full(sc.num_frames, 0.01))
+    assert (g.pid == stuff_id("road")).all()
