@@ -4,8 +4,9 @@
   histograms, L2-normalised; similarity = cosine (the paper's eq. 8).
 * Candidates: keyframes older than the temporal exclusion window (``exclude_recent`` keyframes and
   ``min_time_gap`` seconds) with similarity >= ``threshold``, best ``max_candidates`` first.
-* Verification (:mod:`.verify`): ORB matches (ratio test + mutual check), essential-matrix RANSAC with the
-  keyframes' intrinsics; verified with >= ``min_inliers`` inliers and inlier ratio >= ``min_inlier_ratio``.
+* Verification (:mod:`pvslam_plugins.loops.verification`, shared with the ``deit`` detector): ORB matches (ratio
+  test + mutual check), essential-matrix RANSAC with the keyframes' intrinsics; verified with >= ``min_inliers``
+  inliers and inlier ratio >= ``min_inlier_ratio``.
   Which candidates close a loop is the mapper's loop policy (``[loop_closure]``: consecutive hits, suppression,
   orientation check), not the detector's.
 

@@ -13,36 +13,13 @@ Everything is vectorised with numpy/OpenCV: about 0.2 ms per 320x240 image.
 """
 from __future__ import annotations
 
-from typing import Union
-
 import cv2
 import numpy as np
-import torch
 
-ImageLike = Union[torch.Tensor, np.ndarray]
+from ..verification import ImageLike, to_gray  # noqa: F401  (re-exported: the detector reads images with it)
 
 #: the gradient grid is computed on an image of this many pixels per cell (after resizing)
 _CELL_PX = 12
-
-
-def to_gray(image: ImageLike) -> np.ndarray:
-    """uint8/float grayscale ``[H, W]`` from a torch ``[3, H, W]``/``[H, W]`` or numpy ``[H, W, 3]``/``[H, W]`` (RGB)."""
-    if isinstance(image, torch.Tensor):
-        arr = image.detach().cpu().numpy()  # numpy transposes are much cheaper than torch permute+contiguous
-        if arr.ndim == 3:
-            arr = np.ascontiguousarray(arr.transpose(1, 2, 0))
-    else:
-        arr = np.asarray(image)
-    if arr.ndim == 3:
-        if arr.shape[2] == 1:
-            arr = arr[..., 0]
-        else:
-            if arr.dtype != np.uint8:
-                arr = arr.astype(np.float32)
-            arr = cv2.cvtColor(np.ascontiguousarray(arr[..., :3]), cv2.COLOR_RGB2GRAY)
-    if arr.ndim != 2:
-        raise ValueError(f"expected an image [3,H,W] (torch) or [H,W(,3)] (numpy), got shape {tuple(arr.shape)}")
-    return arr
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

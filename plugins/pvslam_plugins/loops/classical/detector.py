@@ -2,19 +2,17 @@
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
-import cv2
 import numpy as np
 
 from pvslam_core.interfaces import LoopDetector
-from pvslam_core.types import Frame, Intrinsics, LoopCandidate
+from pvslam_core.types import Frame, LoopCandidate
 
+from ..verification import KeyframeVerifier, Verification
 from .config import ClassicalLoopConfig
 from .descriptor import ImageLike, global_descriptor, to_gray
-from .verify import OrbFeatures, Verification, extract, verify
 
 
 @dataclass
@@ -22,8 +20,6 @@ class _Keyframe:
     kf_id: int  # stable keyframe id (the graph's)
     frame_index: int
     timestamp: float
-    jpeg: Optional[np.ndarray]  # grayscale JPEG of the (reduced) keyframe image, for lazy ORB extraction
-    intrinsics: Optional[Intrinsics]  # of the stored image
 
 
 class ClassicalLoopDetector(LoopDetector):
@@ -33,9 +29,10 @@ class ClassicalLoopDetector(LoopDetector):
     its verified candidates (or, with ``verify = false``, retrieval-only candidates with ``verified = None``).
     Acceptance (consecutive hits, suppression near accepted loops, orientation) is the mapper's loop policy; its
     ``skip`` predicate spares the verification of candidates it would refuse anyway.  Per keyframe the detector
-    stores a float32 descriptor (about 1.3 kB) and a grayscale JPEG of the image (about 20 kB at 320x240).  ORB
-    features are extracted lazily, only for keyframes that take part in a verification, and cached (LRU,
-    ``feature_cache`` keyframes of about 40 B per keypoint), so a keyframe without loop candidates costs ~2 ms.
+    stores a float32 descriptor (about 1.3 kB) and, for the shared :class:`~..verification.KeyframeVerifier`, a
+    grayscale JPEG of the image (about 20 kB at 320x240).  ORB features are extracted lazily, only for keyframes
+    that take part in a verification, and cached (LRU, ``feature_cache`` keyframes of about 40 B per keypoint), so
+    a keyframe without loop candidates costs ~2 ms.
     """
 
     def __init__(self, config: Optional[ClassicalLoopConfig] = None) -> None:
@@ -43,12 +40,16 @@ class ClassicalLoopDetector(LoopDetector):
         self._kf: list[_Keyframe] = []  # rows in time order; a removed keyframe's row is deleted
         self._desc = np.zeros((0, 0), np.float32)  # [capacity, D]; rows [0, len(self._kf)) valid
         self._times = np.zeros(0, np.float64)  # [capacity] keyframe timestamps, same rows
-        self._new_small: Optional[tuple[int, np.ndarray]] = None  # (id, reduced gray) of the newest keyframe
+        self.verifier = KeyframeVerifier(self.config) if self.config.verify else None
         self.last_verifications: list[tuple[int, int, float, Verification]] = []  # (i, j, score, result) of the
         # last query (stable ids), for diagnostics
-        self.timings: dict[str, float] = {"describe": 0.0, "retrieve": 0.0, "store": 0.0, "features": 0.0,
-                                          "verify": 0.0}
-        self._features: "OrderedDict[int, OrbFeatures]" = OrderedDict()  # keyed by keyframe id
+        self._timings: dict[str, float] = {"describe": 0.0, "retrieve": 0.0}
+
+    @property
+    def timings(self) -> dict[str, float]:
+        """Seconds spent per step: describe, retrieve (here), store, features, verify (the verifier's)."""
+        v = self.verifier.timings if self.verifier is not None else {"store": 0.0, "features": 0.0, "verify": 0.0}
+        return {**self._timings, **v}
 
     # --- descriptors ----------------------------------------------------------------------------------------
     def descriptor(self, image: ImageLike) -> np.ndarray:
@@ -100,7 +101,6 @@ class ClassicalLoopDetector(LoopDetector):
 
     # --- LoopDetector -------------------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, frame: Frame) -> None:
-        c = self.config
         if self._kf and kf_id <= self._kf[-1].kf_id:
             raise ValueError(f"classical loop detector: keyframe id {kf_id} after {self._kf[-1].kf_id}; keyframes "
                              "must be added in time order")
@@ -109,43 +109,29 @@ class ClassicalLoopDetector(LoopDetector):
         if gray.dtype != np.uint8:
             gray = np.clip(gray, 0, 255).astype(np.uint8)
         d = self.descriptor(gray)
-        t1 = time.perf_counter()
-        self.timings["describe"] += t1 - t0
-        small, K = self._reduce(gray, frame.intrinsics) if c.verify else (None, None)
-        jpeg = None
-        if small is not None:
-            ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, int(c.jpeg_quality)])
-            jpeg = buf if ok else None
+        self._timings["describe"] += time.perf_counter() - t0
+        if self.verifier is not None:
+            self.verifier.add(int(kf_id), gray, frame.intrinsics)
         self._append_descriptor(d, float(frame.timestamp))
-        self._kf.append(_Keyframe(int(kf_id), int(frame.index), float(frame.timestamp), jpeg, K))
-        self._new_small = (int(kf_id), small) if small is not None else None
-        self.timings["store"] += time.perf_counter() - t1
+        self._kf.append(_Keyframe(int(kf_id), int(frame.index), float(frame.timestamp)))
 
     def query(self, kf_id: int, skip: Optional[Callable[[int], bool]] = None) -> list[LoopCandidate]:
-        c = self.config
         r = self._row(kf_id)
-        kf = self._kf[r]
         t1 = time.perf_counter()
         candidates = self._retrieve(r)
-        self.timings["retrieve"] += time.perf_counter() - t1
+        self._timings["retrieve"] += time.perf_counter() - t1
         self.last_verifications = []
         out: list[LoopCandidate] = []
         for j_row, score in candidates:
             j_id = self._kf[j_row].kf_id
-            if not c.verify:
+            if self.verifier is None:
                 out.append(LoopCandidate(kf_id, j_id, score, verified=None, inliers=0))
                 continue
             if skip is not None and skip(j_id):  # the policy would refuse it: skip the expensive verification
                 continue
-            small = self._new_small[1] if self._new_small and self._new_small[0] == kf_id else None
-            fa = self._get_features(kf, small)
-            fb = self._get_features(self._kf[j_row])
-            if fa is None or fb is None:
+            res = self.verifier.verify(kf_id, j_id)
+            if res is None:  # a side without intrinsics: cannot be verified
                 continue
-            t3 = time.perf_counter()
-            res = verify(fa, fb, min_inliers=c.min_inliers, min_inlier_ratio=c.min_inlier_ratio,
-                         ratio=c.ratio, cross_check=c.cross_check, threshold_px=c.ransac_threshold_px)
-            self.timings["verify"] += time.perf_counter() - t3
             self.last_verifications.append((kf_id, j_id, score, res))
             out.append(LoopCandidate(kf_id, j_id, score, verified=bool(res.accepted), inliers=res.inliers))
         return out
@@ -156,37 +142,11 @@ class ClassicalLoopDetector(LoopDetector):
         except KeyError:
             return
         n = len(self._kf)
-        self._features.pop(kf_id, None)
+        if self.verifier is not None:
+            self.verifier.remove(kf_id)
         del self._kf[r]
         self._desc[r : n - 1] = self._desc[r + 1 : n]
         self._times[r : n - 1] = self._times[r + 1 : n]
-
-    def _reduce(self, gray: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
-        h, w = gray.shape
-        s = min(1.0, self.config.store_max_side / float(max(h, w)))
-        if s >= 1.0:
-            return gray, K
-        nw, nh = max(1, int(round(w * s))), max(1, int(round(h * s)))
-        small = cv2.resize(gray, (nw, nh), interpolation=cv2.INTER_AREA)
-        return small, K.scaled(nw / w, nh / h)
-
-    def _get_features(self, kf: _Keyframe, gray: Optional[np.ndarray] = None) -> Optional[OrbFeatures]:
-        key = kf.kf_id
-        feats = self._features.get(key)
-        if feats is not None:
-            self._features.move_to_end(key)
-            return feats
-        if kf.intrinsics is None or (gray is None and kf.jpeg is None):
-            return None
-        t = time.perf_counter()
-        if gray is None:
-            gray = cv2.imdecode(kf.jpeg, cv2.IMREAD_GRAYSCALE)
-        feats = extract(gray, kf.intrinsics, self.config.orb_features)
-        self.timings["features"] += time.perf_counter() - t
-        self._features[key] = feats
-        while len(self._features) > self.config.feature_cache:
-            self._features.popitem(last=False)
-        return feats
 
     # --- steps -------------------------------------------------------------------------------------------------
     def _retrieve(self, r: int) -> list[tuple[int, float]]:

@@ -12,7 +12,7 @@ import torch
 from pvslam_core.types import Frame, Intrinsics
 from pvslam_plugins.loops.classical.config import ClassicalLoopConfig
 from pvslam_plugins.loops.classical.detector import ClassicalLoopDetector, make_loop_detector
-from pvslam_plugins.loops.classical.verify import extract, verify
+from pvslam_plugins.loops.verification import extract, verify
 
 W, H = 320, 240
 K = Intrinsics(fx=288.0, fy=288.0, cx=(W - 1) / 2, cy=(H - 1) / 2, width=W, height=H)
