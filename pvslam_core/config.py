@@ -106,6 +106,10 @@ class GraphSection(PluginConfig):
     init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe: the first "
                             "keyframe with the newest, then with the next older ones (fast motion breaks the flow "
                             "of the farthest pair)")
+    init_window: int = Field(
+        8, ge=1, description="the first view of an initialisation pair is at most this many keyframes before the "
+        "newest (a sliding window: a hand-held camera that turned away never overlaps the fragment's first "
+        "keyframe again; pvslam_core/slam/bootstrap.py)")
     neighbours: int = Field(3, ge=1, description="edges to the previous `neighbours` keyframes of each new keyframe")
     proximity_window: int = Field(25, ge=0, description="look back this many keyframes for proximity edges")
     proximity_thresh: float = Field(16.0, gt=0, description="max frame distance (BA px) for a proximity edge")
@@ -114,17 +118,21 @@ class GraphSection(PluginConfig):
     active_window: int = Field(10, ge=2, description="edges touching the last N keyframes are observed in each update")
     remove_redundant: bool = Field(True, description="drop a keyframe that is too close to its predecessor")
     redundant_thresh: float = Field(1.5, ge=0, description="frame distance (BA px) under which a keyframe is redundant")
-    defer_redundant: bool = Field(
-        True, description="a frame the frontend proposes as a keyframe stays a non-keyframe while its frame distance "
-        "to the last keyframe, under its motion-only pose, is below redundant_thresh: it would be removed as "
-        "redundant after paying for its edges and BA (on the driving loop more than half the proposals were)")
-    defer_max_flow: float = Field(
-        2.0, ge=0, description="defer only proposals whose measured mean flow to the last keyframe is at most this "
-        "(BA px): in turns the image moves fast while the frame distance (mostly translation) stays small, and "
-        "tracking needs a recent reference")
-    defer_max_frames: int = Field(
-        3, ge=0, description="at most this many consecutive proposals deferred (tracking against an older "
-        "reference degrades)")
+    redundant_max_flow: float = Field(
+        4.0, ge=0, description="...and the 90th percentile of the same per-pixel distance must also be under this "
+        "(BA px; 0: the mean alone): where most of the image is far (a wide street, a highway) the mean stays small "
+        "while the near field moves several BA px, and keyframes 13 m apart were judged redundant "
+        "(pvslam_core/slam/keyframing.py)")
+    max_keyframe_gap_s: float = Field(
+        0.5, gt=0, description="a proposed keyframe more than this many seconds after the last kept one is never "
+        "redundant, whatever the estimate says (ORB-SLAM keeps one at least every second): when the estimate "
+        "underrates the motion (a far scene, a textureless road) the frame distance stays small and the kept "
+        "keyframes were 38 m apart on the synthetic street, with the scale collapsing in between")
+    provisional_keyframes: bool = Field(
+        True, description="a new keyframe whose frame distance to the last one (under its motion-only pose guess) is "
+        "below redundant_thresh stays provisional: the tracking reference of the next frames, but no edges, BA or "
+        "loop query until the next keyframe removes it (still redundant) or makes it an ordinary one. About half "
+        "the driving loop's keyframes used to pay for edges and a BA and then be removed as redundant")
     reinit_after: int = Field(4, ge=1, description="consecutive failed frames before the map is re-initialised")
     max_active_edges: int = Field(
         256, ge=8, description="cap on active edges: beyond it the oldest edges not touching the newest keyframe "

@@ -16,6 +16,11 @@ that feed frames themselves (:class:`pvslam_core.tracker.Tracker`).  Before the 
 fitted to the data (:mod:`pvslam_core.adapt`: no ``labels`` segmenter on unlabelled data).  An optional
 :class:`~pvslam_core.observer.RunObserver` (a live viewer) is told of every frame, keyframe and loop.  Poses are
 T_wc ``[t, q_xyzw]`` (see :mod:`pvslam_core.types`).
+
+Threads (:mod:`pvslam_core.background`): the mapping is one thread; :meth:`run` decodes the next frames on a
+reader thread (``run.read_ahead``), and with a run directory the motion cue, the VPS update and the panoptic PNG of
+each frame run in order on an output thread (``run.write_behind``) while the next frame is mapped -- unless an
+observer waits for each frame's panoptic.  Both queues are bounded, so memory stays flat.
 """
 from __future__ import annotations
 
@@ -176,13 +181,18 @@ class Pipeline:
         t2, c2 = time.perf_counter(), time.thread_time()
         panoptic: Optional[PanopticSegmentation] = None  # this frame's temporally consistent segmentation
         if self.vps is not None and seg is not None:
-            self.vps_state = self.vps.update(self.vps_state, frame, seg, motion_cue(self.last, result))
-            panoptic = self.vps_state.panoptic
+            # With nobody waiting for this frame's panoptic (no observer), the motion cue, the VPS and its PNG run
+            # on the output thread, in frame order, while the next frame is mapped (FrameResults are not changed
+            # after they are returned); else here.
+            if self.observer is not None or self.outputs is None or not self.outputs.behind_submit(
+                    self._vps_step, frame, seg, self.last, result):
+                self.vps_state = self.vps.update(self.vps_state, frame, seg, motion_cue(self.last, result))
+                panoptic = self.vps_state.panoptic
+                if self.outputs is not None:
+                    self.outputs.panoptic(frame, panoptic)
         self.last = result
         t3, c3 = time.perf_counter(), time.thread_time()
         if self.outputs is not None:
-            if panoptic is not None:
-                self.outputs.panoptic(frame, panoptic)
             self.outputs.frame(frame, seg)
             if result.is_keyframe and self.mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
                 self.outputs.checkpoint(self.mapper, self.frames_done + 1)
@@ -195,6 +205,14 @@ class Pipeline:
         for name, dt in (("segment", c1 - c0), ("map", c2 - c1), ("vps", c3 - c2), ("outputs", cnow - c3)):
             self.stage_cpu[name] += dt
         return result
+
+    def _vps_step(self, frame: Frame, seg: PanopticSegmentation, last: Optional[FrameResult],
+                  result: FrameResult) -> None:
+        """Motion cue, VPS update and panoptic PNG of one frame, on the output thread (see :meth:`step`)."""
+        from .slam.motion_cue import motion_cue
+
+        self.vps_state = self.vps.update(self.vps_state, frame, seg, motion_cue(last, result))
+        self.outputs.panoptic_now(frame, self.vps_state.panoptic)
 
     def _observe(self, frame: Frame, result: FrameResult, panoptic: Optional[PanopticSegmentation]) -> None:
         from .observer import KeyframeSnapshot
@@ -241,9 +259,12 @@ class Pipeline:
             "stage_seconds": {k: round(v, 3) for k, v in self.stage.items()},  # read = dataset iteration
             "cpu_seconds": round(cpu, 3),  # process CPU time (all threads), start to end of the final BA
             "stage_cpu_seconds": {k: round(v, 3) for k, v in self.stage_cpu.items()},  # the pipeline thread's
+            "map_cpu_seconds": {k: round(v, 3) for k, v in sorted(mapper.cpu.items())},  # parts of "map"
         }
         tracking = {"initialized": bool(self.ever_initialized), "active_edges": g.num_edges,
-                    "retired_edges": g.num_retired}
+                    "retired_edges": g.num_retired, "keyframes_added": g.next_id,
+                    "keyframes_removed": g.next_id - g.n,
+                    "keyframes_provisional_removed": mapper.provisional_removed}
         if not self.ever_initialized:
             LOG.error("no motion was estimated: the map never initialised (too little parallax, too few frames or "
                       "no texture); the trajectory holds placeholder poses")
@@ -303,7 +324,12 @@ class Pipeline:
 
         try:
             # frames are decoded on a background thread, at most run.read_ahead ahead (see background.py)
-            frames = read_ahead(islice(self.dataset, limit), self.pcfg.run.read_ahead)
+            # (only the built-in readers' BaseReader: each frame it yields is a new object, so reading ahead cannot
+            # change a frame the pipeline has not processed yet; other readers are iterated in this thread)
+            from .datasets.base import BaseReader
+
+            depth = self.pcfg.run.read_ahead if isinstance(self.dataset, BaseReader) else 0
+            frames = read_ahead(islice(self.dataset, limit), depth)
             with _sigterm_as_interrupt(), _progress(total, self.pcfg.run.progress, "pvslam") as bar, \
                     closing(frames):
                 t_prev, c_prev = time.perf_counter(), time.thread_time()

@@ -47,17 +47,17 @@ class RunOutputs:
             self._write("groundtruth_loops.json", _write_json, self.dir / "groundtruth_loops.json",
                         {"pairs": [[int(i), int(j)] for i, j in info.loop_pairs], "source": info.source or info.name})
         self.pan_writer = None
-        self.behind = None  # background thread of the per-frame panoptic writes
         if pcfg.outputs.panoptic_png:
             from .outputs.panoptic_png import PanopticWriter
 
             # a journal line per frame, segments.json once at the end (see PanopticWriter)
             self.pan_writer = PanopticWriter(self.dir, categories=self.categories or None,
                                              vis=pcfg.outputs.panoptic_vis, flush_every=0, journal=True)
-            if pcfg.run.write_behind > 0:
-                from .background import BackgroundWriter
+        self.behind = None  # the output thread: per-frame VPS and panoptic writes (see Pipeline.step)
+        if pcfg.run.write_behind > 0:
+            from .background import BackgroundWriter
 
-                self.behind = BackgroundWriter(pcfg.run.write_behind, name="pvslam-panoptic-writer")
+            self.behind = BackgroundWriter(pcfg.run.write_behind, name="pvslam-output")
 
     def frame(self, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
         self.names[frame.index] = frame.name
@@ -67,12 +67,25 @@ class RunOutputs:
 
     def panoptic(self, frame: Frame, seg: PanopticSegmentation) -> None:
         if self.pan_writer is not None:
-            args = (f"panoptic/{frame.index:06d}.png", self.pan_writer.write, frame.index, seg, frame.name or None)
             if self.behind is not None:  # `seg` is this frame's own object: nothing changes it afterwards
-                self.behind.submit(self._write, *args)
+                self.behind.submit(self.panoptic_now, frame, seg)
             else:
-                self._write(*args)
+                self.panoptic_now(frame, seg)
             self._raise_write_errors()  # also the errors of writes finished in the background
+
+    def panoptic_now(self, frame: Frame, seg: PanopticSegmentation) -> None:
+        """Write this frame's panoptic PNG in the calling thread (a write error is recorded, see :meth:`_write`)."""
+        if self.pan_writer is not None:
+            self._write(f"panoptic/{frame.index:06d}.png", self.pan_writer.write, frame.index, seg,
+                        frame.name or None)
+
+    def behind_submit(self, fn, *args) -> bool:
+        """Run ``fn(*args)`` on the output thread, in order with the writes; False (nothing done) without one."""
+        if self.behind is None:
+            return False
+        self.behind.submit(fn, *args)
+        self._raise_write_errors()
+        return True
 
     def drain(self) -> None:
         """Wait for the background writes (their write errors are then in ``write_errors``)."""
@@ -107,12 +120,12 @@ class RunOutputs:
     def close(self, mapper, partial: bool = False, frames_done: Optional[int] = None) -> None:
         """Final files: segments.json, the point clouds, keyframe depth; with ``partial`` a metrics.json that says
         the run stopped early. Write failures are collected as in :meth:`checkpoint`."""
-        if self.pan_writer is not None:
-            behind, self.behind = self.behind, None
-            try:
-                if behind is not None:
-                    behind.close()  # every queued frame is written before segments.json
-            finally:
+        behind, self.behind = self.behind, None
+        try:
+            if behind is not None:
+                behind.close()  # every queued frame is written before segments.json
+        finally:
+            if self.pan_writer is not None:
                 self._write("panoptic/segments.json", self.pan_writer.close)
         g = mapper.graph
         if g.n and mapper.initialized and (self.cfg.outputs.ply or self.cfg.outputs.keyframe_depth):

@@ -425,60 +425,88 @@ def motion_only_ba(
     weight_scale: float = WEIGHT_SCALE,
     robust: Optional[str] = None,
     robust_scale: float = 2.0,
-) -> tuple[torch.Tensor, float]:
+):
     """Estimate the pose ``T_wc [7]`` of a new frame from flow targets of a fixed reference keyframe.
 
     ``target [2, h, w]``: positions in the new frame of the keyframe's pixels; ``weight [2, h, w]`` their
     confidences.  ``robust``/``robust_scale``: IRLS kernel as in :func:`dense_ba`.  Returns
     ``(pose_wc float64 [7], final cost)`` with the cost as in :func:`dense_ba` (no robust re-weighting).  On
     non-finite input or update the initial pose is returned (cost NaN if it could not be evaluated).
+
+    Batched: ``pose_wc [F, 7]`` with ``target``/``weight [F, 2, h, w]`` solves ``F`` independent frames against the
+    same keyframe at once (one set of tensor ops instead of ``F``: the frames between two keyframes are placed in
+    one call) and returns ``(poses [F, 7], costs float64 [F])``; each frame behaves as if solved alone.
     """
+    batched = pose_wc.dim() == 2
     dev = kf_disp.device
     dtype = torch.float64 if dev.type == "cpu" else torch.float32
     h, w = kf_disp.shape[-2:]
-    pose0 = pose_wc.to(dev, torch.float64).reshape(7)
-    kf = kf_pose_wc.to(dev, torch.float64).reshape(7)
-    for t in (pose0, kf, kf_disp, target, weight):
+    pose0 = pose_wc.to(dev, torch.float64).reshape(-1, 7)  # [F, 7]
+    F = pose0.shape[0]
+    kf = kf_pose_wc.to(dev, torch.float64).reshape(1, 7)  # T_wc of the keyframe = G_kf^-1
+    target = target.reshape(F, 2, -1)
+    weight = weight.reshape(F, 2, -1)
+    ok_in = torch.ones(F, dtype=torch.bool, device=dev)
+    for t in (kf, kf_disp):
         if not _all_finite(t):
-            _log_once("motion_only_ba: non-finite input; initial pose returned")
-            return pose0.clone(), float("nan")
-    tgt = target.reshape(2, -1).T.unsqueeze(0).to(dtype)  # [1, P, 2]
-    conf = weight.reshape(2, -1).T.unsqueeze(0).to(dtype).clamp(min=0)
-    dd = kf_disp.reshape(1, -1).to(dtype)
-    G_kf_inv = kf  # T_wc of the keyframe = G_kf^-1
-    G = se3_inv(pose0)
+            ok_in[:] = False
+    for t in (pose0, target, weight):
+        if not _all_finite(t):
+            ok_in &= torch.isfinite(t.reshape(F, -1)).all(-1).to(dev)
+    if not bool(ok_in.all()):
+        _log_once("motion_only_ba: non-finite input; initial pose returned")
+        if not bool(ok_in.any()):
+            out = pose0.clone()
+            nan = torch.full((F,), float("nan"), dtype=torch.float64)
+            return (out, nan) if batched else (out[0], float("nan"))
+    tgt_u, tgt_v = target[:, 0].to(dtype), target[:, 1].to(dtype)  # [F, P]
+    conf_u, conf_v = weight[:, 0].to(dtype).clamp(min=0), weight[:, 1].to(dtype).clamp(min=0)
+    dd = kf_disp.reshape(1, -1).to(dtype).expand(F, -1)
+    zero = torch.zeros_like(tgt_u)
+    tgt_u, tgt_v = torch.where(ok_in[:, None], tgt_u, zero), torch.where(ok_in[:, None], tgt_v, zero)
+    G = se3_inv(torch.where(ok_in[:, None], pose0, kf.expand(F, 7)))  # [F, 7] world-to-camera
 
     def evaluate(G, jac):
-        Gij = se3_mul(G, G_kf_inv)  # camera kf -> camera new
-        R, t = quat_to_rotmat(Gij[3:]).to(dtype)[None], Gij[:3].to(dtype)[None]
-        out = project_points(R, t, dd, intr, h, w, min_depth, jac)
-        r = tgt - torch.stack([out["u"], out["v"]], dim=-1)
-        return r, out
+        Gij = se3_mul(G, kf.expand(F, 7))  # camera kf -> camera new
+        R, t = quat_to_rotmat(Gij[:, 3:]).to(dtype), Gij[:, :3].to(dtype)
+        out = project_points(R, t, dd, intr, h, w, min_depth, "parts" if jac else False)
+        return tgt_u - out["u"], tgt_v - out["v"], out
 
-    cost = float("nan")
+    active = ok_in.clone()  # a frame whose system fails to factorise stops (keeps its last pose)
+    eye = torch.eye(6, dtype=torch.float64, device=dev)
     for _ in range(max(0, int(iters))):
-        r, out = evaluate(G, True)
-        cw = conf * out["valid"].unsqueeze(-1)
-        rw = _robust_weights(r[..., 0], r[..., 1], robust, robust_scale)  # [1, P] or None
+        ru, rv, out = evaluate(G, True)
+        valid = out["valid"].to(dtype)
+        wu, wv = conf_u * valid * weight_scale, conf_v * valid * weight_scale  # [F, P]
+        rw = _robust_weights(ru, rv, robust, robust_scale)
         if rw is not None:
-            cw = cw * rw.unsqueeze(-1)
-        W = (cw * weight_scale).reshape(-1, 1)
-        J = out["Jj"].reshape(-1, 6)
-        Hm = (J * W).T @ J
-        b = ((J * W).T @ r.reshape(-1, 1)).squeeze(-1)
+            wu, wv = wu * rw, wv * rw
+        JuT, JvT = out["JuT"], out["JvT"]  # [F, 6, P]
+        Hm = torch.bmm(JuT * wu[:, None], JuT.transpose(1, 2)) + torch.bmm(JvT * wv[:, None], JvT.transpose(1, 2))
+        b = torch.bmm(JuT, (wu * ru).unsqueeze(-1)).squeeze(-1) + torch.bmm(JvT, (wv * rv).unsqueeze(-1)).squeeze(-1)
         Hm = Hm.double()
-        A = Hm + torch.diag(ep + lm * torch.diagonal(Hm))
+        A = Hm + eye * (ep + lm * torch.diagonal(Hm, dim1=-2, dim2=-1)).unsqueeze(-1)
         L, info = torch.linalg.cholesky_ex(A)
-        if int(info) != 0:
+        ok = info == 0
+        if not bool(ok.all()):
+            L = torch.where(ok[:, None, None], L, eye.expand_as(L))
+        dx = torch.cholesky_solve(b.double().unsqueeze(-1), L).squeeze(-1)  # [F, 6]
+        ok &= torch.isfinite(dx).all(-1)
+        active &= ok
+        if not bool(active.any()):
             break
-        dx = torch.cholesky_solve(b.double().unsqueeze(-1), L).squeeze(-1)
-        if not _all_finite(dx):
-            break
+        dx = torch.where(active[:, None], dx, torch.zeros_like(dx))
         G = se3_mul(se3_exp(dx), G)
-    r, out = evaluate(G, False)
-    cost = float((conf * out["valid"].unsqueeze(-1) * r * r).sum())
+    ru, rv, out = evaluate(G, False)
+    valid = out["valid"].to(dtype)
+    cost = ((conf_u * ru * ru + conf_v * rv * rv) * valid).sum(-1).double()  # [F]
     T = se3_inv(G)
-    if not (math.isfinite(cost) and _all_finite(T)):
-        _log_once("motion_only_ba: non-finite result; initial pose returned")
-        return pose0.clone(), float("nan")
-    return T, cost
+    good = ok_in & torch.isfinite(cost) & torch.isfinite(T).all(-1)
+    if not bool(good.all()):
+        if bool((ok_in & ~good).any()):
+            _log_once("motion_only_ba: non-finite result; initial pose returned")
+        T = torch.where(good[:, None], T, pose0)
+        cost = torch.where(good, cost, torch.full_like(cost, float("nan")))
+    if batched:
+        return T, cost
+    return T[0], float(cost[0])

@@ -331,5 +331,17 @@ def sim3_to_se3(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _bcast_last(*xs: torch.Tensor) -> list[torch.Tensor]:
-    shape = torch.broadcast_shapes(*(x.shape[:-1] for x in xs))
+    # torch.broadcast_shapes goes through torch._refs (~0.3 ms a call, and its first call imports sympy, ~1 s):
+    # the composition of two poses runs thousands of times per run, so broadcast the batch shapes here
+    shapes = [tuple(x.shape[:-1]) for x in xs]
+    if all(s == shapes[0] for s in shapes):
+        return list(xs)
+    n = max(len(s) for s in shapes)
+    out = []
+    for dims in zip(*(((1,) * (n - len(s))) + s for s in shapes)):
+        big = {d for d in dims if d != 1}
+        if len(big) > 1:
+            raise RuntimeError(f"shapes {shapes} cannot be broadcast together")
+        out.append(big.pop() if big else 1)
+    shape = torch.Size(out)
     return [x.expand(shape + x.shape[-1:]) for x in xs]

@@ -49,8 +49,9 @@ def to_jsonable(obj: Any) -> Any:
     raise TypeError(f"cannot write {type(obj).__name__} to JSON")
 
 
-def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int = 2) -> None:
-    """Write ``obj`` as strict JSON to ``path`` atomically (temp file in the same folder + ``os.replace``)."""
+def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:
+    """Write ``obj`` as strict JSON to ``path`` atomically (temp file in the same folder + ``os.replace``);
+    ``indent=None`` writes one line with the (much faster) C encoder."""
     text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False) + "\n"
     atomic_write_text(path, text)
 

@@ -30,7 +30,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from ._atomic import atomic_write_bytes
-from .metrics import write_json_atomic
+from .metrics import to_jsonable, write_json_atomic
 
 __all__ = [
     "MAX_ID",
@@ -44,10 +44,12 @@ __all__ = [
     "PanopticWriter",
     "load_panoptic_dir",
     "read_segments_json",
+    "has_segments",
 ]
 
 MAX_ID = 256**3 - 1
 FORMAT_VERSION = 2
+JOURNAL = "segments.jsonl"  # PanopticWriter's per-frame journal (see its docstring)
 LOG = logging.getLogger("pvslam")
 
 
@@ -229,7 +231,14 @@ class PanopticWriter:
     """Writes ``run_dir/panoptic/{frame:06d}.png`` per frame and ``panoptic/segments.json`` in the COCO panoptic
     format (rewritten atomically on :meth:`flush` / :meth:`close`, and every ``flush_every`` frames). With
     ``categories`` and ``vis=True`` it also writes ``run_dir/panoptic_vis/{frame:06d}.png`` colour images.
-    Without ``categories``, the categories are declared from the segments seen (``category_<id>``)."""
+    Without ``categories``, the categories are declared from the segments seen (``category_<id>``).
+
+    ``journal=True`` (what a run uses, with ``flush_every=0``): instead of rewriting ``segments.json`` during the
+    run -- a file that holds every frame so far, so rewriting it every 50 frames costs O(frames^2) over a run --
+    each frame appends one JSON line to ``panoptic/segments.jsonl`` (O(1) per frame); :meth:`close` writes
+    ``segments.json`` and removes the journal.  A process killed before :meth:`close` leaves the journal, and
+    :func:`read_segments_json` assembles the same content from it, so no written frame is lost.
+    """
 
     def __init__(
         self,
@@ -237,6 +246,7 @@ class PanopticWriter:
         categories: Optional[Any] = None,
         vis: bool = False,
         flush_every: int = 50,
+        journal: bool = False,
     ):
         self.run_dir = os.fspath(run_dir)
         self.dir = os.path.join(self.run_dir, "panoptic")
@@ -252,6 +262,10 @@ class PanopticWriter:
         self.scores: dict[int, dict[str, float]] = {}
         self._seen_cats: dict[int, bool] = {}  # category id -> isthing, of every segment written
         self._since_flush = 0
+        self._journal = None
+        if journal:
+            self._journal = open(os.path.join(self.dir, JOURNAL), "w", encoding="utf-8", newline="\n")
+            self._journal_line({"categories": self._categories_json()})
 
     def write(self, frame_index: int, seg, image_name: Optional[str] = None) -> str:
         """Write one frame (a later write of the same index replaces it). ``image_name``: the input image's file
@@ -267,8 +281,13 @@ class PanopticWriter:
         self.annotations[i] = {"image_id": i, "file_name": name, "segments_info": info}
         present = {d["id"] for d in info}
         self.scores[i] = {str(int(s.id)): float(s.score) for s in _unique_segments(seg) if int(s.id) in present}
+        new_cats = {}
         for s in seg.segments:
-            self._seen_cats.setdefault(int(s.category_id), bool(s.isthing))
+            if int(s.category_id) not in self._seen_cats:
+                self._seen_cats[int(s.category_id)] = new_cats[str(int(s.category_id))] = bool(s.isthing)
+        if self._journal is not None:
+            self._journal_line({"image": self.images[i], "annotation": self.annotations[i], "scores": self.scores[i],
+                                **({"seen_categories": new_cats} if new_cats else {})})
         self._since_flush += 1
         if self.flush_every > 0 and self._since_flush >= self.flush_every:
             self.flush()
@@ -304,30 +323,88 @@ class PanopticWriter:
             "pvslam": {"format_version": FORMAT_VERSION, "segment_scores": {str(k): self.scores[k] for k in keys}},
         }
 
+    def _journal_line(self, obj: dict) -> None:
+        # compact (the C encoder); flushed to the OS per line, so a killed process loses nothing written
+        self._journal.write(json.dumps(to_jsonable(obj), separators=(",", ":"), allow_nan=False) + "\n")
+        self._journal.flush()
+
     def flush(self) -> None:
-        write_json_atomic(os.path.join(self.dir, "segments.json"), self.to_json())
+        # compact: with an indent Python's pure-Python encoder runs (0.7 s for 200 frames, 11 s for 3000)
+        write_json_atomic(os.path.join(self.dir, "segments.json"), self.to_json(), indent=None)
         self._since_flush = 0
 
     def close(self) -> None:
-        self.flush()
+        """Write ``segments.json``; then the journal (if any) is no longer needed and goes (it stays when
+        ``segments.json`` could not be written)."""
+        journal, self._journal = self._journal, None
+        try:
+            self.flush()
+        finally:
+            if journal is not None:
+                journal.close()
+        if journal is not None:
+            os.unlink(os.path.join(self.dir, JOURNAL))
 
     def __enter__(self) -> "PanopticWriter":
         return self
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         try:
-            self.flush()
+            self.close()
         except Exception:
             if exc_type is None:
                 raise
         return False
 
 
+def _from_journal(path: str) -> dict:
+    """The ``segments.json`` content assembled from a :class:`PanopticWriter` journal (a run killed before its
+    end); a torn last line is ignored."""
+    categories: list[dict] = []
+    images: dict[int, dict] = {}
+    annotations: dict[int, dict] = {}
+    scores: dict[str, dict] = {}
+    seen: dict[int, bool] = {}
+    with open(path, "r", encoding="utf-8") as f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                break  # the process died while writing this line
+            if "categories" in rec:
+                categories = rec["categories"]
+                continue
+            i = int(rec["image"]["id"])
+            images[i], annotations[i], scores[str(i)] = rec["image"], rec["annotation"], rec["scores"]
+            for cid, isthing in rec.get("seen_categories", {}).items():
+                seen.setdefault(int(cid), bool(isthing))
+    declared = {int(c["id"]) for c in categories}
+    for cid, isthing in sorted(seen.items()):
+        if cid not in declared:
+            categories.append({"id": cid, "name": f"category_{cid}", "isthing": int(isthing),
+                               "supercategory": "thing" if isthing else "stuff", "color": [128, 128, 128]})
+    keys = sorted(annotations)
+    return {"images": [images[k] for k in keys], "annotations": [annotations[k] for k in keys],
+            "categories": categories, "pvslam": {"format_version": FORMAT_VERSION, "segment_scores": scores}}
+
+
+def has_segments(panoptic_dir: str | os.PathLike) -> bool:
+    """Whether ``panoptic_dir`` holds ``segments.json`` or a writer's journal of it."""
+    d = os.fspath(panoptic_dir)
+    return os.path.isfile(os.path.join(d, "segments.json")) or os.path.isfile(os.path.join(d, JOURNAL))
+
+
 def read_segments_json(panoptic_dir: str | os.PathLike) -> dict:
     """``panoptic/segments.json`` as ``{"annotations": [{"frame_index", "file_name", "segments_info",
-    "scores"}], "categories": [...]}`` for both the COCO format and the first pvslam format."""
-    with open(os.path.join(os.fspath(panoptic_dir), "segments.json"), "r", encoding="utf-8") as f:
-        meta = json.load(f)
+    "scores"}], "categories": [...]}`` for both the COCO format and the first pvslam format.  When the writer's
+    journal ``segments.jsonl`` is there (the run was killed before writing ``segments.json``), it is read instead:
+    it holds every frame written."""
+    journal = os.path.join(os.fspath(panoptic_dir), JOURNAL)
+    if os.path.isfile(journal):
+        meta = _from_journal(journal)
+    else:
+        with open(os.path.join(os.fspath(panoptic_dir), "segments.json"), "r", encoding="utf-8") as f:
+            meta = json.load(f)
     scores = (meta.get("pvslam") or {}).get("segment_scores", {})
     anns = []
     for ann in meta.get("annotations", []):

@@ -115,19 +115,40 @@ class FramePoses:
     def refine(self, e: FrameEntry, init_wc: torch.Tensor, iters: int = 4) -> bool:
         """Motion-only BA of entry ``e`` against its anchor keyframe, starting from ``init_wc``; stores the new
         relative pose. False (unchanged) when the result is not finite."""
+        return self.refine_many([e], init_wc.reshape(1, 7), iters) == 1
+
+    def refine_many(self, entries: list[FrameEntry], inits_wc: torch.Tensor, iters: int = 4) -> int:
+        """:meth:`refine` for several entries (one batched motion-only BA per anchor keyframe, from ``inits_wc
+        [len(entries), 7]``). Returns how many were updated."""
+        from ..geometry.ba import motion_only_ba
+
         g = self.graph
-        a = g.index_of(e.anchor)
-        pose = self.motion_only(init_wc, g.poses[a], g.disps[a], g.intrinsics, e.target, e.weight, iters)
-        if pose is None:
-            return False
-        e.rel = se3_mul(se3_inv(g.poses[a].double().cpu()), pose)
-        return True
+        by_anchor: dict[int, list[int]] = {}
+        for n, e in enumerate(entries):
+            by_anchor.setdefault(e.anchor, []).append(n)
+        done = 0
+        for anchor, rows in by_anchor.items():
+            a = g.index_of(anchor)
+            t_a = g.poses[a].double()
+            init = inits_wc[rows].to(t_a.device, torch.float64)
+            target = torch.stack([entries[n].target for n in rows])
+            weight = torch.stack([entries[n].weight for n in rows])
+            poses, costs = motion_only_ba(init, t_a, g.disps[a], g.intrinsics, target, weight, iters=iters,
+                                          robust=self.robust, robust_scale=self.robust_scale)
+            ok = torch.isfinite(poses).all(-1).tolist()  # a failed solve returns its (finite) start pose
+            inv_a = se3_inv(t_a.cpu())
+            rel = se3_mul(inv_a.expand(len(rows), 7), poses.double().cpu())
+            for m, n in enumerate(rows):
+                if ok[m]:
+                    entries[n].rel = rel[m]
+                    done += 1
+        return done
 
     def refill(self, iters: int = 4) -> int:
         """Re-estimate the relative pose of every non-keyframe that still has correspondences. Returns the count."""
-        n = 0
-        for e in self.entries:
-            if e.is_keyframe or e.target is None:
-                continue
-            n += self.refine(e, self.pose_of(e), iters)
-        return n
+        todo = [e for e in self.entries if not e.is_keyframe and e.target is not None]
+        if not todo:
+            return 0
+        _, poses = self.poses()
+        index = {id(e): n for n, e in enumerate(self.entries)}
+        return self.refine_many(todo, poses[[index[id(e)] for e in todo]], iters)

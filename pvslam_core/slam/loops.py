@@ -59,7 +59,12 @@ class LoopPolicy:
 
     # ------------------------------------------------------------------------------------------- rules --
     def _index(self, kf_id: int) -> int:
-        return int(self.graph.indices_of(torch.tensor([kf_id]))[0])
+        """Graph index of ``kf_id``, -1 when it is gone (a bisection of the graph's id list: this runs for every
+        candidate against every recent closure, thousands of times per lap on repeated laps)."""
+        try:
+            return self.graph.index_of(kf_id)
+        except KeyError:
+            return -1
 
     def suppressed(self, i_id: int, j_id: int) -> bool:
         """Rule 3: within ``nms_keyframes`` of a loop accepted from an earlier keyframe."""

@@ -4,6 +4,7 @@ The :class:`Mapper` owns the frame graph, the poses of every frame (:class:`~.fr
 policy (:class:`~.loops.LoopPolicy`); it calls the frontend, optimizer and loop detector through their interfaces
 only.  Per new keyframe ``k``::
 
+    settle the provisional keyframe, if any (below)
     graph.add_keyframe; frontend.add_keyframe(id); loop_detector.add_keyframe(id); neighbour + proximity edges
     retire edges that left the window (graph -> listeners.on_edges_retired)
     rounds x (obs = frontend.observe(active edges); optimizer.step(obs))          # online BA
@@ -11,24 +12,35 @@ only.  Per new keyframe ``k``::
     if closure: loop edges (i, j-1), (i, j), (i, j+1); optimizer.loop(...) unless gated
     motion-only BA of the frames anchored to the previous keyframe; drop a redundant keyframe
 
+Provisional keyframes (``graph.provisional_keyframes``).  Tracking needs a recent reference (the frontend's motion
+filter asks for a keyframe every second frame on the driving loop), the map does not: half of those keyframes used
+to be removed as redundant right after paying for their edges and BA.  A new keyframe whose frame distance to the
+last one (under its motion-only pose guess) is below ``redundant_thresh`` is therefore added *provisionally*: graph
+entry, frontend features, loop description and frame anchor only.  The next keyframe proposal settles it first:
+still redundant under the current estimate -> its frames are placed by motion-only BA against it and it is removed
+(never optimised); otherwise it gets its edges and the next window BA optimises it with the new keyframe.
+
 Poses are T_wc ``[t, q_xyzw]``; keyframes are named by stable id outside the graph (see :mod:`.graph`).
 """
 from __future__ import annotations
 
 import logging
+from collections import defaultdict
+from time import thread_time
 from typing import Optional
 
 import torch
 
 from ..config import PipelineConfig
-from ..geometry.lie import se3_interpolate, se3_mul
-from ..geometry.projective import edge_transforms, project_points
+from ..geometry.lie import se3_interpolate, se3_inv, se3_mul
+from ..geometry.projective import edge_transforms, frame_distance, project_points
 from ..interfaces import GraphListener
 from ..types import EdgeObservations, Frame, FrameResult, LoopClosure, PanopticSegmentation, SequenceInfo, TrackResult
 from .edges import active_edges, loop_edges, neighbour_edges, proximity_edges, retirement_mask
 from .frame_poses import FrameEntry, FramePoses
 from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph, _grid
-from .initializer import two_view_init
+from .bootstrap import Bootstrap
+from .keyframing import keyframe_distance
 from .loops import LoopPolicy
 
 LOG = logging.getLogger("pvslam")
@@ -48,6 +60,7 @@ class Mapper(GraphListener):
         self.graph = FrameGraph(self.ba_shape[0], self.ba_shape[1], intr.vector(torch.float32, device), device=device)
         self.frames = FramePoses(self.graph, self.cfg.motion_robust, self.cfg.motion_robust_scale)
         self.policy = LoopPolicy(pcfg.loop_closure, self.graph)
+        self.bootstrap = Bootstrap(self.cfg)  # map initialisation (sliding pairs, H/E model selection)
         for listener in (frontend, loop_detector, self):
             self.graph.add_listener(listener)
         self.initialized = False
@@ -58,6 +71,10 @@ class Mapper(GraphListener):
         self.failures = 0
         self.reinits = 0
         self._consecutive_failures = 0
+        self._provisional: Optional[int] = None  # id of the provisional keyframe (the newest), if any
+        # CPU seconds of this thread per part of the mapping (track, pose_guess, edges, ba, loops, fill, ...)
+        self.cpu: dict[str, float] = defaultdict(float)
+        self.provisional_removed = 0  # provisional keyframes removed without ever being optimised
 
     # ----------------------------------------------------------------------------------- GraphListener --
     def on_keyframe_removed(self, kf_id: int) -> None:
@@ -102,7 +119,12 @@ class Mapper(GraphListener):
             ii, jj = active_edges(self.graph, k, self.cfg.active_window)
             if ii.numel() == 0:
                 return
-            report = self.optimizer.step(self.graph, self._observe(ii, jj))
+            t0 = thread_time()
+            obs = self._observe(ii, jj)
+            t1 = thread_time()
+            report = self.optimizer.step(self.graph, obs)
+            self.cpu["edges"] += t1 - t0
+            self.cpu["ba"] += thread_time() - t1
             self.graph.age_edges(ii, jj)
             if report.rejected:
                 LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
@@ -131,7 +153,9 @@ class Mapper(GraphListener):
         if self.graph.n == 0:
             kf_id = self._add_keyframe(frame, seg, pose=IDENTITY.clone(), disp=None)
             return self._result(frame, self.frames.entries[-1], {}, kf_id=kf_id)
+        t0 = thread_time()
         track = self.frontend.track(frame, seg)
+        self.cpu["track"] += thread_time() - t0
         ref = self._reference(track)
         if track.failed:
             return self._failed(frame, seg, track, ref)
@@ -142,19 +166,77 @@ class Mapper(GraphListener):
                                           track.target, track.weight)
             return self._result(frame, entry, ref, track)
         a = self.graph.n - 1
-        pose = self._keyframe_pose_guess(a, track)
-        kf_id = self._add_keyframe(frame, seg, pose, disp=None)
+        t0 = thread_time()
+        pose = self._keyframe_pose_guess(a, track)  # against the tracking reference (maybe provisional)
+        self.cpu["pose_guess"] += thread_time() - t0
+        removed = self._settle_provisional()
+        a_id = self.graph.id_of(-1)  # the previous keyframe that stays
+        # after a removal the next keyframe is ordinary: chains of provisional keyframes judged on pose guesses
+        # alone thinned the map (90 instead of ~120 keyframes on the driving loop, and a higher ATE)
+        provisional = not removed and self._predict_redundant(pose, frame.timestamp)
+        kf_id = self._add_keyframe(frame, seg, pose, disp=None, provisional=provisional)
         entry = self.frames.entries[-1]
         k = self.graph.n - 1
+        if provisional:
+            self._fill_pending(a_id)
+            return self._result(frame, entry, ref, track, kf_id=kf_id)
         if not self.initialized:
             self._try_initialise(k)
             return self._result(frame, entry, ref, track, kf_id=kf_id)
         self._optimize_window(k, self.frontend.rounds)
+        t0 = thread_time()
         self._close_loops(k)
+        self.cpu["loops"] += thread_time() - t0
         self._fill_pending(a_id)
         result = self._result(frame, entry, ref, track, kf_id=kf_id)  # before the reference may be removed
         self._remove_redundant(k)
         return result
+
+    # ------------------------------------------------------------------------------ provisional keyframes --
+    def _redundancy(self, r: int) -> float:
+        """Symmetric distance (BA px, :func:`.keyframing.keyframe_distance`: mean and 90th percentile of the
+        induced flow) of keyframe ``r`` to keyframe ``r - 1`` under the current estimate."""
+        g = self.graph
+        if float(g.timestamps[r] - g.timestamps[r - 1]) > self.cfg.max_keyframe_gap_s:
+            return float("inf")  # never redundant: see GraphSection.max_keyframe_gap_s
+        return 0.5 * (self._kf_distance(g.poses[r - 1], g.poses[r], g.disps[r - 1])
+                      + self._kf_distance(g.poses[r], g.poses[r - 1], g.disps[r]))
+
+    def _kf_distance(self, pose_i: torch.Tensor, pose_j: torch.Tensor, disp_i: torch.Tensor) -> float:
+        c = self.cfg
+        poses = torch.stack([pose_i.double(), pose_j.to(pose_i.device).double()])
+        return keyframe_distance(poses, disp_i, self.graph.intrinsics, c.redundant_thresh, c.redundant_max_flow)
+
+    def _predict_redundant(self, pose: torch.Tensor, timestamp: float) -> bool:
+        """Whether a new keyframe at ``pose`` would be removed as redundant (``graph.provisional_keyframes``): its
+        frame distance from the last keyframe (that keyframe's depth, the new pose guess) is under
+        ``redundant_thresh``.  Such a keyframe becomes *provisional*: the tracking reference of the next frames
+        (tracking always needs a recent one), with no edges, BA or loop query until the next keyframe settles it
+        (the loop detector describes it like every keyframe: a detector hears of each keyframe it is told to forget)."""
+        c = self.cfg
+        g = self.graph
+        if not (c.provisional_keyframes and c.remove_redundant and self.initialized and g.n - 1 > self.fragment_start):
+            return False
+        if timestamp - float(g.timestamps[-1]) > c.max_keyframe_gap_s:
+            return False
+        return self._kf_distance(g.poses[-1], pose, g.disps[-1]) < c.redundant_thresh
+
+    def _settle_provisional(self, keep: bool = False) -> bool:
+        """Decide the provisional keyframe (the newest one) before anything else changes the map: still redundant
+        (and not ``keep``) -> its frames are placed (motion-only BA against it) and it goes; else it becomes an
+        ordinary keyframe (its edges now; the next window BA optimises it).  Returns whether it was removed."""
+        if self._provisional is None:
+            return False
+        kf_id, self._provisional = self._provisional, None
+        g = self.graph
+        r = g.index_of(kf_id)
+        if not keep and r - 1 > self.fragment_start and self._redundancy(r) < self.cfg.redundant_thresh:
+            self._fill_pending(kf_id)
+            g.remove_keyframe(r)  # frames anchored to it re-anchor to keyframe r - 1
+            self.provisional_removed += 1
+            return True
+        self._connect(r)
+        return False
 
     def _keyframe_pose_guess(self, a: int, track: TrackResult) -> torch.Tensor:
         t_a = self.graph.poses[a].double()
@@ -186,8 +268,10 @@ class Mapper(GraphListener):
         disp[hole] = disp[~hole].median()
         return disp.reshape(h, w)
 
-    def _add_keyframe(self, frame: Frame, seg, pose: torch.Tensor, disp: Optional[torch.Tensor]) -> int:
-        """Add a keyframe (graph, frontend, loop detector, frame poses, edges); returns its stable id."""
+    def _add_keyframe(self, frame: Frame, seg, pose: torch.Tensor, disp: Optional[torch.Tensor],
+                      provisional: bool = False) -> int:
+        """Add a keyframe (graph, frontend, loop detector, frame poses, edges); returns its stable id.  A
+        provisional one gets no edges yet (see :meth:`_settle_provisional`)."""
         h, w = self.ba_shape
         g = self.graph
         k_new = g.n
@@ -206,6 +290,17 @@ class Mapper(GraphListener):
         self.frontend.add_keyframe(kf_id, frame, seg)
         self.frames.add_keyframe(frame.index, frame.timestamp, kf_id)
         self.kf_images[kf_id], self.kf_segs[kf_id] = self._small(frame, seg)
+        if self.loop_detector is not None:  # every keyframe is described; candidates are asked after the BA
+            self.loop_detector.add_keyframe(kf_id, frame)
+        if provisional:
+            self._provisional = kf_id
+        else:
+            self._connect(k)
+        return kf_id
+
+    def _connect(self, k: int) -> None:
+        """Neighbour and proximity edges of keyframe ``k`` (the newest)."""
+        g = self.graph
         if k > self.fragment_start:
             ii, jj = neighbour_edges(k, self.cfg, first=self.fragment_start)
             g.add_edges(ii, jj, EDGE_ODOMETRY)
@@ -213,44 +308,15 @@ class Mapper(GraphListener):
                 ii, jj = proximity_edges(g, k, self.cfg, first=self.fragment_start)
                 if ii.numel():
                     g.add_edges(ii, jj, EDGE_PROXIMITY)
-        if self.loop_detector is not None:  # every keyframe is described; candidates are asked after the BA
-            self.loop_detector.add_keyframe(kf_id, frame)
-        return kf_id
 
     # --------------------------------------------------------------------------------- initialisation --
     def _try_initialise(self, k: int) -> None:
+        """Two-view initialisation of the current fragment on a sliding window of keyframe pairs (see
+        :mod:`.bootstrap`), then a window BA and the poses of the frames so far."""
         first = self.fragment_start
-        if k - first + 1 < self.cfg.warmup:
+        if not self.bootstrap.try_initialise(self, k):
             return
-        # The farthest pair first (most parallax); when its flow fails (fast motion: every frame a keyframe on a
-        # highway) nearer partners, down to `init_tries` pairs per keyframe.
-        init, m = None, k
-        for m in range(k, max(first, k - self.cfg.init_tries), -1):
-            pair = torch.tensor([first]), torch.tensor([m])
-            obs = self._observe(*pair)
-            self._release_pairs(*pair)  # a pair that is not a graph edge is not observed again
-            init = two_view_init(obs.target[0], obs.weight[0], self.graph.intrinsics,
-                                 min_parallax_deg=self.cfg.init_min_parallax_deg)
-            if init is not None:
-                break
-        if init is None:
-            LOG.debug("initialisation deferred at keyframe %d (too little parallax or too few inliers)", k)
-            return
-        t0 = self.graph.poses[first].double().cpu()
-        pose_m = se3_mul(t0, init.pose_wc)
-        ts = self.graph.timestamps.double().cpu()
-        span = float(ts[m] - ts[first]) or 1.0
-        idx = torch.arange(first + 1, k + 1)
-        alpha = ((ts[idx] - ts[first]) / span).clamp(min=0)  # > 1 (constant-velocity extrapolation) after m
-        poses = se3_interpolate(t0.expand(len(idx), 7), pose_m.expand(len(idx), 7), alpha)
-        self.graph.set_poses(idx, poses)
-        disp0 = init.disp0.to(self.graph.disps.device)
-        self.graph.set_disps(torch.tensor([first]), disp0[None])
-        med = float(disp0.median())
-        self.graph.set_disps(idx, torch.full((len(idx),) + tuple(self.ba_shape), med, device=self.graph.disps.device))
         self.initialized = True
-        LOG.info("map initialised with keyframes %d..%d (pair %d-%d: %d inliers, parallax %.2f deg)",
-                 first, k, first, m, init.inliers, init.parallax_deg)
         self._optimize_window(k, max(3, 2 * self.frontend.rounds))
         for a in range(first, k):
             self._fill_pending(self.graph.id_of(a))
@@ -292,16 +358,18 @@ class Mapper(GraphListener):
         pend = [e for e in self.frames.pending(a_id) if e.target is not None]
         if not pend:
             return
+        t0 = thread_time()
         g = self.graph
         a = g.index_of(a_id)
         t_a = g.poses[a].double().cpu()
         nxt = g.poses[a + 1].double().cpu() if a + 1 < g.n else t_a
         ts_a = float(g.timestamps[a])
         ts_b = float(g.timestamps[a + 1]) if a + 1 < g.n else ts_a
-        for e in pend:
-            alpha = 0.0 if ts_b <= ts_a else (e.timestamp - ts_a) / (ts_b - ts_a)
-            init = se3_interpolate(t_a, nxt, torch.tensor(alpha, dtype=torch.float64))
-            self.frames.refine(e, init)
+        alpha = torch.tensor([0.0 if ts_b <= ts_a else (e.timestamp - ts_a) / (ts_b - ts_a) for e in pend],
+                             dtype=torch.float64)
+        inits = se3_interpolate(t_a.expand(len(pend), 7), nxt.expand(len(pend), 7), alpha)
+        self.frames.refine_many(pend, inits)  # one batched motion-only BA for all of them
+        self.cpu["fill"] += thread_time() - t0
 
     # -------------------------------------------------------------------------------------- pruning --
     def _remove_redundant(self, k: int) -> None:
@@ -312,9 +380,7 @@ class Mapper(GraphListener):
         touches_loop = ((g.edge_kind == EDGE_LOOP) & ((g.ii == r) | (g.jj == r))).any()
         if bool(touches_loop):
             return
-        i = torch.tensor([r - 1], device=g.device)
-        j = torch.tensor([r], device=g.device)
-        d = 0.5 * float(g.frame_distance(i, j)[0] + g.frame_distance(j, i)[0])
+        d = self._redundancy(r)
         if d >= self.cfg.redundant_thresh:
             return
         self._fill_pending(g.id_of(r))
@@ -332,6 +398,7 @@ class Mapper(GraphListener):
                                           failed=True)
             return self._result(frame, entry, ref, track)
         # Re-initialise: start a new map fragment at this frame, placed at the last known pose.
+        self._settle_provisional(keep=True)  # the newest reference ends the old fragment as an ordinary keyframe
         pose = self.trajectory()[1][-1]
         self.reinits += 1
         self.fragment_start = self.graph.n
@@ -358,6 +425,7 @@ class Mapper(GraphListener):
         return _concat(parts, order)
 
     def finalize(self) -> None:
+        self._settle_provisional(keep=True)  # it holds the last frames' reference; the final BA optimises it
         if self.graph.n and self.initialized:
             self._fill_pending(self.graph.id_of(-1))
         if self.graph.n > 1 and self.initialized:

@@ -41,14 +41,18 @@ def test_empty_allow_list_loads_nothing(monkeypatch):
     assert reg.loaded_entry_points == [] and reg.plugins == {}
 
 
-def test_unknown_plugin_lists_installed_and_catalogued():
+def test_unknown_plugin_lists_installed_and_catalogued(tmp_path, monkeypatch):
+    cat = tmp_path / "registry.toml"
+    cat.write_text('[[plugin]]\nname = "future_flow"\ninterface = "frontend"\nentry_point = "x.y"\n'
+                   'description = "not installed"\ninstall = "pip install future-flow"\nstatus = "planned"\n')
+    monkeypatch.setenv("PVSLAM_REGISTRY", str(cat))
     reg = build_registry()
     with pytest.raises(PluginError) as err:
         reg.get("frontend", "raft_flow")
     msg = str(err.value)
     assert "unknown frontend plugin 'raft_flow'" in msg
     assert "flow" in msg  # installed
-    assert "droid" in msg and "install:" in msg  # registry.toml entry that is not installed, with its hint
+    assert "future_flow" in msg and "pip install future-flow" in msg  # catalogued, not installed, with its hint
 
 
 class _Loose(BaseModel):  # no extra="forbid"

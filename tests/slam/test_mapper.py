@@ -122,3 +122,62 @@ def test_redundant_keyframes_are_removed_and_everyone_hears():
     assert anchors <= set(ids)
     m.finalize()
     assert m.trajectory()[1].shape == (30, 7)
+
+
+class _CountingOptimizer:
+    """Wraps an optimizer and records the graph size at each window BA."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.window_sizes = []
+
+    def step(self, graph, obs):
+        self.window_sizes.append(graph.n)
+        return self.inner.step(graph, obs)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def _run_counted(frames, loop=None, **graph):
+    m, ds, fe = build(frames=frames, loop=loop, remove_redundant=True, redundant_thresh=2.2, **graph)
+    m.optimizer = _CountingOptimizer(m.optimizer)
+    provisional_had_edges = []
+    for f in ds:
+        r = m.process(f, None)
+        if m._provisional is not None:  # the newest keyframe is provisional: no edge touches it yet
+            k = m.graph.index_of(m._provisional)
+            provisional_had_edges.append(bool(((m.graph.ii == k) | (m.graph.jj == k)).any()))
+    return m, ds, fe, provisional_had_edges
+
+
+def test_provisional_keyframes_skip_the_work_of_redundant_ones():
+    """Keyframes that would be removed as redundant right after their BA stay provisional (no edges, no BA) and
+    are removed when the next keyframe comes: fewer window BAs, the same kind of map, exact poses still."""
+    m0, ds, _, _ = _run_counted(30, provisional_keyframes=False)
+    m1, ds, fe, had_edges = _run_counted(30, provisional_keyframes=True)
+    assert had_edges and not any(had_edges)  # provisional keyframes existed and never had edges
+    assert m1.provisional_removed > 0
+    assert len(m1.optimizer.window_sizes) < len(m0.optimizer.window_sizes)  # the point: fewer BAs
+    ids = m1.graph.ids.tolist()
+    assert abs(len(ids) - len(m0.graph.ids)) <= 2  # about as many keyframes stay as with removal after the BA
+    assert sorted(fe.kf_x) == ids and sorted(m1.kf_images) == ids  # everyone heard of the removals
+    assert {e.anchor for e in m1.frames.entries} <= set(ids)
+    m1.finalize()
+    ts, poses = m1.trajectory()
+    gt = torch.stack([f.gt_pose for f in ds])
+    assert len(ts) == len(gt) and m1._provisional is None
+    ate = umeyama_ate(poses[:, :3], gt[:, :3])
+    assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate
+
+
+def test_provisional_keyframe_that_is_not_redundant_becomes_ordinary():
+    """With a threshold between the guessed and the optimised distances nothing is lost: every keyframe ends up
+    either removed or connected, and the loop detector heard of each one (it is told of every removal)."""
+    det = VerifiedLoop()
+    m, ds, fe, _ = _run_counted(24, loop=det, provisional_keyframes=True)
+    g = m.graph
+    last = g.n - 1 if m._provisional is None else g.n - 2
+    for k in range(1, last + 1):  # every settled keyframe has edges
+        assert bool(((g.ii == k) | (g.jj == k)).any()), k
+    assert det.added == g.ids.tolist()

@@ -16,7 +16,8 @@ turns 0.8 -> 0.28 BA px median error on 4-frame gaps of the synthetic driving lo
 ``init_compare_min_gap``: proximity/loop) also run from zero and keep the more consistent result.
 
 Motion filter (``track``): DIS from the last keyframe to the frame (``track_*`` settings, by default the edge
-settings, whose result is then reused for the new keyframe's edges to the last keyframe); keyframe when the mean
+settings, whose result is then reused for the new keyframe's edges to the last keyframe), started from the previous
+frame's flows at constant velocity once the motion is large enough (``track_velocity_init``); keyframe when the mean
 flow exceeds ``keyframe_thresh`` BA px or fewer than ``keyframe_min_coverage`` of the pixels are still tracked;
 tracking failure on a blank frame (intensity std) or when more than ``max_fb_fail_fraction`` of the pixels fail
 the forward-backward check (sudden jump).  A repeated frame is not a failure (zero flow, no keyframe).
@@ -46,6 +47,7 @@ from pvslam_core.slam.confidence import observed_flow_weight, segment_vote
 from pvslam_core.interfaces import Frontend
 from pvslam_core.types import EdgeObservations, Frame, PanopticSegmentation, TrackResult
 
+from . import dynamic as D
 from . import flow_ops as F
 from .config import FlowFrontendConfig
 
@@ -58,6 +60,8 @@ class _Keyframe:
     frame_index: int
     seg_ba: Optional[torch.Tensor] = None  # int64 [h, w] panoptic ids at the BA resolution (block centres)
     thing_ids: Optional[torch.Tensor] = None  # int64 [K] ids of thing segments
+    dyn: Optional[torch.Tensor] = None  # float32 [h, w] geometric dynamic mask (dynamic.py), 1 = moving
+    dyn_judged: bool = False  # dyn comes from this keyframe's own edges (else: moved from its reference's)
 
 
 @dataclass
@@ -95,6 +99,12 @@ class FlowFrontend(Frontend):
         tfs = self.cfg.track_finest_scale if self.cfg.track_finest_scale is not None else self.cfg.finest_scale
         same = tp == self.cfg.preset and tfs == self.cfg.finest_scale
         self._dis_track = self._dis if same else F.create_dis(tp, finest_scale=tfs, **dis_kw)
+        # Calls with an initial flow get their own DIS object: after such a call, OpenCV's DIS keeps using that
+        # initial flow in later calls without one (verified with OpenCV 4.x/5.0), so the zero-init flows (tracking,
+        # close edges) depended on whichever edge was initialised last.
+        self._dis_init = F.create_dis(self.cfg.preset, finest_scale=self.cfg.finest_scale, **dis_kw)
+        self._dis_track_init = self._dis_init if same else F.create_dis(tp, finest_scale=tfs, **dis_kw)
+        self._last_track: Optional[tuple] = None  # (reference frame index, frame index, fwd, bwd) of the last track
         self._reproject_fn = reproject_fn
         self._kfs: dict[int, _Keyframe] = {}  # stable keyframe id -> keyframe (insertion order = time order)
         self._edges: dict[tuple[int, int], _Edge] = {}  # (source id, target id) -> cached edge
@@ -156,24 +166,26 @@ class FlowFrontend(Frontend):
         """Forward/backward flow between two grays -> BA targets/confidences and FB statistics."""
         fwd = self._flow(dis, g0, g1, init_f)
         bwd = self._flow(dis, g1, g0, init_b)
-        sigma = self._sigma()
-        conf_f, fb_f = F.fb_consistency(fwd, bwd, sigma)
-        conf_b, fb_b = F.fb_consistency(bwd, fwd, sigma)
+        return self._direction(g0, g1, fwd, bwd, h, w), self._direction(g1, g0, bwd, fwd, h, w), fwd
+
+    def _direction(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, h: int, w: int):
+        """BA target, confidence and FB error of the flow ``g0 -> g1`` (``fwd``), checked against ``bwd``."""
+        conf, fb = F.fb_consistency(fwd, bwd, self._sigma())
         if self.cfg.photo_sigma > 0:
-            conf_f = conf_f * F.photometric_confidence(g0, g1, fwd, self.cfg.photo_sigma)
-            conf_b = conf_b * F.photometric_confidence(g1, g0, bwd, self.cfg.photo_sigma)
+            conf = conf * F.photometric_confidence(g0, g1, fwd, self.cfg.photo_sigma)
         if self.cfg.texture_tau > 0:
-            conf_f = conf_f * F.texture_confidence(g0, self.cfg.texture_tau)
-            conf_b = conf_b * F.texture_confidence(g1, self.cfg.texture_tau)
-        tf, wf = F.pool_to_ba(fwd, conf_f, h, w, self.cfg.weighted_pooling)
-        tb, wb = F.pool_to_ba(bwd, conf_b, h, w, self.cfg.weighted_pooling)
-        return (tf, wf, fb_f), (tb, wb, fb_b), fwd
+            conf = conf * F.texture_confidence(g0, self.cfg.texture_tau)
+        t, wgt = F.pool_to_ba(fwd, conf, h, w, self.cfg.weighted_pooling)
+        return t, wgt, fb
 
     def _seg_info(self, seg: Optional[PanopticSegmentation], h: int, w: int):
-        if seg is None or seg.ids is None:
+        # a segmentation that found nothing (no segments: all void) is no segmentation: the keyframe is treated as
+        # with segmenter "none"
+        if seg is None or seg.ids is None or not seg.segments:
             return None, None
         ids = F.downsample_ids(seg.ids.to(torch.int64).cpu(), h, w)
-        things = torch.tensor([s.id for s in seg.segments if s.isthing], dtype=torch.int64)
+        # only segments of categories that can move vote (Segment.movable: a segmenter's movable-class list)
+        things = torch.tensor([s.id for s in seg.segments if s.isthing and s.movable], dtype=torch.int64)
         return ids, things
 
     # ------------------------------------------------------------------------------------------- track --
@@ -187,6 +199,7 @@ class FlowFrontend(Frontend):
 
     def _track(self, frame: Frame) -> TrackResult:
         self._pending = None
+        last_track, self._last_track = self._last_track, None  # set again below when this frame tracks
         gray = self._gray(frame)
         std = float(gray.std())
         if not np.isfinite(std) or std < self.cfg.min_texture_std:
@@ -202,23 +215,58 @@ class FlowFrontend(Frontend):
             return TrackResult(is_keyframe=False, mean_flow=0.0, failed=True,
                                message=f"frame size {gray.shape} differs from the keyframes' {last.gray.shape}")
         h, w = self._ba_shape_for(frame)
-        (tf, wf, fb_f), back, _ = self._pair(self._dis_track, last.gray, gray, h, w)
+        # both flows (the forward-backward check needs them), but the backward target and confidence only if this
+        # frame becomes a keyframe (add_keyframe): most frames do not
+        init_f, init_b = self._velocity_init(last_track, last.frame_index, frame.index)
+        dis = self._dis_track if init_f is None else self._dis_track_init
+        fwd = self._flow(dis, last.gray, gray, init_f)
+        bwd = self._flow(dis, gray, last.gray, init_b)
+        tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w)
         fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
         fail_frac = float(np.mean(~(fb_f <= fail_px)))  # inf (left the image) counts as failed
         xs, ys = F.pixel_grid_np(h, w)
         mean_flow = float(np.sqrt((tf[0] - xs) ** 2 + (tf[1] - ys) ** 2).mean())
         target = torch.from_numpy(tf)
         weight = torch.from_numpy(np.stack([wf, wf], 0))
+        if self.cfg.dynamic_masking and self.cfg.dynamic_track:
+            # the reference keyframe's moving regions (dynamic.py) through eq. 4, as on its edges: the mapper's
+            # motion-only BA places this frame from these weights
+            dyn = self._keyframe_dynamic(last_sid)
+            if dyn is not None and tuple(dyn.shape) == (h, w) and bool((dyn > 0).any()):
+                m = dyn > 0
+                weight[:, m] = observed_flow_weight(weight[:, m], dyn[m].expand(2, -1),
+                                                    offset=self.cfg.panoptic_offset, convention=self.cfg.convention)
         if fail_frac > self.cfg.max_fb_fail_fraction:
             return TrackResult(is_keyframe=False, mean_flow=mean_flow, target=target, weight=weight, failed=True,
                                message=f"flow inconsistent: {fail_frac:.0%} of pixels fail the forward-backward "
                                        f"check (> {self.cfg.max_fb_fail_fraction:.0%}); sudden jump or cut?")
+        self._last_track = (last.frame_index, frame.index, fwd, bwd)
         coverage = 1.0 - fail_frac
         is_kf = mean_flow > self.cfg.keyframe_thresh or coverage < self.cfg.keyframe_min_coverage
         self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": last_sid,
-                         "fwd": (tf, wf), "bwd": back[:2]}
+                         "fwd": (tf, wf), "flows": (fwd, bwd), "ba_shape": (h, w)}
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
+
+    def _velocity_init(self, p: Optional[tuple], ref_index: int,
+                       index: int) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+        """Initial flows (reference -> frame, frame -> reference) predicted from the previous frame's tracking
+        against the same reference at constant velocity: its flows scaled by the ratio of the frame gaps.  ``p``: the
+        previous track's ``(reference index, frame index, fwd, bwd)``.  None when there is no such track (first frame
+        after a keyframe, a failure, a gap in the stream) or the predicted motion is small (track_init_min_flow)."""
+        if not self.cfg.track_velocity_init or p is None or p[1] != index - 1 or p[0] != ref_index:
+            return None, None
+        gap, gap_p = index - ref_index, p[1] - p[0]
+        if gap <= 0 or gap_p <= 0:
+            return None, None
+        s = min(gap / gap_p, 3.0)
+        init_f = p[2] * s
+        # a small predicted motion is what DIS finds from zero anyway; there the prediction only adds the previous
+        # flow's noise (on a 160x120 video it lowered the forward-backward consistency)
+        mean_ba = float(np.sqrt((init_f * init_f).sum(-1)).mean()) / self.cfg.flow_scale / self.ba_downsample
+        if mean_ba < self.cfg.track_init_min_flow:
+            return None, None
+        return init_f, p[3] * s
 
     # ------------------------------------------------------------------------------------- keyframes --
     def add_keyframe(self, kf_id: int, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
@@ -232,10 +280,15 @@ class FlowFrontend(Frontend):
         if (pend is not None and self.cfg.reuse_track_flow and pend.get("last_sid") is not None
                 and pend["last_sid"] == self._last_id()):
             a = pend["last_sid"]
-            (tf, wf), (tb, wb) = pend["fwd"], pend["bwd"]
+            (tf, wf), (fwd, bwd) = pend["fwd"], pend["flows"]
+            tb, wb, _ = self._direction(gray, self._kfs[a].gray, bwd, fwd, *pend["ba_shape"])
             self._edges[(a, sid)] = _Edge(torch.from_numpy(tf), torch.from_numpy(wf))
             self._edges[(sid, a)] = _Edge(torch.from_numpy(tb), torch.from_numpy(wb))
         self._kfs[sid] = _Keyframe(gray=gray, frame_index=frame.index, seg_ba=seg_ba, thing_ids=things)
+        if pend is not None and pend.get("last_sid") in self._kfs and self.cfg.dynamic_masking:
+            ref = self._kfs[pend["last_sid"]].dyn  # its moving regions, moved along the tracked flow
+            if ref is not None and tuple(ref.shape) == tuple(pend["fwd"][0].shape[-2:]) and bool((ref > 0).any()):
+                self._kfs[sid].dyn = D.warp_mask(ref, torch.from_numpy(pend["fwd"][0]), self.cfg.dynamic_grow)
         self._pending = None
 
     # -------------------------------------------------------------------------------- graph listener --
@@ -296,7 +349,10 @@ class FlowFrontend(Frontend):
             if need:
                 self._update_dynamic(graph, ii, jj, need, entries, target)
             zeros = torch.zeros(h, w)
-            dyn = torch.stack([en.dynamic if en.dynamic is not None else zeros for en in entries]).to(dev)
+            # an edge not judged yet (first observation) takes its source keyframe's mask (dynamic.py)
+            kf_dyn = [self._kfs[k[0]].dyn for k in keys]
+            dyn = torch.stack([en.dynamic if en.dynamic is not None else (kd if kd is not None else zeros)
+                               for en, kd in zip(entries, kf_dyn)]).to(dev)
             if self.cfg.convention == "paper":
                 # eq. 4 only changes dynamic pixels; static ones keep exactly their FB confidence (no 0.99 cap)
                 weight = conf.clone()
@@ -328,7 +384,7 @@ class FlowFrontend(Frontend):
             ga, gb = self._kfs[sa].gray, self._kfs[sb].gray
             if (a, b) in inits:
                 init_f, init_b = inits[(a, b)]
-                fwd2, bwd2, _ = self._pair(self._dis, ga, gb, h, w, init_f, init_b)
+                fwd2, bwd2, _ = self._pair(self._dis_init, ga, gb, h, w, init_f, init_b)
                 use = True
                 if b - a >= self.cfg.init_compare_min_gap:
                     fwd0, bwd0, _ = self._pair(self._dis, ga, gb, h, w)
@@ -379,49 +435,93 @@ class FlowFrontend(Frontend):
                 out[(i, j)] = (init_f, init_b)
         return out
 
-    def _update_dynamic(self, graph, ii, jj, need: list[int], entries: list[_Edge], target: torch.Tensor) -> None:
-        """Residual of observed targets against the current reprojection -> dynamic masks for edges ``need``."""
+    def _dynamic_masks(self, graph, ii: torch.Tensor, jj: torch.Tensor, target: torch.Tensor):
+        """Masks of edges ``ii -> jj`` (graph indices) from their observed ``target [N, 2, h, w]`` against the
+        reprojection under the current estimate (:mod:`.dynamic`): ``(dyn bool [N, h, w], fraction [N], valid
+        pixel count [N])``, or None when the reprojection is not available."""
         try:
             reproject = self._reproject()
         except ImportError:
-            return
-        idx = torch.tensor(need, dtype=torch.int64)
+            return None
         dev = graph.disps.device
         try:
-            coords, valid = reproject(graph.poses, graph.disps, graph.intrinsics, ii[idx].to(dev), jj[idx].to(dev))[:2]
+            coords, valid = reproject(graph.poses, graph.disps, graph.intrinsics, ii.to(dev), jj.to(dev))[:2]
         except Exception as exc:
             LOG.warning("reprojection for dynamic masking failed (%s); masks kept", exc)
-            return
-        tgt = target[idx.to(target.device)].to(device=dev, dtype=coords.dtype)  # [N, 2, h, w]
+            return None
+        tgt = target.to(device=dev, dtype=coords.dtype)  # [N, 2, h, w]
         d = tgt - coords.permute(0, 3, 1, 2)
         res = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]).sqrt()  # [N, h, w]
-        valid = valid & torch.isfinite(res)
-        N = res.shape[0]
-        thr = torch.full((N,), float(self.cfg.dynamic_thresh), dtype=res.dtype, device=dev)
-        if self.cfg.dynamic_rel_thresh > 0:
-            med = torch.nanmedian(torch.where(valid, res, torch.nan).reshape(N, -1), dim=1).values
-            thr = torch.maximum(thr, torch.nan_to_num(med, nan=0.0) * self.cfg.dynamic_rel_thresh)
-        dyn = (res > thr[:, None, None]) & valid
+        h, w = res.shape[-2:]
+        u, v = coords[..., 0], coords[..., 1]
+        # only pixels that stay in view can be judged (the others have no flow to compare)
+        valid = valid & torch.isfinite(res) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+        dyn = D.residual_candidates(res, valid, self.cfg.dynamic_thresh, self.cfg.dynamic_rel_thresh)
+        regions = D.group_regions(dyn, self.cfg.dynamic_min_area, self.cfg.dynamic_grow) \
+            if self.cfg.dynamic_regions else None
         ids = graph.ids
-        srcs = [self._kfs[int(ids[int(ii[e])])] for e in need]
+        srcs = [self._kfs[int(ids[int(i)])] for i in ii.tolist()]
         if any(s_.seg_ba is not None for s_ in srcs):
-            h, w = res.shape[-2:]
             zero = torch.zeros(h, w, dtype=torch.int64)
             seg = torch.stack([s_.seg_ba if s_.seg_ba is not None else zero for s_ in srcs]).to(dev)
             things = None
             if self.cfg.things_only:
-                ids = [s_.thing_ids for s_ in srcs if s_.thing_ids is not None and s_.thing_ids.numel()]
-                things = torch.unique(torch.cat(ids)) if ids else torch.zeros(0, dtype=torch.int64)
+                tid = [s_.thing_ids for s_ in srcs if s_.thing_ids is not None and s_.thing_ids.numel()]
+                things = torch.unique(torch.cat(tid)) if tid else torch.zeros(0, dtype=torch.int64)
             dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, thing_mask=things)
-        frac = dyn.float().mean(dim=(1, 2)).tolist()
-        nvalid = valid.sum(dim=(1, 2)).tolist()
+            if regions is not None:  # both cues: a segment that voted or a coherent region
+                dyn = dyn | regions.to(dyn.device)
+        elif regions is not None:
+            dyn = regions.to(dyn.device)
+        return dyn, dyn.float().mean(dim=(1, 2)).tolist(), valid.sum(dim=(1, 2)).tolist()
+
+    def _update_dynamic(self, graph, ii, jj, need: list[int], entries: list[_Edge], target: torch.Tensor) -> None:
+        """Residual of observed targets against the current reprojection -> dynamic masks for edges ``need``."""
+        idx = torch.tensor(need, dtype=torch.int64)
+        out = self._dynamic_masks(graph, ii[idx], jj[idx], target[idx.to(target.device)])
+        if out is None:
+            return
+        dyn, frac, nvalid = out
         dyn_f = dyn.float().cpu()
+        ids = graph.ids
+        touched = set()
         for n, e in enumerate(need):
             en = entries[e]
             if nvalid[n] < 8:
                 continue  # nothing to judge with: keep the previous mask
             # too much "dynamic": the estimate, not the scene, is off -> no mask on this edge
             en.dynamic = None if frac[n] > self.cfg.max_dynamic_fraction else dyn_f[n]
+            touched.add(int(ids[int(ii[e])]))
+        for sid in touched:  # the keyframe's own mask follows its edges' newest masks
+            masks = [en.dynamic for (a, _), en in self._edges.items() if a == sid and en.dynamic is not None]
+            kf = self._kfs.get(sid)
+            if kf is not None and masks:
+                kf.dyn, kf.dyn_judged = D.keyframe_vote(masks), True
+
+    def _keyframe_dynamic(self, sid: int) -> Optional[torch.Tensor]:
+        """The dynamic mask ``[h, w]`` of keyframe ``sid`` for tracking against it: judged from its edges that the
+        BA has used (once, the first time it is asked for after that), else the mask moved from its reference."""
+        kf = self._kfs.get(sid)
+        if kf is None or kf.dyn_judged or not self.cfg.dynamic_masking:
+            return None if kf is None else kf.dyn
+        g = self._graph
+        if g is None or not g.has_id(sid):
+            return kf.dyn
+        keys = [key for key, en in self._edges.items() if key[0] == sid and en.rounds >= 1 and g.has_id(key[1])]
+        if not keys:
+            return kf.dyn
+        ii = torch.tensor([g.index_of(a) for a, _ in keys], dtype=torch.int64)
+        jj = torch.tensor([g.index_of(b) for _, b in keys], dtype=torch.int64)
+        out = self._dynamic_masks(g, ii, jj, torch.stack([self._edges[key].target for key in keys]))
+        if out is None:
+            return kf.dyn
+        dyn, frac, nvalid = out
+        masks = [dyn[n].float().cpu() for n in range(len(keys))
+                 if nvalid[n] >= 8 and frac[n] <= self.cfg.max_dynamic_fraction]
+        kf.dyn_judged = True
+        if masks:
+            kf.dyn = D.keyframe_vote(masks)
+        return kf.dyn
 
 
 def make_frontend(config: FlowFrontendConfig, context) -> FlowFrontend:

@@ -1,7 +1,7 @@
 """Configuration of the ``warp_iou`` VPS head."""
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, Optional
 
 from pydantic import Field
 
@@ -31,6 +31,12 @@ class WarpIoUConfig(PluginConfig):
         True,
         description="warp previous *stuff* pixels with depth + camera poses when the cue has depth_prev, both "
         "poses and intrinsics (things always follow the flow)",
+    )
+    warp_max_side: Optional[int] = Field(
+        None, ge=16,
+        description="warp and match the previous ids at most this many pixels on the longer side (nearest "
+        "subsampling; the output ids keep the input resolution). None: full resolution. 160 at 320x240 is 4x "
+        "cheaper but lost small things: VPQ-things 0.957 -> 0.896 on the driving loop with depth cues",
     )
     splat: Literal["nearest", "bilinear"] = Field(
         "bilinear",

@@ -47,6 +47,23 @@ def _lut(keys: np.ndarray, values: np.ndarray, query: np.ndarray, default: int) 
     return np.where(k[pos] == query, v[pos], default)
 
 
+def _working_shape(h: int, w: int, max_side: Optional[int]) -> tuple[int, int]:
+    if max_side is None or max(h, w) <= max_side:
+        return h, w
+    s = max_side / float(max(h, w))
+    return max(1, int(round(h * s))), max(1, int(round(w * s)))
+
+
+def _subsample(ids: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Nearest (pixel-centre) resampling of an id map ``[H, W]`` to ``[h, w]`` (exact for any ids)."""
+    H, W = ids.shape
+    if (H, W) == (h, w):
+        return ids
+    rows = np.minimum(((np.arange(h) + 0.5) * H / h).astype(np.int64), H - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * W / w).astype(np.int64), W - 1)
+    return ids[rows[:, None], cols[None, :]]
+
+
 class WarpIoUHead(VPSHead):
     """Temporally consistent instance ids by warping + greedy same-category overlap matching.
 
@@ -59,7 +76,16 @@ class WarpIoUHead(VPSHead):
         self.config = config or WarpIoUConfig()
         self._counters: dict[int, int] = {}
         self.last_matches: list[tuple[int, int, float]] = []
-        self.last_warped: Optional[np.ndarray] = None  # warped previous ids of the last update (int64 [H, W])
+        self._last_warped: Optional[np.ndarray] = None  # at the working resolution
+        self._full_shape: tuple[int, int] = (0, 0)
+
+    @property
+    def last_warped(self) -> Optional[np.ndarray]:
+        """The warped previous ids of the last update (int64 ``[H, W]``, nearest-upsampled from the working
+        resolution), for diagnostics."""
+        if self._last_warped is None:
+            return None
+        return _subsample(self._last_warped, *self._full_shape)
 
     def reset(self) -> None:
         self._counters.clear()
@@ -88,19 +114,21 @@ class WarpIoUHead(VPSHead):
         present = set(np.unique(ids).tolist()) - {0}
         cur_things = sorted(sid for sid in present if sid in cur_segments and cur_segments[sid].isthing)
 
+        # warping and matching at the working resolution (see WarpIoUConfig.warp_max_side)
+        hs, ws = _working_shape(h, w, self.config.warp_max_side)
         warped = None
         if prev is not None and cur_things:
             self._reserve(prev.panoptic.segments)
-            warped = self._warp_previous(prev, frame, cue, h, w)
+            warped = self._warp_previous(prev, frame, cue, hs, ws)
         elif prev is not None:
             self._reserve(prev.panoptic.segments)
-        self.last_warped = warped
+        self._last_warped, self._full_shape = warped, (h, w)
 
         assign: dict[int, int] = {}  # current segment id -> output id
         self.last_matches = []
         if warped is not None:
             prev_cat = {s.id: s.category_id for s in prev.panoptic.segments if s.isthing}
-            for g, p, score in self._match(ids, warped, cur_things, cur_segments, prev_cat):
+            for g, p, score in self._match(_subsample(ids, hs, ws), warped, cur_things, cur_segments, prev_cat):
                 assign[g] = p
                 self.last_matches.append((g, p, score))
 
@@ -135,9 +163,7 @@ class WarpIoUHead(VPSHead):
     # ------------------------------------------------------------------------------------------------------
     def _warp_previous(self, prev: VPSState, frame: Frame, cue: MotionCue, h: int, w: int) -> np.ndarray:
         c = self.config
-        pids = prev.panoptic.ids.detach().cpu().numpy().astype(np.int64)
-        if pids.shape != (h, w):
-            pids = cv2.resize(pids.astype(np.float64), (w, h), interpolation=cv2.INTER_NEAREST).astype(np.int64)
+        pids = _subsample(prev.panoptic.ids.detach().cpu().numpy().astype(np.int64), h, w)
         if cue.flow is not None:
             flow = resize_flow(cue.flow.detach().cpu().numpy().astype(np.float32), h, w)
         elif prev.image is not None:

@@ -124,48 +124,64 @@ def forward_warp(
     if not finite.all():
         sel, tx, ty = sel[finite], tx[finite], ty[finite]
     n = len(sel)
-    # secondary priority (lower wins), unique per source: depth rank (nearest first) or reversed raster order
+    # priority (lower wins), unique per source: depth (nearest first) then raster order, or reversed raster order.
+    # Two scatter-min passes instead of ranking by an argsort of the depths (4 ms of 60k floats at 320x240).
     if depth is not None:
         z = depth.reshape(-1)[sel].astype(np.float64)
-        z = np.where(z > 0, z, np.inf)
-        r2 = np.empty(n, np.int64)
-        r2[np.argsort(z, kind="stable")] = np.arange(n)
+        prim = np.where(z > 0, z, np.inf)
+        sec = np.arange(n, dtype=np.int64)
     else:
-        r2 = (n - 1) - np.arange(n, dtype=np.int64)
-    rx, ry = np.rint(tx), np.rint(ty)
+        prim, sec = None, (n - 1) - np.arange(n, dtype=np.int64)
+    rx, ry = np.rint(tx).astype(np.int64), np.rint(ty).astype(np.int64)
     vals = src[sel]
-    filled = _scatter_min(out, rx, ry, r2, vals, h, w, None)
+    filled = _scatter_min(out, rx, ry, prim, sec, vals, h, w, None)
     if splat != "nearest":
-        # spill-over to the other integer neighbours fills only pixels no source landed on (holes)
-        x0, y0 = np.floor(tx), np.floor(ty)
-        qx = np.concatenate([x0, x0 + 1, x0, x0 + 1])
-        qy = np.concatenate([y0, y0, y0 + 1, y0 + 1])
-        own = (qx == np.tile(rx, 4)) & (qy == np.tile(ry, 4))
-        _scatter_min(out, qx, qy, np.tile(r2, 4), np.tile(vals, 4), h, w, ~own, empty=~filled)
+        # spill-over to the other integer neighbours fills only pixels no source landed on (holes): per neighbour
+        # offset, keep just the candidates that hit a hole (few), then one scatter over those
+        x0, y0 = np.floor(tx).astype(np.int64), np.floor(ty).astype(np.int64)
+        hole = ~filled
+        parts = []
+        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            qx, qy = x0 + dx, y0 + dy
+            ok = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h) & ((qx != rx) | (qy != ry))
+            idx = np.nonzero(ok)[0]
+            idx = idx[hole[qy[idx] * w + qx[idx]]]
+            parts.append((qx[idx], qy[idx], idx))
+        qx = np.concatenate([q[0] for q in parts])
+        qy = np.concatenate([q[1] for q in parts])
+        idx = np.concatenate([q[2] for q in parts])
+        _scatter_min(out, qx, qy, None if prim is None else prim[idx], sec[idx], vals[idx], h, w, None)
     return out.reshape(h, w)
 
 
 def _scatter_min(
-    out: np.ndarray, qx: np.ndarray, qy: np.ndarray, prio: np.ndarray, vals: np.ndarray, h: int, w: int,
-    keep: Optional[np.ndarray], empty: Optional[np.ndarray] = None,
+    out: np.ndarray, qx: np.ndarray, qy: np.ndarray, prim: Optional[np.ndarray], sec: np.ndarray, vals: np.ndarray,
+    h: int, w: int, keep: Optional[np.ndarray], empty: Optional[np.ndarray] = None,
 ) -> np.ndarray:
-    """``out[qy*w+qx] = vals`` where the lowest ``prio`` wins per target pixel (priorities unique per target);
-    only in-bounds targets (and, if given, ``keep`` entries and ``empty`` target pixels).  Returns the mask of
-    pixels written."""
+    """``out[qy*w+qx] = vals`` where the lowest priority wins per target pixel: the lowest ``prim`` (if given),
+    among those the lowest ``sec`` (unique per target); only in-bounds targets (and, if given, ``keep`` entries and
+    ``empty`` target pixels).  Returns the mask of pixels written."""
     ok = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
     if keep is not None:
         ok &= keep
     t = qy[ok].astype(np.int64) * w + qx[ok].astype(np.int64)
-    p, v = prio[ok], vals[ok]
+    s, v = sec[ok], vals[ok]
+    p = prim[ok] if prim is not None else None
     if empty is not None:
         e = empty[t]
-        t, p, v = t[e], p[e], v[e]
+        t, s, v = t[e], s[e], v[e]
+        p = p[e] if p is not None else None
     written = np.zeros(h * w, dtype=bool)
     if len(t) == 0:
         return written
+    if p is not None:
+        best_p = np.full(h * w, np.inf)
+        np.minimum.at(best_p, t, p)
+        c = p == best_p[t]
+        t, s, v = t[c], s[c], v[c]
     best = np.full(h * w, np.iinfo(np.int64).max, dtype=np.int64)
-    np.minimum.at(best, t, p)
-    win = p == best[t]
+    np.minimum.at(best, t, s)
+    win = s == best[t]
     out[t[win]] = v[win]
     written[t[win]] = True
     return written

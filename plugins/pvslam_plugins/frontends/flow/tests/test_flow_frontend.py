@@ -336,3 +336,38 @@ def test_dynamic_mask_reestimated_only_dynamic_updates_times(monkeypatch):
     for _ in range(5):
         fe.observe(g, ii, jj)
     assert calls == [[0, 1], [0, 1]]
+
+
+def test_tracking_starts_from_the_previous_frames_motion():
+    """A texture sliding 14 px a frame: from the second frame after a keyframe on, DIS starts from the previous
+    frame's flow scaled to the new gap (constant velocity), and three frames out (42 px) far more pixels pass the
+    forward-backward check than from zero; a small motion (under track_init_min_flow) and the first frame after a
+    keyframe start from zero."""
+    from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
+    from pvslam_plugins.frontends.flow.frontend import FlowFrontend
+
+    big = S.texture("astronaut")
+    step = 14.0  # px per frame (full resolution): 1.75 BA px, above track_init_min_flow = 1
+    confident = {}
+    for vel in (True, False):
+        fe = FlowFrontend(FlowFrontendConfig(track_velocity_init=vel, keyframe_thresh=50.0,
+                                             keyframe_min_coverage=0.0))
+        fe.add_keyframe(0, S.frame(S.shifted(big, 0.0), 0), None)
+        inits = []
+        orig = fe._velocity_init
+        fe._velocity_init = lambda *a: inits.append(orig(*a)[0] is not None) or orig(*a)
+        for t in range(1, 4):
+            r = fe.track(S.frame(S.shifted(big, step * t), t), None)
+        assert inits == ([False, True, True] if vel else [False, False, False])
+        u = r.target[0] - torch.arange(r.target.shape[-1], dtype=torch.float32)  # BA px; true: 3 * 14 / 8
+        assert float((u[4:-4, 4:-4] - 3 * step / 8).abs().median()) < 0.05
+        confident[vel] = float((r.weight[0] > 0.5).float().mean())
+    assert confident[True] > confident[False] + 0.08, confident
+    slow = FlowFrontend()
+    slow.add_keyframe(0, S.frame(S.shifted(big, 0.0), 0), None)
+    calls = []
+    orig = slow._velocity_init
+    slow._velocity_init = lambda *a: calls.append(orig(*a)[0] is not None) or orig(*a)
+    for t in range(1, 3):
+        slow.track(S.frame(S.shifted(big, 2.0 * t), t), None)  # 0.25 BA px a frame
+    assert calls == [False, False]

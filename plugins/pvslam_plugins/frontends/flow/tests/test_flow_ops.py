@@ -152,3 +152,21 @@ def test_photometric_confidence_flags_wrong_flow_and_ignores_brightness_offset()
     assert right[inner].mean() > 0.8 and wrong[inner].mean() < 0.4, (right[inner].mean(), wrong[inner].mean())
     brighter = np.clip(g1.astype(np.int16) + 25, 0, 255).astype(np.uint8)
     assert F.photometric_confidence(g0, brighter, gt, 4.0)[inner].mean() > 0.75
+
+
+def test_zero_init_flow_does_not_depend_on_earlier_initialised_calls():
+    """OpenCV's DIS reuses the initial flow of an earlier call in later calls without one; the frontend keeps a DIS
+    object for initialised calls only, so its zero-init flows are a function of the two images alone."""
+    import cv2
+
+    from pvslam_plugins.frontends.flow.frontend import FlowFrontend
+
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur((rng.random((120, 160)) * 255).astype(np.uint8), (0, 0), 2.0)
+    g0, g1 = base, np.roll(base, 3, axis=1)
+    fe = FlowFrontend()
+    clean = FlowFrontend()._flow(FlowFrontend()._dis, g0, g1)
+    init = rng.normal(0, 3, (120, 160, 2)).astype(np.float32)
+    fe._pair(fe._dis_init, g1, g0, 15, 20, init, init)  # an initialised edge first
+    np.testing.assert_array_equal(fe._flow(fe._dis, g0, g1), clean)
+    np.testing.assert_array_equal(fe._flow(fe._dis_track, g0, g1), clean)
