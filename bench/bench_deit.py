@@ -15,7 +15,10 @@ exclusion of 20 keyframes and 10 s, candidates more than 60 degrees apart skippe
 correct within 5 frames of a ground-truth revisit pair) on generated
 sequences of ``driving_loop`` and ``indoor_handheld``: the classical global descriptor and the DeiT checkpoints,
 each at its own calibrated threshold (from its checkpoint; classical: its config default) and at the threshold
-that would give precision 1.00 on these very seeds (an oracle, for the gap only).
+that would give precision 1.00 on these very seeds (an oracle, for the gap only).  ``--verify`` adds, for each
+descriptor, the rows with the geometric verification the detectors share (``verify = true``: the best of at most 3
+candidates above the threshold that passes ORB + essential-matrix RANSAC on the 320x240 frames, with the
+verification defaults), as ``place_eval.verified_top_one`` counts it; the "P=1.00 threshold" column is then blank.
 """
 from __future__ import annotations
 
@@ -81,7 +84,7 @@ def retrieval(args) -> None:
     from pvslam_plugins.loops.classical.config import ClassicalLoopConfig
     from pvslam_plugins.loops.deit.checkpoint import load_checkpoint
     from pvslam_plugins.loops.deit.descriptor import WEIGHTS_DIR, select_tokens
-    from pvslam_plugins.loops.deit.place_eval import calibrate, metrics_at, top_one
+    from pvslam_plugins.loops.deit.place_eval import calibrate, metrics_at, top_one, verified_top_one
     from pvslam_plugins.loops.deit.train import prefix_tokens
     from pvslam_plugins.loops.deit.train_data import PlaceSequence
 
@@ -96,23 +99,56 @@ def retrieval(args) -> None:
         roots = [Path(generate(sc, seed=s, progress=False)) for s in args.seeds]
         size = next(iter(cks.values())).descriptor.get("input_size", 112) if cks else 112
         seqs = [PlaceSequence(r, size if isinstance(size, int) else tuple(size), hard_k=1) for r in roots]
-        rows = {"classical": ([top_one(s.teacher[::3], s.labels.pos, s.timestamps, axes=s.axes) for s in seqs],
-                              ClassicalLoopConfig().threshold)}
+        descs = {"classical": [s.teacher[::3] for s in seqs]}  # unit descriptors [K, d] per sequence
+        thresholds = {"classical": ClassicalLoopConfig().threshold}
         for name, ck in cks.items():
             d = ck.descriptor
-            res = []
+            descs[name] = []
             for s in seqs:
                 t = prefix_tokens(ck.model, s.frames[::3])
                 f = select_tokens(t, d.get("token", "cls"), t.shape[1])
                 if ck.pca is not None and d.get("pca") == "fixed":
                     f = ck.pca.transform(f)
-                res.append(top_one(F.normalize(f, dim=1), s.labels.pos, s.timestamps, axes=s.axes))
-            rows[name] = (res, float(d.get("threshold", 0.8)))
+                descs[name].append(F.normalize(f, dim=1))
+            thresholds[name] = float(d.get("threshold", 0.8))
+        rows = {name: ([top_one(d, s.labels.pos, s.timestamps, axes=s.axes) for d, s in zip(ds, seqs)],
+                       thresholds[name]) for name, ds in descs.items()}
         for name, (res, thr) in rows.items():
             m, o = metrics_at(res, thr), calibrate(res)
             print(f"| {sc} | {name} | {thr:.3f} | {m['precision']:.2f} | {m['recall']:.2f} | {m['recall_at_1']:.2f} | "
                   f"{m['revisit_queries']} | {o['best_wrong']:.3f} | {o['threshold']:.3f} ({o['recall']:.2f}) |",
                   flush=True)
+        if not args.verify:
+            continue
+        verifiers = [_keyframe_verifier(r) for r in roots]
+        for name, (res, thr) in rows.items():
+            vres = [verified_top_one(d, s.labels.pos, s.timestamps, thr, lambda i, j, v=v: bool(v.verify(i, j).accepted),
+                                     axes=s.axes) for d, s, v in zip(descs[name], seqs, verifiers)]
+            m = metrics_at(vres, thr)
+            wrong = torch.cat([r.score[torch.isfinite(r.score) & ~r.correct] for r in vres])
+            bw = f"{float(wrong.max()):.3f}" if len(wrong) else "-"
+            print(f"| {sc} | {name} + verify | {thr:.3f} | {m['precision']:.2f} | {m['recall']:.2f} | - | "
+                  f"{m['revisit_queries']} | {bw} | |", flush=True)
+
+
+def _keyframe_verifier(root: Path, stride: int = 3):
+    """A :class:`KeyframeVerifier` (the detectors' verification defaults) holding every ``stride``-th frame of a
+    generated sequence at full resolution, keyed by frame index."""
+    import json
+
+    import cv2
+
+    from pvslam_core.types import Intrinsics
+    from pvslam_plugins.loops.deit.config import DeitLoopConfig
+    from pvslam_plugins.loops.verification import KeyframeVerifier
+
+    cam = json.loads((root / "meta.json").read_text())["camera"]
+    K = Intrinsics(cam["fx"], cam["fy"], cam["cx"], cam["cy"], cam["width"], cam["height"])
+    names = [ln.split()[1] for ln in (root / "rgb.txt").read_text().splitlines() if ln.strip() and ln[0] != "#"]
+    v = KeyframeVerifier(DeitLoopConfig(weights=None))
+    for i in range(0, len(names), stride):
+        v.add(i, cv2.imread(str(root / names[i]), cv2.IMREAD_GRAYSCALE), K)
+    return v
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -128,6 +164,7 @@ def main(argv: list[str] | None = None) -> None:
     rp.add_argument("--scenarios", nargs="+", default=["driving_loop", "indoor_handheld"])
     rp.add_argument("--weights-dir", default=None, help="folder of project checkpoints (default: the shipped ones)")
     rp.add_argument("--threads", type=int, default=2)
+    rp.add_argument("--verify", action="store_true", help="also the rows with geometric verification")
     args = ap.parse_args(argv)
     speed(args) if args.cmd == "speed" else retrieval(args)
 

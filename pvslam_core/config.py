@@ -124,8 +124,9 @@ class GraphSection(PluginConfig):
         "while the near field moves several BA px, and keyframes 13 m apart were judged redundant "
         "(pvslam_core/slam/keyframing.py)")
     max_keyframe_gap_s: float = Field(
-        0.5, gt=0, description="a proposed keyframe more than this many seconds after the last kept one is never "
-        "redundant, whatever the estimate says (ORB-SLAM keeps one at least every second): when the estimate "
+        0.5, gt=0, description="a keyframe whose removal would leave more than this many seconds between the "
+        "keyframes around it is never redundant, whatever the estimate says (ORB-SLAM keeps one at least every "
+        "second): when the estimate "
         "underrates the motion (a far scene, a textureless road) the frame distance stays small and the kept "
         "keyframes were 38 m apart on the synthetic street, with the scale collapsing in between")
     provisional_keyframes: bool = Field(

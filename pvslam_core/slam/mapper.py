@@ -169,7 +169,7 @@ class Mapper(GraphListener):
         t0 = thread_time()
         pose = self._keyframe_pose_guess(a, track)  # against the tracking reference (maybe provisional)
         self.cpu["pose_guess"] += thread_time() - t0
-        removed = self._settle_provisional()
+        removed = self._settle_provisional(next_ts=frame.timestamp)
         a_id = self.graph.id_of(-1)  # the previous keyframe that stays
         # after a removal the next keyframe is ordinary: chains of provisional keyframes judged on pose guesses
         # alone thinned the map (90 instead of ~120 keyframes on the driving loop, and a higher ATE)
@@ -193,11 +193,15 @@ class Mapper(GraphListener):
         return result
 
     # ------------------------------------------------------------------------------ provisional keyframes --
-    def _redundancy(self, r: int) -> float:
+    def _redundancy(self, r: int, next_ts: Optional[float] = None) -> float:
         """Symmetric distance (BA px, :func:`.keyframing.keyframe_distance`: mean and 90th percentile of the
-        induced flow) of keyframe ``r`` to keyframe ``r - 1`` under the current estimate."""
+        induced flow) of keyframe ``r`` to keyframe ``r - 1`` under the current estimate; infinite when removing
+        ``r`` would leave more than ``max_keyframe_gap_s`` between the keyframes around it (the next one: ``r + 1``,
+        else the frame at ``next_ts`` about to become a keyframe, else ``r`` itself)."""
         g = self.graph
-        if float(g.timestamps[r] - g.timestamps[r - 1]) > self.cfg.max_keyframe_gap_s:
+        after = float(g.timestamps[r + 1]) if r + 1 < g.n else (next_ts if next_ts is not None else
+                                                                 float(g.timestamps[r]))
+        if after - float(g.timestamps[r - 1]) > self.cfg.max_keyframe_gap_s:
             return float("inf")  # never redundant: see GraphSection.max_keyframe_gap_s
         return 0.5 * (self._kf_distance(g.poses[r - 1], g.poses[r], g.disps[r - 1])
                       + self._kf_distance(g.poses[r], g.poses[r - 1], g.disps[r]))
@@ -221,7 +225,7 @@ class Mapper(GraphListener):
             return False
         return self._kf_distance(g.poses[-1], pose, g.disps[-1]) < c.redundant_thresh
 
-    def _settle_provisional(self, keep: bool = False) -> bool:
+    def _settle_provisional(self, keep: bool = False, next_ts: Optional[float] = None) -> bool:
         """Decide the provisional keyframe (the newest one) before anything else changes the map: still redundant
         (and not ``keep``) -> its frames are placed (motion-only BA against it) and it goes; else it becomes an
         ordinary keyframe (its edges now; the next window BA optimises it).  Returns whether it was removed."""
@@ -230,7 +234,7 @@ class Mapper(GraphListener):
         kf_id, self._provisional = self._provisional, None
         g = self.graph
         r = g.index_of(kf_id)
-        if not keep and r - 1 > self.fragment_start and self._redundancy(r) < self.cfg.redundant_thresh:
+        if not keep and r - 1 > self.fragment_start and self._redundancy(r, next_ts) < self.cfg.redundant_thresh:
             self._fill_pending(kf_id)
             g.remove_keyframe(r)  # frames anchored to it re-anchor to keyframe r - 1
             self.provisional_removed += 1

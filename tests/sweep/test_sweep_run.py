@@ -137,11 +137,12 @@ def test_ray_matches_serial_and_resumes(grid, ray_local):
     states = {n: C.cell_status(cells_dir / n) for n in GOOD}
     assert states[stop["first"]] == C.DONE
     other = next(n for n in GOOD if n != stop["first"])
-    assert states[other] in (C.UNFINISHED, C.DONE)  # cancelled in flight, or finished in the same instant
+    # cancelled in flight, finished in the same instant, or (on a loaded machine) never started by Ray
+    assert states[other] in (C.UNFINISHED, C.DONE, C.PENDING)
 
     out = run_sweep(cfg, workers=2, progress=False)
     assert out.executor == "ray" and out.workers == 2 and out.threads == 1
-    assert out.ran == ([other] if states[other] == C.UNFINISHED else []) and not out.failed
+    assert out.ran == ([] if states[other] == C.DONE else [other]) and not out.failed
     ray_m = _metrics(cells_dir)
     for name in GOOD:  # same per-cell metrics as the serial run, within the pipeline's run-to-run noise: repeated
         # `pvslam run` of this cell in fresh processes (1 thread) gives ATE 1.04796 or 1.04635 (0.15 %), so 1 %

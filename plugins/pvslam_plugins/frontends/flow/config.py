@@ -108,6 +108,12 @@ class FlowFrontendConfig(PluginConfig):
         "fail long before the mean measured flow grows, so this keeps keyframes overlapping (about every 2nd "
         "frame on the synthetic driving loop at 12 fps).",
     )
+    track_recover_fail_fraction: float = Field(
+        0.5, gt=0.0, le=1.0,
+        description="When more than this fraction of the pixels fail the forward-backward check while tracking, "
+        "the flows are computed again from the homography of LK-tracked corners (recover.py: a fast turn moves "
+        "the image beyond DIS's coarsest level) and the better of the two is kept; 1.0: never.",
+    )
     min_texture_std: float = Field(
         2.0, ge=0.0,
         description="Tracking failure when the grayscale intensity std of a frame is below this (black/blank frame).",

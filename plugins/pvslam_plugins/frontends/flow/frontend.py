@@ -48,6 +48,7 @@ from pvslam_core.interfaces import Frontend
 from pvslam_core.types import EdgeObservations, Frame, PanopticSegmentation, TrackResult
 
 from . import dynamic as D
+from .recover import homography_flow
 from . import flow_ops as F
 from .config import FlowFrontendConfig
 
@@ -111,7 +112,7 @@ class FlowFrontend(Frontend):
         self._pending: Optional[dict] = None  # the last tracked frame's gray and flow to the last keyframe
         self._graph = None  # last graph seen in observe (for initial_depth)
         self.stats = {"track_calls": 0, "track_s": 0.0, "dis_calls": 0, "dis_s": 0.0, "edges_computed": 0,
-                      "reprojection_init_used": 0}
+                      "reprojection_init_used": 0, "track_recoveries": 0, "track_recovered": 0}
 
     # ----------------------------------------------------------------------------------------- helpers --
     @property
@@ -224,6 +225,18 @@ class FlowFrontend(Frontend):
         tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w)
         fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
         fail_frac = float(np.mean(~(fb_f <= fail_px)))  # inf (left the image) counts as failed
+        if fail_frac > self.cfg.track_recover_fail_fraction:
+            # a fast turn: start DIS again from the homography of LK-tracked corners (recover.py), keep the better
+            hf = homography_flow(last.gray, gray)
+            if hf is not None:
+                fwd2 = self._flow(self._dis_track_init, last.gray, gray, hf[0])
+                bwd2 = self._flow(self._dis_track_init, gray, last.gray, hf[1])
+                tf2, wf2, fb2 = self._direction(last.gray, gray, fwd2, bwd2, h, w)
+                frac2 = float(np.mean(~(fb2 <= fail_px)))
+                self.stats["track_recoveries"] += 1
+                if frac2 < fail_frac:
+                    self.stats["track_recovered"] += 1
+                    fwd, bwd, tf, wf, fb_f, fail_frac = fwd2, bwd2, tf2, wf2, fb2, frac2
         xs, ys = F.pixel_grid_np(h, w)
         mean_flow = float(np.sqrt((tf[0] - xs) ** 2 + (tf[1] - ys) ** 2).mean())
         target = torch.from_numpy(tf)

@@ -13,13 +13,14 @@ classifier averages the two heads) and ``concat`` ([cls, dist], 2D) are offered 
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 from pathlib import Path
 from typing import Optional
 
 import torch
 
-from .checkpoint import LoadedCheckpoint, load_checkpoint
+from .checkpoint import CheckpointError, LoadedCheckpoint, load_checkpoint
 from .config import BUILTIN, DeitDescriptorConfig, DeitModelConfig
 from .pca import OnlinePCA, PCAWhitening
 from .preprocess import Images, preprocess
@@ -36,19 +37,49 @@ _VARIANT_NAMES = {"base": "plain", "distilled": "distilled"}  # config variant -
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
 
+#: sha256 of the shipped checkpoints (weights/README.md): a file that differs is corrupt (truncated copy, a Git LFS
+#: pointer instead of the data) or was replaced; loading it anyway could silently give wrong loops
+SHIPPED_SHA256 = {
+    "base": "0c0e1d70e001fb6fe54d0a2c72ae474a4c59c67daf036ed103d45a66579f7d7b",
+    "distilled": "50f4fb0f2a6eb5555ef55a6e6d5764d5829369952c797e8ad1de5b7d6f61a921",
+}
+
+
 def builtin_weights(variant: str) -> Optional[Path]:
     """The shipped checkpoint of a variant (``base`` | ``distilled``), or None when none is shipped."""
     p = WEIGHTS_DIR / f"deit_synth_{variant}.pt"
     return p if p.is_file() else None
 
 
+def check_builtin_weights(variant: str) -> Path:
+    """The shipped checkpoint of a variant, checked: :class:`FileNotFoundError` when it is missing,
+    :class:`CheckpointError` when its sha256 is not the shipped one (both name the file and what to do)."""
+    p = WEIGHTS_DIR / f"deit_synth_{variant}.pt"
+    fix = ("reinstall pvslam (the file is package data of pvslam_plugins.loops.deit), or set loop.weights to "
+           "another checkpoint, or loop.plugin = 'classical'")
+    if not p.is_file():
+        raise FileNotFoundError(f"deit loop detector: the shipped {variant} checkpoint {p} is missing "
+                                f"(loop.weights = 'builtin'); {fix}")
+    want = SHIPPED_SHA256.get(variant)
+    if want is not None:
+        data = p.read_bytes()  # 7.7 MB: hashing costs ~20 ms, once per detector
+        got = hashlib.sha256(data).hexdigest()
+        if got != want:
+            hint = " (it is a Git LFS pointer: run `git lfs pull`)" if data.startswith(b"version https://git-lfs") \
+                else ""
+            raise CheckpointError(f"deit loop detector: the shipped checkpoint {p} is corrupt or was replaced: "
+                                  f"sha256 {got[:16]}..., {len(data)} bytes, expected {want[:16]}...{hint}; {fix}")
+    return p
+
+
 def resolve_model_weights(config: DeitModelConfig) -> Optional[Path]:
-    """The file ``config.weights`` names: None (random init) for None or a missing built-in checkpoint; a
-    catalogue name or a path through :func:`pvslam_core.weights.resolve_weights`."""
+    """The file ``config.weights`` names: None (random init) for None / 'none'; the checked shipped checkpoint
+    for 'builtin' (missing or corrupt: an error, never a silent random model); a catalogue name or a path through
+    :func:`pvslam_core.weights.resolve_weights`."""
     if config.weights is None or config.weights == "none":
         return None
     if config.weights == BUILTIN:
-        return builtin_weights(config.variant)
+        return check_builtin_weights(config.variant)
     from pvslam_core.weights import resolve_weights
 
     return resolve_weights(config.weights)

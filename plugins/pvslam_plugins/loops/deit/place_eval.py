@@ -13,6 +13,8 @@ and ``min_time_gap`` seconds), and that top-1 candidate is what the loop policy 
 * ``recall_at_1``: revisit queries whose top-1 is correct (no threshold);
 * at a threshold t: ``precision(t)`` = correct / top-1s scoring >= t (all queries), ``recall(t)`` = revisit
   queries with a correct top-1 scoring >= t;
+* :func:`verified_top_one`: the same with geometric verification (``verify = true``): a query's detection is its
+  best candidate above the threshold (of at most ``max_candidates``) that passes the verification;
 * :func:`calibrate` pools sequences and returns a threshold with precision 1.00 (just above the best wrong top-1
   score, plus a relative margin) and the recall there.
 """
@@ -20,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -44,9 +46,41 @@ def top_one(desc: torch.Tensor, pos: torch.Tensor, timestamps: torch.Tensor, str
     frames; ``pos`` bool ``[N, N]`` ground-truth positives, ``timestamps [N]``.  With the optical ``axes [N, 3]``,
     candidates whose axes differ by more than ``max_rotation_deg`` are skipped, as the loop policy's orientation
     check does (with the ground-truth orientations standing in for the estimated ones)."""
-    kf = torch.arange(0, pos.shape[0], stride)  # [K] frame index of each pseudo keyframe
+    kf, masked, ok = _eligible(desc, pos.shape[0], timestamps, stride, exclude_recent, min_time_gap, axes,
+                               max_rotation_deg)
+    score, col = masked.max(dim=1)
+    match = torch.where(torch.isfinite(score), kf[col], torch.full_like(col, -1))
+    return _judge(kf, match, score, pos, ok, tolerance)
+
+
+def verified_top_one(desc: torch.Tensor, pos: torch.Tensor, timestamps: torch.Tensor, threshold: float,
+                     verify: Callable[[int, int], bool], max_candidates: int = 3, stride: int = 3,
+                     exclude_recent: int = 20, min_time_gap: float = 10.0, tolerance: int = 5,
+                     axes: Optional[torch.Tensor] = None, max_rotation_deg: Optional[float] = 60.0) -> TopOne:
+    """:func:`top_one` with geometric verification, as the detector with ``verify = true`` and the loop policy
+    behave: each query's eligible candidates scoring ``>= threshold``, best first, at most ``max_candidates``,
+    are checked by ``verify(query_frame, match_frame)``; the first that passes is the query's detection (its
+    score), a query without one gets score -inf (no detection at any threshold ``>= threshold``)."""
+    kf, masked, ok = _eligible(desc, pos.shape[0], timestamps, stride, exclude_recent, min_time_gap, axes,
+                               max_rotation_deg)
+    k = min(int(max_candidates), masked.shape[1])
+    top, col = masked.topk(k, dim=1)  # [K, k] best first
+    match = torch.full((len(kf),), -1, dtype=torch.long)
+    score = torch.full((len(kf),), float("-inf"), dtype=masked.dtype)
+    # the verification is per pair (ORB + RANSAC on images): a loop over the few candidates above threshold
+    for q, c in torch.nonzero(top >= threshold).tolist():
+        if match[q] < 0 and verify(int(kf[q]), int(kf[col[q, c]])):
+            match[q], score[q] = kf[col[q, c]], top[q, c]
+    return _judge(kf, match, score, pos, ok, tolerance)
+
+
+def _eligible(desc: torch.Tensor, n_frames: int, timestamps: torch.Tensor, stride: int, exclude_recent: int,
+              min_time_gap: float, axes: Optional[torch.Tensor], max_rotation_deg: Optional[float]
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Keyframe frame indices ``[K]``, similarities with ineligible pairs at -inf ``[K, K]``, eligibility mask."""
+    kf = torch.arange(0, n_frames, stride)  # [K] frame index of each pseudo keyframe
     if desc.shape[0] != len(kf):
-        raise ValueError(f"{desc.shape[0]} descriptors for {len(kf)} keyframes (every {stride}th of {pos.shape[0]})")
+        raise ValueError(f"{desc.shape[0]} descriptors for {len(kf)} keyframes (every {stride}th of {n_frames})")
     d = desc.float()
     sims = d @ d.T  # [K, K]
     p = torch.arange(len(kf))
@@ -56,9 +90,11 @@ def top_one(desc: torch.Tensor, pos: torch.Tensor, timestamps: torch.Tensor, str
     if axes is not None and max_rotation_deg is not None:
         a = axes[kf].double()
         ok &= (a @ a.T) >= math.cos(math.radians(max_rotation_deg))
-    masked = torch.where(ok, sims, torch.full_like(sims, float("-inf")))
-    score, col = masked.max(dim=1)
-    match = torch.where(torch.isfinite(score), kf[col], torch.full_like(col, -1))
+    return kf, torch.where(ok, sims, torch.full_like(sims, float("-inf"))), ok
+
+
+def _judge(kf: torch.Tensor, match: torch.Tensor, score: torch.Tensor, pos: torch.Tensor, ok: torch.Tensor,
+           tolerance: int) -> TopOne:
     # a GT positive pair within `tolerance` frames of (query, match) in both indices, as the run evaluation counts
     dil = F.max_pool2d(pos.float()[None, None], 2 * tolerance + 1, 1, tolerance)[0, 0] > 0  # [N, N]
     correct = (match >= 0) & dil[kf, match.clamp_min(0)]

@@ -2,6 +2,7 @@
 retrieval-only vs verified candidates, weights resolution and warnings, checkpoint settings, and a pipeline run."""
 from __future__ import annotations
 
+import hashlib
 import json
 import warnings
 from pathlib import Path
@@ -13,7 +14,7 @@ import torch
 
 from pvslam_core.types import Frame, Intrinsics
 from pvslam_plugins.loops.deit import descriptor as descriptor_mod
-from pvslam_plugins.loops.deit.checkpoint import save_checkpoint
+from pvslam_plugins.loops.deit.checkpoint import CheckpointError, save_checkpoint
 from pvslam_plugins.loops.deit.config import DeitLoopConfig
 from pvslam_plugins.loops.deit.detector import DeitLoopDetector, UntrainedDeitWarning, make_loop_detector
 from pvslam_plugins.loops.deit.pca import PCAWhitening
@@ -65,7 +66,7 @@ def tiny_weights(tmp_path, tiny_model):
 
 
 def cfg(weights, **kw) -> DeitLoopConfig:
-    base = dict(weights=str(weights), variant="distilled", exclude_recent=1, min_time_gap=0.0)
+    base = dict(weights=str(weights), variant="distilled", exclude_recent=1, min_time_gap=0.0, verify=False)
     base.update(kw)
     return DeitLoopConfig(**base)
 
@@ -186,8 +187,9 @@ def test_pca_from_checkpoint(tmp_path, tiny_model):
 
 
 def test_untrained_warns_and_builtin_default(tmp_path, monkeypatch, tiny_model):
-    """No weights: a random full-size DeiT (replaced by a tiny one here to stay fast) and a loud warning; the
-    'builtin' default uses the shipped checkpoint of the variant when there is one."""
+    """weights = None / 'none': a random full-size DeiT (replaced by a tiny one here to stay fast) and a loud
+    warning. 'builtin' (the default) is the shipped checkpoint of the variant, checked: missing or not the shipped
+    bytes (sha256) is an error naming the file, never a silent fallback to random weights."""
     made = []
 
     def tiny(**kw):
@@ -196,15 +198,31 @@ def test_untrained_warns_and_builtin_default(tmp_path, monkeypatch, tiny_model):
                                    distilled=True))
 
     monkeypatch.setattr(descriptor_mod, "deit_base_distilled_patch16_224", tiny)
-    monkeypatch.setattr(descriptor_mod, "WEIGHTS_DIR", tmp_path / "none_here")
-    for weights in (None, "builtin"):
+    for weights in (None, "none"):
         with pytest.warns(UntrainedDeitWarning, match="MEANINGLESS"):
             det = DeitLoopDetector(DeitLoopConfig(weights=weights, input_size=INPUT))
         assert not det.trained
     assert len(made) == 2
+    # missing shipped file
+    monkeypatch.setattr(descriptor_mod, "WEIGHTS_DIR", tmp_path / "none_here")
+    with pytest.raises(FileNotFoundError, match=r"none_here.deit_synth_distilled\.pt is missing"):
+        DeitLoopDetector(DeitLoopConfig(input_size=INPUT))
+    # a file that is not the shipped one (the real hashes are expected): corrupt; a Git LFS pointer is named
     shipped = tmp_path / "shipped"
     save_checkpoint(shipped / "deit_synth_distilled.pt", tiny_model, None, {"threshold": 0.42})
     monkeypatch.setattr(descriptor_mod, "WEIGHTS_DIR", shipped)
+    with pytest.raises(CheckpointError, match=r"deit_synth_distilled\.pt is corrupt or was replaced"):
+        DeitLoopDetector(DeitLoopConfig(input_size=INPUT))
+    lfs = tmp_path / "lfs"
+    lfs.mkdir()
+    (lfs / "deit_synth_distilled.pt").write_text("version https://git-lfs.github.com/spec/v1\noid sha256:0c0e\n")
+    monkeypatch.setattr(descriptor_mod, "WEIGHTS_DIR", lfs)
+    with pytest.raises(CheckpointError, match="git lfs pull"):
+        DeitLoopDetector(DeitLoopConfig(input_size=INPUT))
+    # the registered hash matches: loaded, with its stored threshold, no warning, no random model
+    digest = hashlib.sha256((shipped / "deit_synth_distilled.pt").read_bytes()).hexdigest()
+    monkeypatch.setattr(descriptor_mod, "WEIGHTS_DIR", shipped)
+    monkeypatch.setitem(descriptor_mod.SHIPPED_SHA256, "distilled", digest)
     with warnings.catch_warnings():
         warnings.simplefilter("error", UntrainedDeitWarning)
         det = make_loop_detector(DeitLoopConfig(input_size=INPUT), None)
@@ -238,7 +256,8 @@ def test_pipeline_run_with_deit(tmp_path, tiny_weights):
     res = run_config(None, overrides=[
         f'run.output_dir="{(tmp_path / "runs").as_posix()}"', "run.progress=false", f'dataset.path="{seq.as_posix()}"',
         'loop.plugin="deit"', f'loop.weights="{tiny_weights.as_posix()}"', "loop.threshold=-1.0",
-        "loop.exclude_recent=2", "loop.min_time_gap=0.0", "outputs.ply=false", 'vps.plugin="none"'])
+        "loop.exclude_recent=2", "loop.min_time_gap=0.0", "loop.verify=false", "outputs.ply=false",
+        'vps.plugin="none"'])
     d = Path(res.run_dir)
     assert (d / "trajectory.txt").is_file() and json.loads((d / "metrics.json").read_text())["timing"]["frames"] == 40
     assert res.loops and all(c.verified is None for c in res.loops)

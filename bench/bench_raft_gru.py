@@ -1,0 +1,278 @@
+"""Benchmark of the learned ``raft_gru`` frontend (issue 10): speed at 320x240 with a per-stage profile, memory on a
+long run, and ATE against the classical ``flow`` frontend on held-out synthetic seeds.
+
+    python bench/bench_raft_gru.py --only speed --frames 120               # frames/s + profile (about 10 min)
+    python bench/bench_raft_gru.py --only memory --long-frames 1000        # long run in a child process
+    python bench/bench_raft_gru.py --only ate --weights runs/rg/model_final.pth --seeds 200 201
+    python bench/bench_raft_gru.py --quick                                 # a smoke run of every section
+
+Speed.  Weights do not change the cost of a network call, but they decide which frames become keyframes, and a
+random network's motion filter is meaningless; so without ``--weights`` every frame is made a keyframe candidate
+(``keyframe_thresh`` 1e-4: the mapper's provisional-keyframe rule then keeps about as many as the trained model, see
+RESULTS.md) and the figures are an upper bound of the per-keyframe work.  Wall time on a shared machine depends on
+the other jobs; the script prints the load average and each run's CPU seconds (whole process and the pipeline
+thread) next to the wall time.  ``est fps`` = frames / max(pipeline-thread CPU, process CPU / cores): the rate on an
+otherwise idle machine with that many cores.
+
+Memory.  A separate process runs ``--long-frames`` frames of the driving loop (3000 is the target; on a loaded
+2-core machine that takes hours, so the default is 1000 and the peak at 3000 is extrapolated from the RSS samples
+taken every 100 frames: a least-squares line over the second half of the run).
+
+Results go to bench/results_raft_gru.json (and are summarised in bench/RESULTS.md by hand).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS: dict = {}
+
+
+def load() -> str:
+    return " ".join(f"{x:.1f}" for x in os.getloadavg())
+
+
+def generate(scenario: str, frames: int | None, seed: int = 0, width: int = 320, height: int = 240) -> Path:
+    from pvslam_plugins.datasets.synthetic.generator import generate as gen
+
+    return gen(scenario, None, num_frames=frames, width=width, height=height, seed=seed, progress=False)
+
+
+def rg_overrides(weights: str | None, profile: str, extra: list[str] = ()) -> list[str]:
+    ov = ['frontend.plugin="raft_gru"', f'frontend.profile="{profile}"']
+    if weights:
+        ov.append(f'frontend.weights="{weights}"')
+    else:
+        ov += ['frontend.weights="random"', "frontend.keyframe_thresh=0.0001"]
+    return ov + list(extra)
+
+
+def run(seq: Path, overrides: list[str], out: Path):
+    """One pipeline run (no loop detector / VPS / point clouds: the frontend's cost is what is measured); returns
+    ``(result, frontend or None)``."""
+    import pvslam_plugins.frontends.raft_gru.frontend as F
+    from pvslam_core.api import run_config
+
+    made = []
+    orig = F.RaftGruFrontend.__init__
+
+    def init(self, *a, **k):
+        orig(self, *a, **k)
+        made.append(self)
+
+    F.RaftGruFrontend.__init__ = init
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = run_config(None, overrides=[f'run.output_dir="{out.as_posix()}"', "run.progress=false",
+                                              f'dataset.path="{seq.as_posix()}"', "outputs.ply=false",
+                                              "outputs.plots=false", "outputs.panoptic_png=false", "vps.plugin=none",
+                                              *overrides])
+    finally:
+        F.RaftGruFrontend.__init__ = orig
+    return res, (made[-1] if made else None)
+
+
+def summary(res, fe) -> dict:
+    t = res.metrics["timing"]
+    n = max(int(t["frames"]), 1)
+    main = sum((t.get("stage_cpu_seconds") or {}).values())
+    cpu = float(t.get("cpu_seconds") or main)
+    cores = os.cpu_count() or 1
+    d = {"frames": n, "keyframes": t.get("keyframes"), "wall_s": t.get("seconds"), "fps_wall": t.get("fps"),
+         "cpu_s_process": cpu, "cpu_s_pipeline_thread": main, "cpu_ms_per_frame": 1000 * cpu / n,
+         "est_fps": n / max(main, cpu / cores, 1e-9), "map_cpu_seconds": t.get("map_cpu_seconds"),
+         "tracking": res.metrics.get("tracking"), "ate_pct": res.metrics.get("ate", {}).get("rmse_percent_of_path"),
+         "threads": __import__("torch").get_num_threads()}
+    if fe is not None:
+        d["frontend_cpu_s"] = {k: round(v, 2) for k, v in fe.stats.cpu.items()}
+        d["frontend_wall_s"] = {k: round(v, 2) for k, v in fe.stats.seconds.items()}
+        d["frontend_counts"] = dict(fe.stats.counts)
+        d["frontend_mb"] = fe.memory_bytes() / 2**20
+    return d
+
+
+def print_run(name: str, d: dict) -> None:
+    print(f"  {name:<28} {d['frames']} frames, {d['keyframes']} keyframes: {d['fps_wall']:.2f} frames/s wall, "
+          f"{d['cpu_ms_per_frame']:.0f} ms CPU/frame (process), est {d['est_fps']:.2f} frames/s idle, "
+          f"ATE {d['ate_pct']}")
+    if "frontend_cpu_s" in d:
+        n = d["frames"]
+        parts = ", ".join(f"{k} {1000 * v / n:.0f}" for k, v in d["frontend_cpu_s"].items() if v > 0)
+        print(f"      frontend CPU ms/frame: {parts}; counts {d['frontend_counts']}")
+    print(f"      mapper CPU s: {d['map_cpu_seconds']}")
+
+
+def section_speed(out: Path, frames: int, weights: str | None, threads: list[int]) -> None:
+    import torch
+
+    print(f"\n== speed at 320x240, driving_loop, {frames} frames (load {load()}) ==")
+    seq = generate("driving_loop", frames)
+    res_all = {}
+    for th in threads:
+        torch.set_num_threads(th)
+        for name, ov in (("flow", ['frontend.plugin="flow"']),
+                         ("raft_gru fast", rg_overrides(weights, "fast")),
+                         ("raft_gru fast fp32", rg_overrides(weights, "fast", ['frontend.precision="fp32"'])),
+                         ("raft_gru droid", rg_overrides(weights, "droid"))):
+            if name == "raft_gru droid" and th != threads[0]:
+                continue
+            before = load()
+            res, fe = run(seq, ov + ["loop.plugin=none"], out)
+            d = summary(res, fe)
+            d["load_before"], d["load_after"] = before, load()
+            res_all[f"{name} / {th} thread(s)"] = d
+            print_run(f"{name} ({th} thr)", d)
+    RESULTS["speed"] = res_all
+
+
+def _rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _long_child(frames: int, out: str, weights: str | None, profile: str) -> None:
+    """Separate process (its own peak RSS): feeds the frames itself and samples memory every 100 frames."""
+    import torch
+
+    from pvslam_core.background import read_ahead
+    from pvslam_core.config import load_config
+    from pvslam_core.pipeline import Pipeline
+    from pvslam_core.registry import get_registry
+    from pvslam_core.rundir import RunLog, init_run_dir, make_run_dir
+
+    torch.set_num_threads(1)
+    warnings.simplefilter("ignore")
+    seq = generate("driving_loop", frames)
+    cfg = load_config(None, overrides=[f'dataset.path="{seq.as_posix()}"', "outputs.ply=false", "outputs.plots=false",
+                                       "outputs.panoptic_png=false", "run.progress=false", "vps.plugin=none",
+                                       f'run.output_dir="{Path(out).as_posix()}"', *rg_overrides(weights, profile)])
+    run_dir = make_run_dir(out, "long_raft_gru")
+    init_run_dir(run_dir, cfg, get_registry(), {})
+    samples = []
+    t0, c0 = time.perf_counter(), time.process_time()
+    with RunLog(run_dir, "INFO"):
+        pipe = Pipeline(cfg, run_dir)
+        pipe.start()
+        for frame in read_ahead(pipe.dataset, cfg.pipeline.run.read_ahead):
+            pipe.step(frame)
+            if pipe.frames_done % 100 == 0:
+                g, fe = pipe.mapper.graph, pipe.frontend
+                samples.append({"frame": pipe.frames_done, "rss_mb": _rss_mb(), "keyframes": g.n,
+                                "active_edges": g.num_edges, "retired_edges": g.num_retired,
+                                "retired_mb": g.retired_bytes() / 2**20, "frontend_edges": len(fe.edge_ids()),
+                                "frontend_mb": fe.memory_bytes() / 2**20,
+                                "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0})
+                print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
+        r = pipe.finish()
+    print(json.dumps({"frames": pipe.frames_done, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "samples": samples, "keyframes": r.metrics["timing"]["keyframes"],
+                      "ate_pct": r.metrics.get("ate", {}).get("rmse_percent_of_path"),
+                      "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}))
+
+
+def section_memory(out: Path, frames: int, weights: str | None, profile: str, target_frames: int = 3000) -> None:
+    print(f"\n== memory: {frames} frames of the driving loop at 320x240, raft_gru {profile} (load {load()}) ==")
+    generate("driving_loop", frames)
+    cmd = [sys.executable, __file__, "--long-child", str(frames), "--out", str(out), "--profile", profile]
+    if weights:
+        cmd += ["--weights", weights]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        print(res.stderr[-3000:])
+        RESULTS["memory"] = {"error": res.stderr[-2000:]}
+        return
+    d = json.loads(res.stdout.strip().splitlines()[-1])
+    s = d["samples"]
+    half = s[len(s) // 2:] or s
+    xs = [p["frame"] for p in half]
+    ys = [p["rss_mb"] for p in half]
+    n = len(xs)
+    mx, my = sum(xs) / n, sum(ys) / n
+    slope = sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / max(sum((x - mx) ** 2 for x in xs), 1e-9)
+    d["rss_slope_mb_per_1000_frames"] = 1000 * slope
+    d["rss_extrapolated_mb"] = ys[-1] + slope * (target_frames - xs[-1])
+    RESULTS["memory"] = d
+    print(f"  {d['frames']} frames, {d['keyframes']} keyframes in {d['wall_s']:.0f} s wall / {d['cpu_s']:.0f} s CPU; "
+          f"peak RSS {d['peak_mb']:.0f} MB; RSS grows {1000 * slope:.0f} MB per 1000 frames over the second half "
+          f"-> about {d['rss_extrapolated_mb']:.0f} MB at {target_frames} frames (target < 4096 MB)")
+    print("  frame   RSS MB  keyframes  active  retired  retired MB  frontend edges  frontend MB")
+    for p in s:
+        print(f"  {p['frame']:>5}  {p['rss_mb']:>7.0f}  {p['keyframes']:>9}  {p['active_edges']:>6}  "
+              f"{p['retired_edges']:>7}  {p['retired_mb']:>10.1f}  {p['frontend_edges']:>14}  {p['frontend_mb']:>11.1f}")
+
+
+def section_ate(out: Path, weights: str | None, seeds: list[int], scenarios: list[str], frames: int,
+                profile: str) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    print(f"\n== ATE raft_gru ({weights or 'random'}, {profile}) vs flow, held-out seeds {seeds}, {frames} frames "
+          f"(load {load()}) ==")
+    rows = []
+    for scen in scenarios:
+        for seed in seeds:
+            seq = generate(scen, frames, seed)
+            row = {"scenario": scen, "seed": seed}
+            for name, ov in (("flow", ['frontend.plugin="flow"']), ("raft_gru", rg_overrides(weights, profile))):
+                res, _ = run(seq, ov, out)
+                a = res.metrics.get("ate", {})
+                row[name] = a.get("rmse_percent_of_path", float("nan"))
+                row[f"{name}_fps"] = res.metrics["timing"]["fps"]
+                row[f"{name}_keyframes"] = res.metrics["timing"]["keyframes"]
+            rows.append(row)
+            print(f"  {scen:<22} seed {seed}: flow {row['flow']:.3f} %  raft_gru {row['raft_gru']:.3f} %  "
+                  f"(keyframes {row['flow_keyframes']} / {row['raft_gru_keyframes']})")
+    RESULTS["ate"] = rows
+    wins = sum(1 for r in rows if r["raft_gru"] < r["flow"])
+    print(f"  raft_gru better on {wins} of {len(rows)} sequences")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", nargs="*", choices=["speed", "memory", "ate"])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--weights", help="raft_gru weights (catalogue name or path); default: random")
+    ap.add_argument("--profile", default="fast", choices=["fast", "droid"])
+    ap.add_argument("--frames", type=int, default=120, help="frames of the speed run")
+    ap.add_argument("--threads", type=int, nargs="*", default=[1, 2])
+    ap.add_argument("--long-frames", type=int, default=1000)
+    ap.add_argument("--seeds", type=int, nargs="*", default=[200])
+    ap.add_argument("--scenarios", nargs="*", default=["driving_loop", "moving_vehicles", "indoor_handheld",
+                                                       "busy_street"])
+    ap.add_argument("--ate-frames", type=int, default=150)
+    ap.add_argument("--out", default=str(Path("/tmp") / "bench_raft_gru"))
+    ap.add_argument("--json", default=str(ROOT / "bench" / "results_raft_gru.json"))
+    ap.add_argument("--long-child", type=int, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.long_child:
+        _long_child(args.long_child, args.out, args.weights, args.profile)
+        return
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sections = args.only or ["speed", "memory", "ate"]
+    RESULTS["machine"] = {"cores": os.cpu_count(), "load_start": load(), "weights": args.weights or "random"}
+    if "speed" in sections:
+        section_speed(out, 30 if args.quick else args.frames, args.weights, args.threads)
+    if "memory" in sections:
+        section_memory(out, 200 if args.quick else args.long_frames, args.weights, args.profile)
+    if "ate" in sections:
+        section_ate(out, args.weights, args.seeds, args.scenarios[:1] if args.quick else args.scenarios,
+                    40 if args.quick else args.ate_frames, args.profile)
+    RESULTS["machine"]["load_end"] = load()
+    Path(args.json).write_text(json.dumps(RESULTS, indent=1, default=str))
+    print(f"\nresults: {args.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,323 @@
+"""``pvslam train frontend --plugin raft_gru``: DROID-SLAM's training (losses through a differentiable dense BA,
+:mod:`.losses`) on clips of the built-in synthetic generator, at a reduced resolution and clip length that fit a CPU.
+
+    pvslam train frontend --plugin raft_gru --out runs/rg                       # defaults below
+    pvslam train frontend --plugin raft_gru --out runs/rg --resume              # continue after an interruption
+    pvslam train frontend --plugin raft_gru --out runs/of --set overfit=true    # one clip: proves losses/gradients
+
+Data: ``frames_per_sequence`` frames of every scenario in ``scenarios`` for each of ``train_seeds`` (rendered once
+into ``data_cache``); a training sample is a random clip of ``clip_length`` frames whose consecutive-frame flow lies
+in ``flow_range`` (1/8 px); validation on fixed clips of ``val_seeds`` (held out).  ``overfit = true`` trains and
+validates on one clip (the first validation clip).
+
+AdamW, linear warm-up and cosine decay over the run's progress ``max(step / steps, minutes / time_budget_min)`` (a
+shared machine's speed is unknown in advance, so the schedule always completes its decay), gradient-norm clip 1
+(DROID).  Written into the output folder: ``last.pt`` (model, optimiser, generator, step; every
+``checkpoint_every`` steps and on Ctrl-C; ``--resume`` continues from it), ``loss.csv`` (one row per step),
+``val.csv`` (one row per evaluation), ``loss.png``, ``model_final.pth`` (pvslam checkpoint format, loadable as the
+frontend's ``weights``).
+"""
+from __future__ import annotations
+
+import csv
+import math
+import time
+from pathlib import Path
+from typing import Literal, Optional
+
+import torch
+from pydantic import Field, field_validator, model_validator
+
+from pvslam_core.config_base import PluginConfig
+
+__all__ = ["TrainConfig", "run"]
+
+DEFAULT_SCENARIOS = ("driving_loop", "moving_vehicles", "indoor_handheld", "handheld_fast", "indoor_textureless",
+                     "busy_street", "forward_low_parallax", "driving_city")
+TERMS = ("loss", "geo", "res", "flow", "f_error", "f_error_inview", "1px", "rot_deg", "tr_err")
+
+
+class TrainConfig(PluginConfig):
+    variant: Literal["droid", "pvo"] = Field("droid", description="network variant (pvo adds the mask loss)")
+    init: Optional[str] = Field(None, description="start from these weights (catalogue name or path; null = random)")
+    scenarios: list[str] = Field(list(DEFAULT_SCENARIOS), description="synthetic scenarios to train/validate on")
+    train_seeds: list[int] = Field([1, 2, 3], description="generator seeds of the training sequences")
+    val_seeds: list[int] = Field([100], description="held-out generator seeds for validation")
+    frames_per_sequence: int = Field(48, ge=4, description="frames rendered per (scenario, seed)")
+    width: int = Field(192, ge=128, description="training image width (multiple of 8)")
+    height: int = Field(128, ge=128, description="training image height (multiple of 8)")
+    clip_length: int = Field(4, ge=3, description="frames per clip (DROID: 7)")
+    radius: int = Field(2, ge=1, description="edges between frames with |i - j| <= radius, both directions")
+    iters: int = Field(6, ge=1, description="update steps per clip (DROID: 15), 2 BA iterations each")
+    flow_range: tuple[float, float] = Field((1.0, 6.0), description="consecutive-frame mean flow of a clip (1/8 px)")
+    max_stride: int = Field(6, ge=1, description="largest frame stride tried when sampling a clip")
+    steps: int = Field(2000, ge=1, description="optimisation steps at most (see time_budget_min)")
+    time_budget_min: float = Field(100.0, gt=0, description="training minutes at most (rendering comes on top)")
+    lr: float = Field(2.5e-4, gt=0, description="peak learning rate (DROID: 2.5e-4)")
+    weight_decay: float = Field(1e-5, ge=0)
+    warmup: int = Field(20, ge=0, description="steps of linear warm-up")
+    final_lr_fraction: float = Field(0.05, ge=0, le=1)
+    grad_clip: float = Field(1.0, gt=0, description="gradient-norm clip (DROID: 1.0)")
+    w_geo: float = Field(10.0, ge=0, description="weight of the geodesic pose loss (DROID 10)")
+    w_res: float = Field(0.01, ge=0, description="weight of the residual loss (DROID 0.01)")
+    w_flow: float = Field(0.05, ge=0, description="weight of the induced-flow loss (DROID 0.05)")
+    w_mask: float = Field(0.01, ge=0, description="weight of PVO's mask loss (PVO 0.01)")
+    pose_init: Literal["constant_velocity", "droid"] = Field(
+        "constant_velocity", description="start of the free poses: extrapolation of the two fixed ones, or DROID's "
+        "(all at the second frame's pose; harder: see losses.py)")
+    overfit: bool = Field(False, description="train and validate on one clip (checks losses and gradients)")
+    eval_every: int = Field(25, ge=1, description="validation every this many steps")
+    val_clips_per_sequence: int = Field(1, ge=1)
+    checkpoint_every: int = Field(25, ge=1)
+    threads: int = Field(1, ge=0, description="torch threads (0 = torch's default); 1 is fastest on a loaded "
+                         "2-core machine (OpenMP threads wait for each other)")
+    seed: int = 0
+    data_cache: Optional[str] = Field(None, description="folder for the rendered sequences (default: OUT/data)")
+    progress: bool = True
+
+    @field_validator("scenarios")
+    @classmethod
+    def _known(cls, v: list[str]) -> list[str]:
+        from pvslam_plugins.datasets.synthetic.generator import SCENARIOS
+
+        unknown = [s for s in v if s not in SCENARIOS]
+        if unknown:
+            raise ValueError(f"unknown synthetic scenarios {unknown}; available: {', '.join(SCENARIOS)}")
+        return v
+
+    @model_validator(mode="after")
+    def _check(self):
+        from .train_data import check_size
+
+        why = check_size(self.width, self.height)
+        if why:
+            raise ValueError(why)
+        common = set(self.val_seeds) & set(self.train_seeds)
+        if common and not self.overfit:
+            raise ValueError(f"val_seeds {sorted(common)} are also train_seeds; validation seeds must be held out")
+        if self.frames_per_sequence < self.clip_length:
+            raise ValueError("frames_per_sequence must be >= clip_length")
+        return self
+
+
+def progress_of(cfg: TrainConfig, step: int, elapsed_s: float) -> float:
+    return max(step / cfg.steps, elapsed_s / (60.0 * cfg.time_budget_min))
+
+
+def lr_at(cfg: TrainConfig, step: int, progress: float) -> float:
+    if step < cfg.warmup:
+        return cfg.lr * (0.1 + 0.9 * step / max(cfg.warmup, 1))
+    start = cfg.warmup / cfg.steps
+    t = min(max((progress - start) / max(1.0 - start, 1e-9), 0.0), 1.0)
+    lo = cfg.final_lr_fraction
+    return cfg.lr * (lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def loss_config(cfg: TrainConfig):
+    from .losses import LossConfig
+
+    return LossConfig(iters=cfg.iters, radius=cfg.radius, w_geo=cfg.w_geo, w_res=cfg.w_res, w_flow=cfg.w_flow,
+                      w_mask=cfg.w_mask, pose_init=cfg.pose_init)
+
+
+def evaluate(model, clips, lcfg) -> dict:
+    """Mean losses/metrics over ``clips`` (no gradients; the BA runs as in training)."""
+    from .losses import clip_losses
+
+    sums: dict[str, float] = {}
+    was = model.training
+    model.eval()
+    with torch.no_grad():
+        for c in clips:
+            _, m = clip_losses(model, c, lcfg)
+            for k, v in m.items():
+                sums[k] = sums.get(k, 0.0) + v
+    model.train(was)
+    return {k: v / max(len(clips), 1) for k, v in sums.items()}
+
+
+def write_plot(csv_path: Path, val_path: Path, png_path: Path) -> None:
+    """Training loss (moving mean) and validation loss / flow error against the step."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rows = list(csv.DictReader(csv_path.open())) if csv_path.is_file() else []
+    vals = list(csv.DictReader(val_path.open())) if val_path.is_file() else []
+    if not rows and not vals:
+        return
+    fig = Figure(figsize=(11, 4.5))
+    FigureCanvasAgg(fig)
+    ax, bx = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    if rows:
+        steps = [int(r["step"]) for r in rows]
+        win = max(1, len(rows) // 40)
+        for key, lw in (("loss", 2.0), ("flow", 1.0), ("geo", 1.0)):
+            v = torch.tensor([float(r[key]) for r in rows])
+            sm = torch.nn.functional.avg_pool1d(v[None, None], win, 1, 0, count_include_pad=False)[0, 0]
+            ax.plot(steps[win - 1:], sm.tolist(), lw=lw, label=f"train {key} (mean of {win})")
+        v = torch.tensor([float(r["f_error"]) for r in rows])
+        sm = torch.nn.functional.avg_pool1d(v[None, None], win, 1, 0, count_include_pad=False)[0, 0]
+        bx.plot(steps[win - 1:], sm.tolist(), label=f"train (mean of {win})")
+    if vals:
+        vs = [int(r["step"]) for r in vals]
+        ax.plot(vs, [float(r["loss"]) for r in vals], "o-", color="k", label="held-out loss")
+        bx.plot(vs, [float(r["f_error"]) for r in vals], "o-", color="k", label="held-out")
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_title("loss")
+    bx.set_xlabel("step")
+    bx.set_title("flow end-point error (training px)")
+    for a in (ax, bx):
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=100)
+
+
+def _load_data(cfg: TrainConfig, cache: Path):
+    from tqdm import tqdm
+
+    from .train_data import fixed_clips, load_sequence
+
+    def seqs(seeds, desc):
+        jobs = [(s, seed) for seed in seeds for s in cfg.scenarios]
+        return [load_sequence(cache, s, seed, cfg.frames_per_sequence, cfg.width, cfg.height)
+                for s, seed in tqdm(jobs, desc=desc, disable=not cfg.progress, leave=False)]
+
+    val_seqs = seqs(cfg.val_seeds, "render validation sequences")
+    val = fixed_clips(val_seqs, cfg.val_clips_per_sequence, cfg.clip_length, cfg.seed + 1, cfg.flow_range,
+                      cfg.max_stride)
+    if cfg.overfit:
+        return [], val[:1]
+    return seqs(cfg.train_seeds, "render training sequences"), val
+
+
+def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
+    """The registered trainer (see the module docstring); returns the summary."""
+    from tqdm import tqdm
+
+    from .checkpoint import save_checkpoint
+    from .frontend import RaftGruConfig, load_network
+    from .losses import clip_losses
+    from .net import RaftGruNet
+    from .train_data import sample_clip
+
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    out = Path(out)
+    cache = Path(cfg.data_cache) if cfg.data_cache else out / "data"
+    torch.manual_seed(cfg.seed)
+    if cfg.init is None:
+        model = RaftGruNet(cfg.variant)
+    else:
+        model = load_network(RaftGruConfig(weights=cfg.init, variant=cfg.variant))
+        for p in model.parameters():
+            p.requires_grad_(True)
+    model.train()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    step, elapsed = 0, 0.0
+    last = out / "last.pt"
+    if resume and last.is_file():
+        state = torch.load(last, map_location="cpu", weights_only=True)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        gen.set_state(state["generator"])
+        step, elapsed = int(state["step"]), float(state["elapsed"])
+
+    t_data = time.perf_counter()
+    train_seqs, val = _load_data(cfg, cache)
+    data_s = time.perf_counter() - t_data
+    lcfg = loss_config(cfg)
+
+    csv_path, val_path = out / "loss.csv", out / "val.csv"
+    fields = ["step", "elapsed_s", "lr", "clip", *TERMS]
+    vfields = ["step", "elapsed_s", *TERMS]
+    for path, fl in ((csv_path, fields), (val_path, vfields)):
+        rows = list(csv.DictReader(path.open())) if (resume and path.is_file()) else []
+        rows = [r for r in rows if int(r["step"]) <= step]  # drop rows written after the checkpoint
+        with path.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fl, extrasaction="ignore")
+            w.writeheader()
+            w.writerows(rows)
+
+    def save_state() -> None:
+        tmp = last.with_suffix(".tmp")
+        torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "generator": gen.get_state(),
+                    "step": step, "elapsed": elapsed}, tmp)
+        tmp.replace(last)
+
+    def validate() -> dict:
+        m = evaluate(model, val, lcfg)
+        with val_path.open("a", newline="") as f:
+            csv.DictWriter(f, fieldnames=vfields, extrasaction="ignore").writerow(
+                {"step": step, "elapsed_s": f"{elapsed:.1f}", **{k: f"{m.get(k, float('nan')):.5f}" for k in TERMS}})
+        return m
+
+    first_val = validate() if step == 0 else None
+    stopped = "steps"
+    bar = tqdm(total=cfg.steps, initial=step, desc="train raft_gru", disable=not cfg.progress, dynamic_ncols=True)
+    try:
+        with csv_path.open("a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+            while True:
+                prog = progress_of(cfg, step, elapsed)
+                if prog >= 1.0:
+                    stopped = "steps" if step >= cfg.steps else "time budget"
+                    break
+                t0 = time.perf_counter()
+                if cfg.overfit:
+                    clip = val[0]
+                else:
+                    seq = train_seqs[int(torch.randint(len(train_seqs), (1,), generator=gen))]
+                    clip = sample_clip(seq, cfg.clip_length, gen, cfg.flow_range, cfg.max_stride)
+                lr = lr_at(cfg, step, prog)
+                for g in opt.param_groups:
+                    g["lr"] = lr
+                loss, m = clip_losses(model, clip, lcfg)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"step {step}: non-finite loss on {clip.name} frames {clip.frames}: {m}")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+                opt.step()
+                step += 1
+                elapsed += time.perf_counter() - t0
+                writer.writerow({"step": step, "elapsed_s": f"{elapsed:.1f}", "lr": f"{lr:.3g}",
+                                 "clip": f"{clip.name}:{clip.frames[0]}+{clip.frames[1] - clip.frames[0]}",
+                                 **{k: f"{m[k]:.5f}" for k in TERMS}})
+                bar.update(1)
+                bar.set_postfix(loss=f"{m['loss']:.3f}", epe=f"{m['f_error']:.2f}", min=f"{elapsed / 60:.0f}")
+                if step % cfg.eval_every == 0:
+                    f.flush()
+                    validate()
+                if step % cfg.checkpoint_every == 0:
+                    f.flush()
+                    save_state()
+                    write_plot(csv_path, val_path, out / "loss.png")
+    except KeyboardInterrupt:
+        save_state()
+        bar.close()
+        raise
+    bar.close()
+    final_val = validate() if step % cfg.eval_every else None
+    save_state()
+    write_plot(csv_path, val_path, out / "loss.png")
+    model.eval()
+    save_checkpoint(out / "model_final.pth", model,
+                    meta={"trained_on": "pvslam synthetic", "steps": step, "train_minutes": round(elapsed / 60, 2),
+                          "width": cfg.width, "height": cfg.height, "scenarios": list(cfg.scenarios),
+                          "train_seeds": list(cfg.train_seeds), "overfit": cfg.overfit})
+    vals = list(csv.DictReader(val_path.open()))
+    first = vals[0] if vals else {}
+    final = vals[-1] if vals else {}
+    return {
+        "steps": step, "stopped_by": stopped, "train_minutes": round(elapsed / 60, 2),
+        "data_minutes": round(data_s / 60, 2), "val_clips": len(val),
+        "val_loss_first": float(first.get("loss", "nan")), "val_loss_final": float(final.get("loss", "nan")),
+        "val_f_error_first": float(first.get("f_error", "nan")),
+        "val_f_error_final": float(final.get("f_error", "nan")),
+        "val_f_error_best": min((float(r["f_error"]) for r in vals), default=float("nan")),
+        "checkpoint": str(out / "model_final.pth"),
+        "first_val": first_val, "final_val": final_val,
+    }

@@ -1,0 +1,285 @@
+"""``pvslam train segmenter --plugin panoptic_fpn``: the reduced PanopticFPN trained from scratch on the built-in
+synthetic scenarios' panoptic labels.
+
+    pvslam train segmenter --plugin panoptic_fpn --out runs/pfpn            # defaults below
+    pvslam train segmenter --plugin panoptic_fpn --out runs/pfpn --resume   # continue after an interruption
+
+Data: ``frames_per_sequence`` frames spread over every scenario in ``scenarios`` for each of ``train_seeds``;
+validation on ``val_seeds`` (held out: no training frame comes from them).  AdamW with a linear warm-up and a
+cosine decay over the run's progress, ``max(iteration / iterations, minutes / time_budget_min)``: on a shared
+machine of unknown speed the run ends on whichever limit comes first with its learning rate fully decayed (the
+summary says which).  Written into the output folder: ``last.pt`` (model + optimiser + generator state, every
+``checkpoint_every`` iterations and on Ctrl-C; ``--resume`` continues from it), ``loss.csv`` (one row per
+iteration), ``loss.png``, ``model_final.pth`` (pvslam's PanopticFPN format, loadable as ``weights``),
+``eval.json`` and ``eval.md`` (PQ/SQ/RQ on the validation seeds, per class).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from pathlib import Path
+from typing import Optional
+
+import torch
+from pydantic import Field, field_validator
+
+from pvslam_core.config_base import PluginConfig
+
+__all__ = ["TrainConfig", "run", "DEFAULT_SCENARIOS"]
+
+DEFAULT_SCENARIOS = ("driving_loop", "moving_vehicles", "indoor_handheld", "handheld_fast", "indoor_textureless",
+                     "busy_street", "forward_low_parallax", "driving_city")
+LOSS_TERMS = ("loss_sem_seg", "loss_rpn_cls", "loss_rpn_loc", "loss_cls", "loss_box_reg", "loss_mask")
+
+
+class TrainConfig(PluginConfig):
+    scenarios: list[str] = Field(list(DEFAULT_SCENARIOS), description="synthetic scenarios to train and validate on")
+    train_seeds: list[int] = Field([1, 2, 3, 4, 5, 6, 7, 8], description="generator seeds of the training frames")
+    val_seeds: list[int] = Field([100, 101], description="held-out generator seeds for validation")
+    frames_per_sequence: int = Field(24, ge=1, description="training frames per (scenario, seed), evenly spaced")
+    val_frames_per_sequence: int = Field(8, ge=1)
+    width: int = Field(320, ge=32)
+    height: int = Field(240, ge=32)
+    iterations: int = Field(6000, ge=1, description="iterations at most (see time_budget_min)")
+    batch_size: int = Field(4, ge=1)
+    lr: float = Field(1e-3, gt=0)
+    weight_decay: float = Field(1e-4, ge=0)
+    warmup: int = Field(200, ge=0, description="iterations of linear learning-rate warm-up")
+    final_lr_fraction: float = Field(0.02, ge=0, le=1, description="cosine decay ends at lr * this")
+    grad_clip: float = Field(10.0, gt=0)
+    crop: Optional[tuple[int, int]] = Field((192, 256), description="training crop (h, w); null = whole frames")
+    scale: tuple[float, float] = Field((0.75, 1.25), description="random rescale range before the crop")
+    min_instance_area: int = Field(8, ge=1, description="thing instances smaller than this (px) are no targets")
+    checkpoint_every: int = Field(50, ge=1)
+    time_budget_min: float = Field(100.0, gt=0, description="training minutes at most (rendering and evaluation "
+                                   "come on top: ~5 + ~2 min with the defaults)")
+    # 1 thread: on this 2-core machine shared with other jobs a 2-thread step took 4-20 s of wall time (OpenMP
+    # threads waiting for each other), a 1-thread step ~1.1 s
+    threads: int = Field(1, ge=0, description="torch threads (0 = leave torch's default)")
+    seed: int = 0
+    data_cache: Optional[str] = Field(None, description="folder of the rendered-frame cache (default: OUT/data)")
+    eval_min_gt_area: int = Field(64, ge=0, description="also report PQ with GT segments under this area as void")
+    progress: bool = True
+
+    @field_validator("scenarios")
+    @classmethod
+    def _known(cls, v: list[str]) -> list[str]:
+        from pvslam_plugins.datasets.synthetic.generator import SCENARIOS
+
+        unknown = [s for s in v if s not in SCENARIOS]
+        if unknown:
+            raise ValueError(f"unknown synthetic scenarios {unknown}; available: {', '.join(SCENARIOS)}")
+        return v
+
+    @field_validator("val_seeds")
+    @classmethod
+    def _held_out(cls, v: list[int], info) -> list[int]:
+        common = set(v) & set(info.data.get("train_seeds", []))
+        if common:
+            raise ValueError(f"val_seeds {sorted(common)} are also train_seeds; validation seeds must be held out")
+        return v
+
+
+def schedule_progress(cfg: TrainConfig, it: int, elapsed_s: float) -> float:
+    """Fraction of the run done: iterations or the time budget, whichever is further along.  On a shared machine
+    the speed is unknown in advance; this way the learning rate always completes its decay before the run stops."""
+    return max(it / cfg.iterations, elapsed_s / (60.0 * cfg.time_budget_min))
+
+
+def lr_at(cfg: TrainConfig, it: int, progress: float) -> float:
+    """Linear warm-up over ``warmup`` iterations, then a cosine decay over the schedule's progress."""
+    if it < cfg.warmup:
+        return cfg.lr * (0.1 + 0.9 * it / max(cfg.warmup, 1))
+    start = cfg.warmup / cfg.iterations
+    t = (progress - start) / max(1.0 - start, 1e-9)
+    lo = cfg.final_lr_fraction
+    return cfg.lr * (lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * min(max(t, 0.0), 1.0))))
+
+
+def _samples(cfg: TrainConfig, cache: Path, seeds: list[int], frames: int, progress: bool, desc: str):
+    from tqdm import tqdm
+
+    from .data import load_samples
+
+    out = []
+    jobs = [(s, seed) for seed in seeds for s in cfg.scenarios]
+    for scen, seed in tqdm(jobs, desc=desc, disable=not progress, leave=False):
+        out += load_samples(cache, scen, seed, frames, cfg.width, cfg.height)
+    return out
+
+
+def _batch(model, samples, order, pos, cfg, augment, cats, gen):
+    from .data import panoptic_targets
+    from .losses import IGNORE
+
+    images, sems, targets = [], [], []
+    for k in range(cfg.batch_size):
+        s = samples[int(order[(pos + k) % len(order)])]
+        img, ids = augment(s.image, s.ids, gen)
+        sem, inst = panoptic_targets(ids, s.segments, cats, cfg.min_instance_area)
+        images.append(img)
+        sems.append(sem)
+        targets.append(inst)
+    batch, sizes, _ = model.preprocess(images)
+    sem = torch.full((batch.shape[0], batch.shape[2], batch.shape[3]), IGNORE, dtype=torch.int64)
+    for i, s in enumerate(sems):
+        sem[i, : s.shape[0], : s.shape[1]] = s
+    return batch, sizes, sem, targets
+
+
+def _write_plot(csv_path: Path, png_path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rows = list(csv.DictReader(csv_path.open()))
+    if not rows:
+        return
+    its = [int(r["iteration"]) for r in rows]
+    fig = Figure(figsize=(9, 5))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    win = max(1, len(rows) // 50)
+    for key in ("loss",) + LOSS_TERMS:
+        vals = torch.tensor([float(r[key]) for r in rows])
+        smooth = torch.nn.functional.avg_pool1d(vals[None, None], win, 1, 0, count_include_pad=False)[0, 0]
+        ax.plot(its[win - 1:], smooth.tolist(), label=key, lw=2.0 if key == "loss" else 1.0)
+    ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(f"loss (moving mean of {win})")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.savefig(png_path, dpi=100)
+
+
+def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
+    """The registered trainer: train, checkpoint, evaluate; returns the summary (saved as summary.json)."""
+    from tqdm import tqdm
+
+    from .checkpoint import save_checkpoint
+    from .config import preset
+    from .data import Augment, synthetic_category_set
+    from .evaluate import evaluate, format_table
+    from .losses import panoptic_fpn_losses
+    from .model import PanopticFPN
+
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    out = Path(out)
+    cache = Path(cfg.data_cache) if cfg.data_cache else out / "data"
+    torch.manual_seed(cfg.seed)
+    cats = synthetic_category_set()
+    model = PanopticFPN(preset("reduced"), cats)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    start, elapsed = 0, 0.0
+    last = out / "last.pt"
+    if resume and last.is_file():
+        state = torch.load(last, map_location="cpu", weights_only=True)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        gen.set_state(state["generator"])
+        start, elapsed = int(state["iteration"]), float(state["elapsed"])
+
+    t_data = time.perf_counter()
+    train = _samples(cfg, cache, cfg.train_seeds, cfg.frames_per_sequence, cfg.progress, "render train frames")
+    val = _samples(cfg, cache, cfg.val_seeds, cfg.val_frames_per_sequence, cfg.progress, "render val frames")
+    data_s = time.perf_counter() - t_data
+    augment = Augment(scale=tuple(cfg.scale), crop=tuple(cfg.crop) if cfg.crop else None)
+
+    csv_path = out / "loss.csv"
+    fields = ["iteration", "elapsed_s", "lr", "loss", *LOSS_TERMS]
+    rows = list(csv.DictReader(csv_path.open())) if (resume and csv_path.is_file()) else []
+    rows = [r for r in rows if int(r["iteration"]) <= start]  # drop rows after the checkpoint
+    with csv_path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+
+    def save_state(it: int) -> None:
+        tmp = last.with_suffix(".tmp")
+        torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "generator": gen.get_state(),
+                    "iteration": it, "elapsed": elapsed}, tmp)
+        tmp.replace(last)
+
+    # one permutation per epoch, drawn from the (checkpointed) generator: a resumed run sees the same order
+    epoch_len = max(1, len(train) // cfg.batch_size)
+    order, order_epoch = None, -1
+    model.train()
+    it = start
+    stopped = "iterations"
+    bar = tqdm(total=cfg.iterations, initial=start, desc="train panoptic_fpn", disable=not cfg.progress,
+               dynamic_ncols=True)
+    try:
+        with csv_path.open("a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=fields)
+            while True:
+                progress = schedule_progress(cfg, it, elapsed)
+                if progress >= 1.0:
+                    stopped = "iterations" if it >= cfg.iterations else "time budget"
+                    break
+                t0 = time.perf_counter()
+                epoch = it // epoch_len
+                if epoch != order_epoch:
+                    order = torch.randperm(len(train), generator=torch.Generator().manual_seed(cfg.seed + epoch))
+                    order_epoch = epoch
+                batch, sizes, sem, targets = _batch(model, train, order, (it % epoch_len) * cfg.batch_size, cfg,
+                                                    augment, cats, gen)
+                lr = lr_at(cfg, it, progress)
+                for g in opt.param_groups:
+                    g["lr"] = lr
+                losses = panoptic_fpn_losses(model, batch, sizes, sem, targets, generator=gen)
+                loss = sum(losses.values())
+                losses = {k: v.detach() for k, v in losses.items()}
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"iteration {it}: non-finite loss {({k: float(v) for k, v in losses.items()})}")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+                opt.step()
+                it += 1
+                elapsed += time.perf_counter() - t0
+                writer.writerow({"iteration": it, "elapsed_s": f"{elapsed:.1f}", "lr": f"{lr:.3g}",
+                                 "loss": f"{float(loss.detach()):.5f}", **{k: f"{float(v):.5f}" for k, v in losses.items()}})
+                bar.update(1)
+                bar.set_postfix(loss=f"{float(loss.detach()):.3f}", sem=f"{float(losses['loss_sem_seg']):.3f}",
+                                min=f"{elapsed / 60:.0f}")
+                if it % cfg.checkpoint_every == 0:
+                    f.flush()
+                    save_state(it)
+    except KeyboardInterrupt:
+        save_state(it)
+        bar.close()
+        raise
+    bar.close()
+    save_state(it)
+    _write_plot(csv_path, out / "loss.png")
+    model.eval()
+    save_checkpoint(model, out / "model_final.pth", extra={"iterations": it, "train_minutes": elapsed / 60})
+    res = evaluate(model, val, cfg.eval_min_gt_area)
+    (out / "eval.json").write_text(json.dumps(res, indent=1, default=float))
+    table = format_table(res)
+    if "pq_min_area" in res:
+        table += (f"\n\nWith ground-truth segments under {res['min_gt_area']} px as void:\n\n"
+                  + format_table({"pq": res["pq_min_area"]}))
+    (out / "eval.md").write_text(table + "\n")
+    rows = list(csv.DictReader(csv_path.open()))
+    first = rows[: max(1, len(rows) // 20)]
+    final = rows[-max(1, len(rows) // 20):]
+
+    def mean(rs, key):
+        return sum(float(r[key]) for r in rs) / max(len(rs), 1)
+
+    p = res["pq"]
+    return {
+        "iterations": it, "stopped_by": stopped, "train_minutes": round(elapsed / 60, 2),
+        "data_minutes": round(data_s / 60, 2), "train_frames": len(train), "val_frames": len(val),
+        "loss_first_5pct": round(mean(first, "loss"), 4) if rows else None,
+        "loss_last_5pct": round(mean(final, "loss"), 4) if rows else None,
+        "pq": round(p["pq"], 4), "sq": round(p["sq"], 4), "rq": round(p["rq"], 4),
+        "pq_things": round(p["things"]["pq"], 4), "pq_stuff": round(p["stuff"]["pq"], 4),
+        "pq_min_area": round(res["pq_min_area"]["pq"], 4) if "pq_min_area" in res else None,
+        "val_seconds_per_frame": round(res["seconds_per_frame"], 4),
+        "checkpoint": str(out / "model_final.pth"),
+    }
