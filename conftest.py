@@ -36,3 +36,15 @@ def shared_dir() -> Path:
 def fixtures_dir(shared_dir: Path) -> Path:
     """``shared/fixtures``: golden outputs of the original upstream networks (see its README)."""
     return shared_dir / "fixtures"
+
+
+@pytest.fixture
+def single_torch_thread():
+    """One intra-op torch thread for the test (restored after): faster on small tensors and far less sensitive
+    to a busy CPU.  Folders of small-tensor tests make it autouse in their conftest."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -215,3 +215,26 @@ def road_ground(lateral: Callable[[np.ndarray, np.ndarray], np.ndarray],
                             paint=paint.astype(np.float32), paint_rgb=PAINT)
 
     return fn
+
+
+def straight_street(b: BoxBuilder, rng: np.random.Generator, ids: Ids, x_start: float, length: float,
+                    crossings: tuple[float, ...]):
+    """A straight street along +x (from ``x_start``, ``length`` m) with cross streets at the x positions
+    ``crossings``: both sides populated, buildings lining each cross street, asphalt over the intersections.
+    Returns the ground function (:func:`road_ground`).  Shared by the moving-vehicles and busy-street scenarios;
+    the random draws happen in a fixed order, so a scenario's sequences do not depend on who calls this."""
+    prof = StreetProfile(parking=8.6, tree=11.2, facade=13.2, margin=0.0)
+    keep = tuple((c - x_start - 9.0, c - x_start + 9.0) for c in crossings)
+    for sgn in (1.0, -1.0):
+        populate_side(b, rng, ids, np.array([x_start, 0.0]), np.array([1.0, 0.0]), np.array([0.0, sgn]),
+                      length, prof, keep_out=keep)
+    for c in crossings:  # buildings lining the cross streets
+        for sx in (-1.0, 1.0):
+            for sgn in (1.0, -1.0):
+                side = StreetProfile(parking=4.9, tree=7.6, facade=9.6, margin=0.0)
+                populate_side(b, rng, ids, np.array([c, sgn * 20.0]), np.array([0.0, sgn]), np.array([sx, 0.0]),
+                              60.0, side)
+    cross = np.array(crossings)
+    return road_ground(lambda x, y: y, lambda x, y: x, half_width=7.5, sidewalk=4.5,
+                       lane_lines=((0.0, False), (-3.5, True), (3.5, True)), inner_tex="gravel",
+                       extra_road=lambda x, y: np.min(np.abs(x[:, None] - cross[None]), axis=1) < 6.0)

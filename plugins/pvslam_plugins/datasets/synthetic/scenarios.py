@@ -23,7 +23,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .layout import Ids, StreetProfile, add_building, add_pole, add_tree, car_parts, populate_side, road_ground
+from .layout import (Ids, StreetProfile, add_building, add_pole, add_tree, car_parts, populate_side, road_ground,
+                     straight_street)
 from .render import Camera
 from .scenario_base import Scenario, count_frames, vehicles_collide
 from .scene import (BoxBuilder, GroundSample, MovingObject, RoundedRect, Scene, camera_rotation, pose_matrices,
@@ -185,28 +186,7 @@ def _moving_vehicles(num_frames, cam, seed, laps) -> Scenario:
         crossings = (100.0 + float(vr.uniform(-15, 10)), 150.0 + float(vr.uniform(-10, 15)))
     b = BoxBuilder()
     ids = Ids()
-    prof = StreetProfile(parking=8.6, tree=11.2, facade=13.2, margin=0.0)
-    keep = tuple((c - x_start - 9.0, c - x_start + 9.0) for c in crossings)
-    for sgn in (1.0, -1.0):
-        populate_side(b, rng, ids, np.array([x_start, 0.0]), np.array([1.0, 0.0]), np.array([0.0, sgn]),
-                      length, prof, keep_out=keep)
-    for c in crossings:  # buildings lining the cross streets
-        for sx in (-1.0, 1.0):
-            for sgn in (1.0, -1.0):
-                side = StreetProfile(parking=4.9, tree=7.6, facade=9.6, margin=0.0)
-                populate_side(b, rng, ids, np.array([c, sgn * 20.0]), np.array([0.0, sgn]), np.array([sx, 0.0]),
-                              60.0, side)
-    cross = np.array(crossings)
-
-    def lateral(x, y):
-        return y
-
-    def extra(x, y):
-        return np.min(np.abs(x[:, None] - cross[None]), axis=1) < 6.0
-
-    ground = road_ground(lateral, lambda x, y: x, half_width=7.5, sidewalk=4.5,
-                         lane_lines=((0.0, False), (-3.5, True), (3.5, True)), inner_tex="gravel",
-                         extra_road=extra)
+    ground = straight_street(b, rng, ids, x_start, length, crossings)
     t1 = (crossings[0] - 12.0) / speed  # crossing when the camera is 12 m before the intersection
     t2 = (crossings[1] - 14.0) / speed
     specs = [("car", 16.0, -1.75, 8.6, 0.0, 0.0),  # lead car, slowly pulling away

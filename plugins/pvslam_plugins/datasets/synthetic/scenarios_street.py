@@ -18,7 +18,8 @@ import math
 
 import numpy as np
 
-from .layout import Ids, StreetProfile, add_building, add_pole, add_tree, car_parts, populate_side, road_ground
+from .layout import (Ids, StreetProfile, add_building, add_pole, add_tree, car_parts, populate_side, road_ground,
+                     straight_street)
 from .render import Camera
 from .scenario_base import Scenario, count_frames
 from .scene import BoxBuilder, MovingObject, Scene, camera_rotation, pose_matrices, smooth_noise, stuff_id
@@ -89,21 +90,7 @@ def busy_street(num_frames, cam: Camera, seed: int, laps) -> Scenario:
     crossings = (c1, c1 + float(rng.uniform(55, 70)), c1 + float(rng.uniform(125, 145)))
     b = BoxBuilder()
     ids = Ids()
-    prof = StreetProfile(parking=8.6, tree=11.2, facade=13.2, margin=0.0)
-    keep = tuple((c - x_start - 9.0, c - x_start + 9.0) for c in crossings)
-    for sgn in (1.0, -1.0):
-        populate_side(b, rng, ids, np.array([x_start, 0.0]), np.array([1.0, 0.0]), np.array([0.0, sgn]),
-                      length, prof, keep_out=keep)
-    for c in crossings:
-        for sx in (-1.0, 1.0):
-            for sgn in (1.0, -1.0):
-                side = StreetProfile(parking=4.9, tree=7.6, facade=9.6, margin=0.0)
-                populate_side(b, rng, ids, np.array([c, sgn * 20.0]), np.array([0.0, sgn]), np.array([sx, 0.0]),
-                              60.0, side)
-    cross = np.array(crossings)
-    ground = road_ground(lambda x, y: y, lambda x, y: x, half_width=7.5, sidewalk=4.5,
-                         lane_lines=((0.0, False), (-3.5, True), (3.5, True)), inner_tex="gravel",
-                         extra_road=lambda x, y: np.min(np.abs(x[:, None] - cross[None]), axis=1) < 6.0)
+    ground = straight_street(b, rng, ids, x_start, length, crossings)
 
     t = t_all
     cam_x = speed * t
