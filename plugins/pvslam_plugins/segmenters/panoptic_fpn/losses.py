@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from .model import ROI_LEVELS, RPN_LEVELS, PanopticFPN
 from .targets import encode_deltas, mask_targets, match, subsample
 
-__all__ = ["InstanceTargets", "LossWeights", "panoptic_fpn_losses", "IGNORE"]
+__all__ = ["InstanceTargets", "LossWeights", "panoptic_fpn_losses", "pyramid_losses", "IGNORE"]
 
 #: semantic label of pixels that do not count (void, padding)
 IGNORE = 255
@@ -128,6 +128,15 @@ def panoptic_fpn_losses(model: PanopticFPN, images: torch.Tensor, image_sizes: l
     ``semantic`` int64 ``[B, Hp, Wp]``: semantic channel per pixel (0 = things), :data:`IGNORE` on void/padding;
     ``targets``: one :class:`InstanceTargets` per image.  Returns the weighted terms (their sum is the loss)."""
     pyr = model.extract_normalised(images, image_sizes)
+    return pyramid_losses(model, pyr, semantic, targets, weights, generator)
+
+
+def pyramid_losses(model: PanopticFPN, pyr, semantic: torch.Tensor, targets: list[InstanceTargets],
+                   weights: LossWeights = LossWeights(), generator: Optional[torch.Generator] = None
+                   ) -> dict[str, torch.Tensor]:
+    """The losses of :func:`panoptic_fpn_losses` on a given :class:`~.features.PyramidBatch` (e.g. fused
+    features of a VPS head: gradients flow into whatever produced ``pyr``)."""
+    image_sizes = pyr.image_sizes
     sem_logits = model.semantic_logits(pyr)
     out = {"loss_sem_seg": weights.sem_seg * F.cross_entropy(sem_logits, semantic, ignore_index=IGNORE)}
     rpn_losses, proposals = _rpn_losses(model, pyr.select(RPN_LEVELS), targets, image_sizes, weights, generator)

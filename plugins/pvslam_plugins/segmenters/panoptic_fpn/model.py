@@ -11,7 +11,7 @@ fused features through the same heads.  Top-level module names equal detectron2'
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -144,6 +144,18 @@ class PanopticFPN(nn.Module):
         levels = self.backbone(batch)
         return PyramidBatch(levels, dict(self.backbone.strides), list(image_sizes),
                               list(output_sizes or image_sizes))
+
+    def pyramid_for(self, levels: Mapping[str, torch.Tensor], frame_size: tuple[int, int]) -> PyramidBatch:
+        """A one-image :class:`PyramidBatch` of given maps (``[C, h, w]`` or ``[1, C, h, w]`` per level, e.g. a
+        frame's features from ``PanopticSegmentation.features`` or fused ones) with the geometry :meth:`extract`
+        gives a frame of ``frame_size`` ``(H, W)``, ready for :meth:`decode`."""
+        H, W = int(frame_size[0]), int(frame_size[1])
+        missing = [k for k in self.backbone.strides if k not in levels]
+        if missing:
+            raise KeyError(f"pyramid_for: level(s) {missing} missing; got {list(levels)}")
+        nh, nw = resized_shape(H, W, self.cfg.input.min_size_test, self.cfg.input.max_size_test)
+        maps = {k: (levels[k] if levels[k].dim() == 4 else levels[k][None]) for k in self.backbone.strides}
+        return PyramidBatch(maps, dict(self.backbone.strides), [(nh, nw)], [(H, W)])
 
     def semantic_logits(self, pyramid: PyramidBatch) -> torch.Tensor:
         """``[B, S, Hp, Wp]`` semantic logits at the padded input resolution."""

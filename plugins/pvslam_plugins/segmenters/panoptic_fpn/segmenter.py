@@ -66,21 +66,46 @@ class PanopticFPNSegmenterConfig(PluginConfig):
 
 
 class DeferredPanoptic(PanopticSegmentation):
-    """A :class:`PanopticSegmentation` computed on first access of ``ids``, ``segments`` or ``features``."""
+    """A :class:`PanopticSegmentation` computed on first access, in two stages: reading ``features`` runs only
+    the backbone + FPN; reading ``ids`` or ``segments`` also runs the heads and the panoptic combine (on the
+    pyramid already computed, if any).  A feature-level VPS head (e.g. ``fusion``) decodes its own fused pyramid
+    on most frames, so the segmenter's own decode (about 60 % of a reduced-model call) runs only where something
+    reads the segmentation itself (keyframes for dynamic masking, the outputs)."""
 
-    def __init__(self, compute: Callable[[], PanopticSegmentation]) -> None:  # noqa: D107 - no dataclass init
-        self._compute: Optional[Callable[[], PanopticSegmentation]] = compute
+    def __init__(self, extract: Callable[[], Any], decode: Callable[[Any], PanopticSegmentation],
+                 with_features: bool = True) -> None:  # noqa: D107 - no dataclass init
+        self._extract: Optional[Callable[[], Any]] = extract
+        self._decode = decode
+        self._with_features = with_features
+        self._pyramid = None  # PyramidBatch of this frame, until decoded
         self._value: Optional[PanopticSegmentation] = None
 
     @property
     def computed(self) -> bool:
+        """Whether the segmentation itself (ids, segments) has been computed."""
         return self._value is not None
+
+    def _pyramid_now(self):
+        if self._pyramid is None:
+            self._pyramid = self._extract()
+            self._extract = None  # drop the frame reference
+        return self._pyramid
 
     def resolve(self) -> PanopticSegmentation:
         if self._value is None:
-            self._value = self._compute()
-            self._compute = None  # drop the frame reference
+            self._value = self._decode(self._pyramid_now())
+            self._pyramid = None
         return self._value
+
+    @property
+    def features(self):
+        if self._value is not None:
+            return self._value.features
+        return self._pyramid_now().to_core(0) if self._with_features else None
+
+    @features.setter
+    def features(self, value) -> None:
+        self.resolve().features = value
 
     def _field(name: str):  # noqa: N805 - property factory used in the class body
         return property(lambda self: getattr(self.resolve(), name),
@@ -88,11 +113,11 @@ class DeferredPanoptic(PanopticSegmentation):
 
     ids = _field("ids")
     segments = _field("segments")
-    features = _field("features")
     del _field
 
     def __repr__(self) -> str:
-        return f"DeferredPanoptic({'computed' if self.computed else 'pending'})"
+        state = "computed" if self.computed else ("features only" if self._pyramid is not None else "pending")
+        return f"DeferredPanoptic({state})"
 
 
 def build_model(cfg: PanopticFPNSegmenterConfig, progress: bool = False):
@@ -160,14 +185,25 @@ class PanopticFPNSegmenter(Segmenter):
     def segment(self, frame: Frame) -> PanopticSegmentation:
         if self.config.frames == "all":
             return self.segment_now(frame)
-        return DeferredPanoptic(lambda: self.segment_now(frame))
+        return DeferredPanoptic(lambda: self._extract(frame), self._decode, self.config.features)
 
-    @torch.no_grad()
     def segment_now(self, frame: Frame) -> PanopticSegmentation:
         """Run the network on ``frame`` now."""
+        return self._decode(self._extract(frame))
+
+    @torch.no_grad()
+    def _extract(self, frame: Frame):
+        """Backbone + FPN -> the frame's PyramidBatch."""
         t0 = time.perf_counter()
-        out = self.model.segment(frame.image.to(self.device))
-        pan = out.to_panoptic(with_features=self.config.features)
+        pyramid = self.model.extract([frame.image.to(self.device)])
+        self.stats["seconds"] += time.perf_counter() - t0
+        return pyramid
+
+    @torch.no_grad()
+    def _decode(self, pyramid) -> PanopticSegmentation:
+        """Heads + panoptic combine on the frame's own pyramid -> the core's segmentation."""
+        t0 = time.perf_counter()
+        pan = self.model.decode(pyramid)[0].to_panoptic(with_features=self.config.features)
         segments = [replace(s, movable=bool(s.isthing and s.category_id in self._movable)) for s in pan.segments]
         self.stats["frames_segmented"] += 1
         self.stats["empty_frames"] += int(not segments)

@@ -55,7 +55,7 @@ def test_run_writes_coco_segments_with_the_segmenters_categories(tmp_path, clip)
 
 def test_keyframes_only_unless_vps_reads_every_frame(tmp_path, clip):
     counts = {}
-    for vps in ("none", "warp_iou"):
+    for vps in ("none", "warp_iou", "fusion"):
         cfg = load_config(None, overrides=overrides(tmp_path, clip, 'segmenter.plugin="panoptic_fpn"',
                                                     f'vps.plugin="{vps}"', f'run.name="{vps}"'))
         pipe = Pipeline(cfg)
@@ -68,6 +68,9 @@ def test_keyframes_only_unless_vps_reads_every_frame(tmp_path, clip):
     segmented, keyframes = counts["none"]
     assert 2 <= keyframes < FRAMES and segmented == keyframes
     assert counts["warp_iou"][0] == FRAMES
+    # the fusion head reads only the features of a non-keyframe (it decodes its fused pyramid itself): the
+    # segmenter's heads run for the keyframes and the first frame only
+    assert counts["fusion"][0] <= counts["fusion"][1] + 1 < FRAMES
 
 
 def test_frames_with_nothing_found_run_as_without_segmenter(tmp_path, clip):

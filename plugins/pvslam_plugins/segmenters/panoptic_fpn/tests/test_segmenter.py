@@ -110,6 +110,23 @@ def test_on_demand_segments_when_read(tiny_weights):
     assert again.segments == out.segments
 
 
+def test_reading_only_features_runs_no_heads(tiny_weights):
+    """A feature-level VPS head reads only ``features``: the heads must not run for it, and a later read of the
+    segmentation decodes the same pyramid (equal to the eager result)."""
+    seg = make_segmenter(PanopticFPNSegmenterConfig(weights=tiny_weights))
+    out = seg.segment(frame())
+    feats = out.features
+    assert set(feats.maps) == {"p2", "p3", "p4", "p5", "p6"} and seg.stats["frames_segmented"] == 0
+    assert not out.computed and "features only" in repr(out)
+    ids = out.ids
+    assert out.computed and seg.stats["frames_segmented"] == 1
+    eager = PanopticFPNSegmenter(PanopticFPNSegmenterConfig(weights=tiny_weights, frames="all"), model=seg.model)
+    again = eager.segment(frame())
+    assert torch.equal(again.ids, ids) and again.segments == out.segments
+    for k in feats.maps:
+        assert torch.equal(feats.maps[k], again.features.maps[k]) and torch.equal(out.features.maps[k], feats.maps[k])
+
+
 def test_empty_frame_gives_void_and_no_segments(tiny_weights):
     cfg = PanopticFPNSegmenterConfig(weights=tiny_weights, instances_confidence_thresh=1.0,
                                      stuff_area_limit=10 ** 9, frames="all")

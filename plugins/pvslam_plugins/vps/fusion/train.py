@@ -1,0 +1,178 @@
+"""``pvslam train vps --plugin fusion``: train only ``fusion_conv1`` (as PVO), on top of the frozen shipped
+PanopticFPN, on consecutive frames of the generator's scenarios with moving vehicles.
+
+    pvslam train vps --plugin fusion --out runs/fusion            # defaults below (~25 min on this CPU)
+
+The segmenter is frozen, so each pair's features (frame t, and frame t-1 warped into t) are computed once and
+kept (float16); an iteration runs only the fusion layer and the heads.  The loss is PanopticFPN's own (semantic,
+RPN, box, mask) on frame t's exact labels, computed on the fused pyramid: the layer learns what of the previous
+frame helps the decode.  Validation on held-out seeds: PQ of the fused decode against the plain one.  Written
+into the output folder: ``loss.csv``, ``fusion_final.pth`` (``fusion_conv1.weight/bias`` only; the head loads it
+with ``vps.weights``), ``eval.json``.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from pathlib import Path
+from typing import Optional
+
+import torch
+from pydantic import Field
+
+from pvslam_core.config_base import PluginConfig
+
+__all__ = ["TrainConfig", "run"]
+
+
+class TrainConfig(PluginConfig):
+    scenarios: list[str] = Field(["moving_vehicles", "busy_street"], description="generator scenarios")
+    train_seeds: list[int] = Field([10, 11, 12, 13, 14], description="generator seeds of the training pairs "
+                                   "(the segmenter was trained on 1-8 and validated on 100, 101)")
+    val_seeds: list[int] = Field([100], description="held-out seeds for validation")
+    pairs_per_sequence: int = Field(10, ge=1)
+    val_pairs_per_sequence: int = Field(6, ge=1)
+    segmenter_weights: Optional[str] = Field(None, description="frozen segmenter (default: the shipped reduced)")
+    iterations: int = Field(1500, ge=1)
+    batch_size: int = Field(2, ge=1)
+    lr: float = Field(3e-4, gt=0)
+    final_lr_fraction: float = Field(0.05, ge=0, le=1)
+    time_budget_min: float = Field(20.0, gt=0, description="training minutes at most (rendering comes on top)")
+    z_order: bool = True
+    threads: int = Field(1, ge=0)
+    seed: int = 0
+    data_cache: Optional[str] = None
+    progress: bool = True
+
+
+def _features(model, pairs, z_order: bool):
+    """Per pair: current and warped-previous pyramids (float16, batch of 1) and the targets of frame t."""
+    from pvslam_plugins.segmenters.panoptic_fpn.data import panoptic_targets
+
+    from .feature_warp import warp_pyramid
+
+    out = []
+    with torch.no_grad():
+        for p in pairs:
+            pyr = model.extract([p.image0, p.image1])
+            H, W = p.image1.shape[-2:]
+            prev = {k: v[0:1] for k, v in pyr.levels.items()}
+            cur = {k: v[1:2] for k, v in pyr.levels.items()}
+            warped = warp_pyramid(prev, pyr.strides, p.flow[None], (H, W), pyr.image_sizes[0],
+                                  p.depth0[None] if z_order else None)
+            sem, inst = panoptic_targets(p.ids1, p.segments1, model.categories, 8)
+            out.append(({k: v.half() for k, v in cur.items()}, {k: v.half() for k, v in warped.items()}, sem, inst))
+    return out
+
+
+def _batch(model, feats, idx):
+    from pvslam_plugins.segmenters.panoptic_fpn.losses import IGNORE
+
+    cur = {k: torch.cat([feats[i][0][k] for i in idx]).float() for k in feats[0][0]}
+    warped = {k: torch.cat([feats[i][1][k] for i in idx]).float() for k in feats[0][1]}
+    hp, wp = cur["p2"].shape[-2] * 4, cur["p2"].shape[-1] * 4
+    sem = torch.full((len(idx), hp, wp), IGNORE, dtype=torch.int64)
+    for b, i in enumerate(idx):
+        s = feats[i][2]
+        sem[b, : s.shape[0], : s.shape[1]] = s
+    return cur, warped, sem, [feats[i][3] for i in idx]
+
+
+def _pq(model, layer, pairs, feats) -> dict:
+    from pvslam_core.evaluation.panoptic import pq
+    from pvslam_core.types import PanopticSegmentation
+
+    plain, fused = [], []
+    with torch.no_grad():
+        for p, (cur, warped, _, _) in zip(pairs, feats):
+            H, W = p.image1.shape[-2:]
+            c = {k: v.float() for k, v in cur.items()}
+            pyr = model.pyramid_for(c, (H, W))
+            plain.append(model.decode(pyr)[0].to_panoptic(False))
+            f = {k: layer(v, warped[k].float()) for k, v in c.items()}
+            fused.append(model.decode(pyr.replace(f))[0].to_panoptic(False))
+    gts = [PanopticSegmentation(p.ids1, p.segments1) for p in pairs]
+    cats = list(model.categories.categories)
+    a, b = pq(plain, gts, cats), pq(fused, gts, cats)
+    return {"pq_plain": a["all"]["pq"], "pq_fused": b["all"]["pq"], "pq_things_plain": a["things"]["pq"],
+            "pq_things_fused": b["things"]["pq"]}
+
+
+def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
+    from pvslam_plugins.segmenters.panoptic_fpn.losses import pyramid_losses
+    from pvslam_plugins.segmenters.panoptic_fpn.segmenter import PanopticFPNSegmenterConfig, build_model
+
+    from .data import load_pairs
+    from .layer import FeatureFusion, load_fusion
+
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    out = Path(out)
+    cache = Path(cfg.data_cache) if cfg.data_cache else out / "data"
+    torch.manual_seed(cfg.seed)
+    model = build_model(PanopticFPNSegmenterConfig(weights=cfg.segmenter_weights))
+    for q in model.parameters():
+        q.requires_grad_(False)
+    layer = FeatureFusion(model.cfg.fpn.out_channels)
+    if resume and (out / "fusion_last.pth").is_file():
+        load_fusion(layer, out / "fusion_last.pth")
+    t0 = time.perf_counter()
+    train = [p for seed in cfg.train_seeds for s in cfg.scenarios
+             for p in load_pairs(cache, s, seed, cfg.pairs_per_sequence)]
+    val = [p for seed in cfg.val_seeds for s in cfg.scenarios
+           for p in load_pairs(cache, s, seed, cfg.val_pairs_per_sequence)]
+    tf, vf = _features(model, train, cfg.z_order), _features(model, val, cfg.z_order)
+    data_s = time.perf_counter() - t0
+    before = _pq(model, layer, val, vf)
+
+    opt = torch.optim.AdamW(layer.parameters(), lr=cfg.lr, weight_decay=0.0)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    rows, elapsed, it = [], 0.0, 0
+    model.train()  # heads in training mode: the losses sample proposals; GroupNorm has no running statistics
+    stopped = "iterations"
+    while it < cfg.iterations:
+        progress = max(it / cfg.iterations, elapsed / (60 * cfg.time_budget_min))
+        if progress >= 1.0:
+            stopped = "time budget"
+            break
+        t = time.perf_counter()
+        lr = cfg.lr * (cfg.final_lr_fraction + (1 - cfg.final_lr_fraction) * 0.5 * (1 + math.cos(math.pi * progress)))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        idx = torch.randint(len(tf), (cfg.batch_size,), generator=gen).tolist()
+        cur, warped, sem, targets = _batch(model, tf, idx)
+        H, W = train[idx[0]].image1.shape[-2:]
+        pyr = model.pyramid_for({k: v[0] for k, v in cur.items()}, (H, W))
+        pyr = type(pyr)({k: layer(v, warped[k]) for k, v in cur.items()}, pyr.strides,
+                        pyr.image_sizes * len(idx), pyr.output_sizes * len(idx))
+        losses = pyramid_losses(model, pyr, sem, targets, generator=gen)
+        loss = sum(losses.values())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        it += 1
+        elapsed += time.perf_counter() - t
+        rows.append({"iteration": it, "elapsed_s": round(elapsed, 1), "lr": lr, "loss": float(loss.detach()),
+                     **{k: float(v.detach()) for k, v in losses.items()}})
+        if it % 50 == 0:
+            torch.save(layer.state_dict(), out / "fusion_last.pth")
+            if cfg.progress:
+                print(f"it {it} loss {sum(r['loss'] for r in rows[-50:]) / 50:.4f} lr {lr:.2g} "
+                      f"{elapsed / 60:.1f} min", flush=True)
+    model.eval()
+    layer.eval()
+    with (out / "loss.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else ["iteration"])
+        w.writeheader()
+        w.writerows(rows)
+    torch.save(layer.state_dict(), out / "fusion_final.pth")
+    after = _pq(model, layer, val, vf)
+    (out / "eval.json").write_text(json.dumps({"identity_init": before, "trained": after}, indent=1))
+    k = max(1, len(rows) // 20)
+    return {"iterations": it, "stopped_by": stopped, "train_minutes": round(elapsed / 60, 2),
+            "data_minutes": round(data_s / 60, 2), "train_pairs": len(train), "val_pairs": len(val),
+            "loss_first_5pct": sum(r["loss"] for r in rows[:k]) / k if rows else None,
+            "loss_last_5pct": sum(r["loss"] for r in rows[-k:]) / k if rows else None,
+            "val_identity_init": before, "val_trained": after, "checkpoint": str(out / "fusion_final.pth")}
