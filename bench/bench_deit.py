@@ -1,7 +1,8 @@
 """DeiT loop-closure benchmark: CPU cost of the descriptors, and offline place recognition on held-out seeds.
 
     python bench/bench_deit.py speed [--threads 2] [--batch 8] [--reps 3] [--frame 240x320]
-    python bench/bench_deit.py retrieval [--seeds 301 302] [--weights-dir DIR]
+    python bench/bench_deit.py retrieval [--seeds 301 302] [--weights-dir DIR] [--verify]
+    python bench/bench_deit.py validate [--seeds 201 202] [--weights-dir DIR]
 
 ``speed``: ms per keyframe of ``DeitDescriptor.features`` (preprocessing: resize + normalise; forward; token
 selection) for DeiT-base and DeiT-base-distilled at full size (86 M parameters, random weights: the cost does not
@@ -19,6 +20,12 @@ that would give precision 1.00 on these very seeds (an oracle, for the gap only)
 descriptor, the rows with the geometric verification the detectors share (``verify = true``: the best of at most 3
 candidates above the threshold that passes ORB + essential-matrix RANSAC on the 320x240 frames, with the
 verification defaults), as ``place_eval.verified_top_one`` counts it; the "P=1.00 threshold" column is then blank.
+
+``validate``: the evidence for the detector's ``verify`` default, on the *validation* seeds (201 202: the ones the
+thresholds were calibrated on, never the report seeds).  (1) Cross-validation of the threshold calibration: the
+threshold calibrated (best wrong top-1 + 10 %) on one seed's sequences, evaluated on the other seed's, retrieval-only
+vs verified; (2) margin: pooled over the seeds, retrieval-only vs verified at the calibrated threshold and 0.02,
+0.05, 0.1 below it (how many wrong candidates each lets through when the score scale shifts a little).
 """
 from __future__ import annotations
 
@@ -131,6 +138,82 @@ def retrieval(args) -> None:
                   f"{m['revisit_queries']} | {bw} | |", flush=True)
 
 
+def _sequences(args):
+    """{(scenario, seed): (PlaceSequence, KeyframeVerifier, {descriptor name: unit descriptors [K, d]})}, the
+    checkpoints {variant: LoadedCheckpoint}."""
+    import torch.nn.functional as F
+
+    from pvslam_plugins.datasets.synthetic.generator import generate
+    from pvslam_plugins.loops.deit.checkpoint import load_checkpoint
+    from pvslam_plugins.loops.deit.descriptor import WEIGHTS_DIR, select_tokens
+    from pvslam_plugins.loops.deit.train import prefix_tokens
+    from pvslam_plugins.loops.deit.train_data import PlaceSequence
+
+    torch.set_num_threads(args.threads)
+    wdir = Path(args.weights_dir) if args.weights_dir else WEIGHTS_DIR
+    cks = {v: load_checkpoint(wdir / f"deit_synth_{v}.pt") for v in ("base", "distilled")}
+    data = {}
+    for sc in args.scenarios:
+        for sd in args.seeds:
+            root = Path(generate(sc, seed=sd, progress=False))
+            seq = PlaceSequence(root, tuple(cks["base"].descriptor.get("input_size", (96, 128))), hard_k=1)
+            descs = {"classical": seq.teacher[::3]}
+            for name, ck in cks.items():
+                t = prefix_tokens(ck.model, seq.frames[::3])
+                f = select_tokens(t, ck.descriptor.get("token", "cls"), t.shape[1])
+                if ck.pca is not None and ck.descriptor.get("pca") == "fixed":
+                    f = ck.pca.transform(f)
+                descs[name] = F.normalize(f, dim=1)
+            data[(sc, sd)] = (seq, _keyframe_verifier(root), descs)
+    return data, cks
+
+
+def validate(args) -> None:
+    from pvslam_plugins.loops.classical.config import ClassicalLoopConfig
+    from pvslam_plugins.loops.deit.place_eval import calibrate, metrics_at, top_one, verified_top_one
+
+    data, cks = _sequences(args)
+    cache: dict = {}
+
+    def check(v):  # verification results are reused across thresholds (ORB + RANSAC is the cost here)
+        def f(i, j):
+            if (id(v), i, j) not in cache:
+                cache[(id(v), i, j)] = bool(v.verify(i, j).accepted)
+            return cache[(id(v), i, j)]
+        return f
+
+    def plain(name, sc, sd):
+        s, _, d = data[(sc, sd)]
+        return top_one(d[name], s.labels.pos, s.timestamps, axes=s.axes)
+
+    def both(name, sc, sd, thr):
+        s, v, d = data[(sc, sd)]
+        return plain(name, sc, sd), verified_top_one(d[name], s.labels.pos, s.timestamps, thr, check(v), axes=s.axes)
+
+    def fmt(m):
+        return f"{m['precision']:.2f} | {m['recall']:.2f} | {m['false']} / {m['detections']}"
+
+    print("| descriptor | calibrated on | threshold | evaluated on | scenario | retrieval-only P | R | false / det "
+          "| verified P | R | false / det |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    for name in ("base", "distilled"):
+        for cal in args.seeds:
+            thr = calibrate([plain(name, sc, cal) for sc in args.scenarios])["threshold"]
+            for ev in (s for s in args.seeds if s != cal):
+                for sc in args.scenarios:
+                    r, rv = both(name, sc, ev, thr)
+                    print(f"| {name} | {cal} | {thr:.3f} | {ev} | {sc} | {fmt(metrics_at([r], thr))} | "
+                          f"{fmt(metrics_at([rv], thr))} |", flush=True)
+    print("\n| descriptor | threshold | scenario | retrieval-only P | R | false / det | verified P | R | false / det |"
+          "\n|---|---|---|---|---|---|---|---|---|")
+    for name in ("classical", "base", "distilled"):
+        t0 = ClassicalLoopConfig().threshold if name == "classical" else float(cks[name].descriptor["threshold"])
+        for thr in (t0, t0 - 0.02, t0 - 0.05, t0 - 0.1):
+            for sc in args.scenarios:
+                rs, rvs = zip(*(both(name, sc, sd, thr) for sd in args.seeds))
+                print(f"| {name} | {thr:.3f} | {sc} | {fmt(metrics_at(rs, thr))} | {fmt(metrics_at(rvs, thr))} |",
+                      flush=True)
+
+
 def _keyframe_verifier(root: Path, stride: int = 3):
     """A :class:`KeyframeVerifier` (the detectors' verification defaults) holding every ``stride``-th frame of a
     generated sequence at full resolution, keyed by frame index."""
@@ -165,8 +248,13 @@ def main(argv: list[str] | None = None) -> None:
     rp.add_argument("--weights-dir", default=None, help="folder of project checkpoints (default: the shipped ones)")
     rp.add_argument("--threads", type=int, default=2)
     rp.add_argument("--verify", action="store_true", help="also the rows with geometric verification")
+    vp = sub.add_parser("validate", help="the verify default: cross-validated thresholds and margins, validation seeds")
+    vp.add_argument("--seeds", type=int, nargs="+", default=[201, 202])
+    vp.add_argument("--scenarios", nargs="+", default=["driving_loop", "indoor_handheld"])
+    vp.add_argument("--weights-dir", default=None, help="folder of project checkpoints (default: the shipped ones)")
+    vp.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
-    speed(args) if args.cmd == "speed" else retrieval(args)
+    {"speed": speed, "retrieval": retrieval, "validate": validate}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -131,10 +131,11 @@ class RetrievalConfig(PluginConfig):
 class DeitLoopConfig(DeitModelConfig, DeitDescriptorConfig, RetrievalConfig, VerificationConfig):
     """Config of the ``deit`` loop detector (all fields flat: ``[loop] plugin = "deit"``, ``variant = ...``)."""
 
-    # Why verify by default although the paper's DeiT loop closure has no geometric check: on the validation seeds
-    # the calibrated threshold sits within 0.004-0.02 of the best wrong score, so a threshold calibrated on one
-    # validation seed let a false loop through on the other; the verification rejected every wrong candidate there,
-    # even 0.1 below the threshold, for a small recall cost (bench/RESULTS.md "DeiT loop closure").
+    # Why verify by default although the paper's DeiT loop closure has no geometric check (validation seeds 201-202
+    # only, `bench/bench_deit.py validate`): the calibrated threshold is only 0.005-0.007 above the best wrong
+    # score, so a threshold calibrated on one validation seed let a false loop through on the other, and 0.02-0.1
+    # below it retrieval-only admits up to 19 false candidates where the verification admits 0-1, for a small recall
+    # cost (bench/RESULTS.md "DeiT loop closure").
     verify: bool = Field(
         True,
         description="geometric verification of the retrieved candidates (ORB + essential-matrix RANSAC, the module "
