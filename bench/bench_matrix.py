@@ -151,6 +151,31 @@ def table_md(rows: list[dict], labels: bool, colmap: bool) -> list[str]:
     return out
 
 
+def compare_md(before: list[dict], after: list[dict]) -> list[str]:
+    """Per scenario: pvslam before / after (mean ± std over the seeds both runs have, and the worst seed), the
+    textbook VO, the worst VO / pvslam ratio after, and the medians over the cells both runs have (Markdown)."""
+    key = lambda r: (r["scenario"], r["seed"])  # noqa: E731
+    b = {key(r): r for r in before if "error" not in r}
+    a = {key(r): r for r in after if "error" not in r}
+    both = [k for k in a if k in b]
+    out = ["| scenario | cells | pvslam before (worst) | pvslam after (worst) | textbook VO | worst VO / pvslam after |",
+           "|---|---:|---:|---:|---:|---:|"]
+    for sc in dict.fromkeys(k[0] for k in both):
+        ks = [k for k in both if k[0] == sc]
+        pb = [_get(b[k], "pvslam", "ate_pct") for k in ks]
+        pa = [_get(a[k], "pvslam", "ate_pct") for k in ks]
+        vo = [_get(a[k], "vo", "ate_pct") for k in ks]
+        rat = [x for x in (ratio(a[k]) for k in ks) if x is not None]
+        worst = lambda v: _f(max((x for x in v if x is not None), default=None))  # noqa: E731
+        out.append(f"| {sc} | {len(ks)} | {_ms(pb)} ({worst(pb)}) | {_ms(pa)} ({worst(pa)}) | {_ms(vo)} | "
+                   f"{_f(min(rat) if rat else None, '{:.2f}x')} |")
+    med = lambda src, f: float(np.median([_get(src[k], f[0], f[1]) for k in both  # noqa: E731
+                                          if _get(src[k], f[0], f[1]) is not None]))
+    out.append(f"| **median over the {len(both)} cells** | {len(both)} | {med(b, ('pvslam', 'ate_pct')):.2f} | "
+               f"{med(a, ('pvslam', 'ate_pct')):.2f} | {med(a, ('vo', 'ate_pct')):.2f} | |")
+    return out
+
+
 def _ms(v: list[float]) -> str:
     v = [x for x in v if x is not None and math.isfinite(x)]
     if not v:
@@ -259,6 +284,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="folder for run directories and the KITTI peer folders (default: temporary)")
     ap.add_argument("--reprint", metavar="JSON", help="print the table, summary and targets of a saved --json run")
     ap.add_argument("--markdown", action="store_true", help="with --reprint: the table as Markdown")
+    ap.add_argument("--compare", metavar="JSON", help="with --reprint: per scenario, this earlier run (before) "
+                    "beside the reprinted one (after), Markdown")
     args = ap.parse_args(argv)
     if args.reprint:
         saved = json.loads(Path(args.reprint).read_text())
@@ -269,6 +296,8 @@ def main(argv=None) -> int:
         if args.markdown:
             print("\n".join(table_md(rows, labels, colmap)))
         report(rows, labels, colmap)
+        if args.compare:
+            print("\n".join(compare_md(json.loads(Path(args.compare).read_text())["rows"], rows)))
         return 0
 
     synth = synthetic_scenarios()

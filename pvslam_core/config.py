@@ -103,9 +103,9 @@ class GraphSection(PluginConfig):
     init_min_parallax_deg: float = Field(
         0.5, gt=0, description="two-view initialisation needs at least this median parallax (degrees); KITTI 01's "
         "highway frames give 0.7-0.8 deg between nearby keyframes (far, forward-looking points)")
-    init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe: the first "
-                            "keyframe with the newest, then with the next older ones (fast motion breaks the flow "
-                            "of the farthest pair)")
+    init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe, all ending "
+                            "at the newest: from the window's first keyframe, from the middle, from two back (fast "
+                            "motion breaks the flow of the farthest pair; pvslam_core/slam/bootstrap.py)")
     init_window: int = Field(
         8, ge=1, description="the first view of an initialisation pair is at most this many keyframes before the "
         "newest (a sliding window: a hand-held camera that turned away never overlaps the fragment's first "

@@ -3,9 +3,12 @@
 Before, the two-view initialisation paired the fragment's *first* keyframe with the newest ones only.  A hand-held
 camera that turns away from where it started never overlaps that keyframe again: on the synthetic room (seed 5)
 the map initialised after 19.8 s, when the camera came back.  Here the first view of a pair slides with the
-newest keyframe ``k``: ``a = max(first, k - init_window)`` and the pairs ``(a, k)``, ``(a, k - 1)`` and
-``((a + k) // 2, k)`` are tried (``init_tries`` of them), the farthest first (the most parallax).  Each try goes
-through the model selection of :func:`~.initializer.two_view_init_why` (homography or essential matrix).
+newest keyframe ``k``: ``a = max(first, k - init_window)`` and the pairs ``(a, k)``, ``((a + k) // 2, k)`` and
+``(k - 2, k)`` are tried (``init_tries`` of them), the farthest first (the most parallax), the nearest last: a
+turning hand-held camera (synthetic room, tune seed 1, a keyframe every ~3 frames at 15 fps) shares no confident
+flow with a keyframe 4 back, and with ``(a, k - 1)`` as the third try instead of ``(k - 2, k)`` it never
+initialised.  Each try goes through the model selection of :func:`~.initializer.two_view_init_why` (homography or
+essential matrix).
 
 When a pair ``(a, m)`` initialises: keyframe ``a`` gets the triangulated depth, ``m`` the two-view pose; the
 keyframes after ``a`` are interpolated / extrapolated in time between ``a`` and ``m`` (the window BA that follows
@@ -35,10 +38,10 @@ def init_pairs(first: int, k: int, window: int, tries: int) -> list[tuple[int, i
     """Keyframe pairs ``(a, m)`` tried at keyframe ``k`` (see the module docstring), at most ``tries``, distinct,
     with ``a < m``."""
     a = max(first, k - window)
-    cands = [(a, k), (a, k - 1), ((a + k) // 2, k), (a, k - 2)]
+    cands = [(a, k), ((a + k) // 2, k), (k - 2, k), (a, k - 1), (k - 1, k)]
     out: list[tuple[int, int]] = []
     for p in cands:
-        if p[0] < p[1] and p[0] >= first and p not in out:
+        if a <= p[0] < p[1] and p not in out:
             out.append(p)
     return out[:tries]
 
@@ -108,7 +111,10 @@ class Bootstrap:
             obs = mapper._observe(torch.tensor([a]), torch.tensor([j]))
             mapper._release_pairs(torch.tensor([a]), torch.tensor([j]))
             pose = None
+            # clone: .double().cpu() of a float64 CPU graph is a view, and writing a view of poses[j + 1] into
+            # poses[j] is an overlapping in-place write (torch refuses it)
+            nxt = g.poses[j + 1].double().cpu().clone()
             if float(obs.weight[0].mean()) > 0.2:
-                pose = mapper.frames.motion_only(g.poses[j + 1].double().cpu(), g.poses[a].double(), g.disps[a],
+                pose = mapper.frames.motion_only(nxt.clone(), g.poses[a].double(), g.disps[a],
                                                  g.intrinsics, obs.target[0], obs.weight[0])
-            g.set_poses(torch.tensor([j]), (pose if pose is not None else g.poses[j + 1].double().cpu())[None])
+            g.set_poses(torch.tensor([j]), (pose if pose is not None else nxt)[None])

@@ -128,3 +128,28 @@ def _graph3():
     from test_flow_frontend import _graph
 
     return _graph([0.0, 16.0, 32.0])
+
+
+def test_no_masks_before_the_map_has_a_motion_estimate():
+    """Before the initialisation every keyframe of a fragment has the same pose: the residual against that
+    'estimate' is the whole flow, so nothing is judged (no edge or keyframe mask, tracking weights untouched);
+    the same scene with the camera motion estimated masks the car (test above)."""
+    from test_flow_frontend import _graph
+
+    imgs, _, _ = _scene()
+    g = _graph([0.0, 0.0])  # identical poses: no estimate yet
+    # a lower relative threshold than the default, so that judged against the zero motion the car (5 BA px of
+    # flow) would stand out from the background (2 BA px): what happened in a turning hand-held room
+    fe = FlowFrontend(FlowFrontendConfig(preset="medium", dynamic_rel_thresh=1.5))
+    ref = FlowFrontend(FlowFrontendConfig(preset="medium", dynamic_masking=False))
+    for f in (fe, ref):
+        f.add_keyframe(0, S.frame(imgs[0], 0), None)
+        f.add_keyframe(1, S.frame(imgs[1], 1), None)
+    for _ in range(3):  # first observation and the dynamic updates after it
+        obs = fe.observe(g, torch.tensor([0, 1]), torch.tensor([1, 0]))
+    obs_ref = ref.observe(g, torch.tensor([0, 1]), torch.tensor([1, 0]))
+    assert float(obs.dynamic.abs().sum()) == 0.0
+    torch.testing.assert_close(obs.weight, obs_ref.weight)
+    r, r_ref = fe.track(S.frame(imgs[2], 2), None), ref.track(S.frame(imgs[2], 2), None)
+    assert fe._kfs[1].dyn is None or float(fe._kfs[1].dyn.sum()) == 0.0
+    torch.testing.assert_close(r.weight, r_ref.weight)

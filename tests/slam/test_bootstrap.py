@@ -1,0 +1,112 @@
+"""Map initialisation on a sliding window of keyframe pairs (pvslam_core/slam/bootstrap.py), with the exact fake
+plugins of the framework tests."""
+import logging
+
+import torch
+
+import fakes
+from pvslam_core.config import validate_pipeline
+from pvslam_core.geometry.testing import umeyama_ate
+from pvslam_core.interfaces import BuildContext
+from pvslam_core.registry import get_registry
+from pvslam_core.slam import bootstrap as B
+from pvslam_core.slam.mapper import Mapper
+
+
+def test_init_pairs_slide_with_the_newest_keyframe():
+    """Brute-force reference: every pair is distinct, ``first <= a < m <= k``, the first view is at most
+    ``window`` keyframes back, the farthest pair comes first, and never more than ``tries``."""
+    for first in (0, 3):
+        for k in range(first + 1, first + 20):
+            for window in (1, 2, 8):
+                for tries in (1, 2, 3, 4):
+                    pairs = B.init_pairs(first, k, window, tries)
+                    assert 1 <= len(pairs) <= tries
+                    assert len(set(pairs)) == len(pairs)
+                    a0 = max(first, k - window)
+                    assert pairs[0] == (a0, k)  # the most parallax first
+                    for a, m in pairs:
+                        assert first <= a < m <= k and a >= a0
+    # the fragment's first keyframe stops being tried once the camera is more than `window` keyframes on; the
+    # newest keyframe is paired with the window's start, its middle, and two keyframes back (fast motion)
+    assert B.init_pairs(0, 20, 8, 3) == [(12, 20), (16, 20), (18, 20)]
+    assert B.init_pairs(0, 4, 8, 3) == [(0, 4), (2, 4), (0, 3)]
+
+
+def _build(frames=24, **graph):
+    pcfg = validate_pipeline({"graph": {"warmup": 3, "ba_downsample": 4, "remove_redundant": False, **graph},
+                              "loop_closure": {"nms_keyframes": 0}})
+    ds = fakes.FakeDataset(fakes.FakeDatasetConfig(frames=frames, speed=0.4))
+    fe = fakes.ExactFrontend(fakes.ExactFrontendConfig(keyframe_every=2), ds=4)
+    spec = get_registry().get("optimizer", "online_ba")
+    opt = spec.factory(spec.config_model(), BuildContext(device=torch.device("cpu")))
+    return Mapper(pcfg, ds.info(), fe, opt, None, "cpu"), ds
+
+
+def test_initialises_on_a_later_pair_and_places_the_earlier_keyframes(monkeypatch, caplog):
+    """The first two keyframes never pair (as if the camera had turned away from them): the map initialises on a
+    later pair, says why before, and the keyframes before the pair are placed from their own flow to it, so the
+    whole trajectory is right up to scale."""
+    tried: list[tuple[int, int]] = []
+    real = B.two_view_init_why
+    real_observe = Mapper._observe
+
+    def observe(self, ii, jj):  # the bootstrap observes exactly the pair it then hands to two_view_init_why
+        if not self.initialized:
+            tried.append((int(ii[0]), int(jj[0])))
+        return real_observe(self, ii, jj)
+
+    def why(target, weight, intr, **kw):
+        a, m = tried[-1]
+        if a < 2 or m < 6:
+            return None, "0 confident correspondences < 60 (the views do not overlap)"
+        return real(target, weight, intr, **kw)
+
+    monkeypatch.setattr(Mapper, "_observe", observe)
+    monkeypatch.setattr(B, "two_view_init_why", why)
+    m, ds = _build(init_window=3, init_tries=2)
+    with caplog.at_level(logging.INFO, logger="pvslam"):
+        results = [m.process(f, None) for f in ds]
+    first_init = next(i for i, r in enumerate(results) if r.initialized)
+    assert first_init == 12  # keyframe 6 (every second frame): the first with a pair (a >= 2, m >= 6)
+    assert any("map not initialised yet" in r.message and "do not overlap" in r.message for r in caplog.records)
+    assert any("pair 3-6" in r.message for r in caplog.records if "map initialised" in r.message)
+    m.finalize()
+    _, poses = m.trajectory()
+    gt = torch.stack([f.gt_pose for f in ds])
+    ate = umeyama_ate(poses[:, :3], gt[:, :3])
+    assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate
+
+
+def test_earlier_keyframe_without_a_pose_keeps_its_neighbours(monkeypatch):
+    """When a keyframe before the pair cannot be placed (motion-only BA fails), it takes the pose of the keyframe
+    after it (no crash: that pose is copied, not written through a view of the graph's own storage)."""
+    real = B.two_view_init_why
+    tried: list[tuple[int, int]] = []
+    real_observe = Mapper._observe
+
+    def observe(self, ii, jj):
+        if not self.initialized:
+            tried.append((int(ii[0]), int(jj[0])))
+        return real_observe(self, ii, jj)
+
+    def why(target, weight, intr, **kw):
+        a, m = tried[-1]
+        return (None, "refused") if a < 2 else real(target, weight, intr, **kw)
+
+    monkeypatch.setattr(Mapper, "_observe", observe)
+    monkeypatch.setattr(B, "two_view_init_why", why)
+    m, ds = _build(frames=16, init_window=2, init_tries=1)
+    monkeypatch.setattr(m.frames, "motion_only", lambda *a, **k: None)
+    placed = []  # the poses as the bootstrap left them (the window BA after it moves them)
+    monkeypatch.setattr(m, "_optimize_window", lambda k, rounds: placed.append(m.graph.poses.clone()))
+    for f in ds:
+        m.process(f, None)
+        if m.initialized:
+            break
+    assert m.initialized and placed
+    a = next(a for a, _ in reversed(tried) if a >= 2)  # the pair that initialised
+    poses = placed[0]
+    assert not torch.equal(poses[a], poses[a + 1])  # the pair has a baseline
+    for j in range(a):  # every keyframe before the pair took the pose of the one after it (= the pair's first)
+        assert torch.equal(poses[j], poses[a])
