@@ -1,22 +1,26 @@
 """Benchmark of the learned ``raft_gru`` frontend (issue 10): speed at 320x240 with a per-stage profile, memory on a
 long run, and ATE against the classical ``flow`` frontend on held-out synthetic seeds.
 
+    python bench/bench_raft_gru.py --only ops                              # per network call, fp32 vs bf16
     python bench/bench_raft_gru.py --only speed --frames 120               # frames/s + profile (about 10 min)
     python bench/bench_raft_gru.py --only memory --long-frames 1000        # long run in a child process
+    python bench/bench_raft_gru.py --only memory_frontend --set frontend.rounds=1   # steady state, no mapper
     python bench/bench_raft_gru.py --only ate --weights runs/rg/model_final.pth --seeds 200 201
     python bench/bench_raft_gru.py --quick                                 # a smoke run of every section
 
 Speed.  Weights do not change the cost of a network call, but they decide which frames become keyframes, and a
 random network's motion filter is meaningless; so without ``--weights`` every frame is made a keyframe candidate
-(``keyframe_thresh`` 1e-4: the mapper's provisional-keyframe rule then keeps about as many as the trained model, see
-RESULTS.md) and the figures are an upper bound of the per-keyframe work.  Wall time on a shared machine depends on
+(``keyframe_thresh`` 1e-4: the mapper's provisional-keyframe rule decides which stay) and the figures are an upper
+bound of the per-frame work; ``memory_frontend`` gives the steady state.  Wall time on a shared machine depends on
 the other jobs; the script prints the load average and each run's CPU seconds (whole process and the pipeline
 thread) next to the wall time.  ``est fps`` = frames / max(pipeline-thread CPU, process CPU / cores): the rate on an
 otherwise idle machine with that many cores.
 
-Memory.  A separate process runs ``--long-frames`` frames of the driving loop (3000 is the target; on a loaded
-2-core machine that takes hours, so the default is 1000 and the peak at 3000 is extrapolated from the RSS samples
-taken every 100 frames: a least-squares line over the second half of the run).
+Memory.  ``memory``: a separate process runs ``--long-frames`` frames of the driving loop through the pipeline and
+samples RSS every 100 frames (the peak at 3000 frames extrapolated from the second half); it needs weights that
+initialise the map (a map that never initialises keeps every keyframe: see RESULTS.md).  ``memory_frontend``: the
+frontend and frame graph without the mapper, keyframes at ground-truth poses (independent of the weights; also the
+steady-state per-frame CPU, ``--mf-stop N`` for a short run).
 
 Results go to bench/results_raft_gru.json (and are summarised in bench/RESULTS.md by hand).
 """
@@ -111,7 +115,11 @@ def print_run(name: str, d: dict) -> None:
     print(f"      mapper CPU s: {d['map_cpu_seconds']}")
 
 
-def section_speed(out: Path, frames: int, weights: str | None, threads: list[int]) -> None:
+SPEED_VARIANTS = ("flow", "fast", "fast_fp32", "droid")
+
+
+def section_speed(out: Path, frames: int, weights: str | None, threads: list[int],
+                  variants: list[str] = SPEED_VARIANTS, extra: list[str] = ()) -> None:
     import torch
 
     print(f"\n== speed at 320x240, driving_loop, {frames} frames (load {load()}) ==")
@@ -119,11 +127,12 @@ def section_speed(out: Path, frames: int, weights: str | None, threads: list[int
     res_all = {}
     for th in threads:
         torch.set_num_threads(th)
-        for name, ov in (("flow", ['frontend.plugin="flow"']),
-                         ("raft_gru fast", rg_overrides(weights, "fast")),
-                         ("raft_gru fast fp32", rg_overrides(weights, "fast", ['frontend.precision="fp32"'])),
-                         ("raft_gru droid", rg_overrides(weights, "droid"))):
-            if name == "raft_gru droid" and th != threads[0]:
+        for key, name, ov in (("flow", "flow", ['frontend.plugin="flow"']),
+                              ("fast", "raft_gru fast", rg_overrides(weights, "fast", extra)),
+                              ("fast_fp32", "raft_gru fast fp32",
+                               rg_overrides(weights, "fast", ['frontend.precision="fp32"', *extra])),
+                              ("droid", "raft_gru droid", rg_overrides(weights, "droid", extra))):
+            if key not in variants or (key == "droid" and th != threads[0]):
                 continue
             before = load()
             res, fe = run(seq, ov + ["loop.plugin=none"], out)
@@ -134,6 +143,80 @@ def section_speed(out: Path, frames: int, weights: str | None, threads: list[int
     RESULTS["speed"] = res_all
 
 
+def _cpu_ms(fn, reps: int) -> tuple[float, float]:
+    """``(median thread-CPU ms, median wall ms)`` of ``fn()`` over ``reps`` calls after one warm-up call."""
+    fn()
+    cpu, wall = [], []
+    for _ in range(reps):
+        c, t = time.thread_time(), time.perf_counter()
+        fn()
+        cpu.append(1000 * (time.thread_time() - c))
+        wall.append(1000 * (time.perf_counter() - t))
+    return sorted(cpu)[reps // 2], sorted(wall)[reps // 2]
+
+
+def section_ops(edges: int, reps: int) -> None:
+    """Per network call at 320x240 (1/8: 30x40), one thread, random weights (weights do not change the cost): the
+    frontend's stages in isolation, fp32 vs bf16 autocast, stored volume vs on-the-fly correlation."""
+    import torch
+
+    from pvslam_plugins.frontends.raft_gru.corr import CorrVolume, OnTheFlyCorr, coords_grid
+    from pvslam_plugins.frontends.raft_gru.net import RaftGruNet, droid_motion
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    print(f"\n== per-call CPU at 320x240, 1 thread, {edges} edges per update (load {load()}) ==")
+    model = RaftGruNet("droid").eval()
+    img = torch.randint(0, 255, (1, 1, 3, 240, 320), dtype=torch.uint8)
+    h, w = 30, 40
+    fm = torch.randn(1, 4, 128, h, w)
+    ii = torch.arange(edges) % 4
+    jj = (ii + 1 + torch.arange(edges) // 4 % 3) % 4
+    g = coords_grid(h, w)
+    c1 = (g + torch.randn(1, edges, h, w, 2)).contiguous()
+    net, inp = torch.randn(1, edges, 128, h, w).tanh(), torch.randn(1, edges, 128, h, w).relu()
+    motion = droid_motion(g, c1, c1 + 0.5)
+    rows = {}
+    with torch.no_grad():
+        for prec in ("fp32", "bf16"):
+            ac = torch.autocast("cpu", dtype=torch.bfloat16, enabled=prec == "bf16")
+            dt = torch.bfloat16 if prec == "bf16" else torch.float32
+
+            def fnet():
+                with ac:
+                    model.features(img, "rgb", context=False)
+
+            def cnet():
+                with ac:
+                    model.context(img, "rgb")
+
+            vol = CorrVolume(fm[:, ii].to(dt), fm[:, jj].to(dt))
+            otf = OnTheFlyCorr(fm.to(dt), ii, jj)
+            corr = vol(c1.to(dt)).float()
+
+            def build():
+                CorrVolume(fm[:, ii].to(dt), fm[:, jj].to(dt))
+
+            def lookup():
+                vol(c1.to(dt))
+
+            def lookup_otf():
+                with ac:
+                    otf(c1.to(dt))
+
+            def update():
+                with ac:
+                    model.update(net, inp, corr, motion, ii, jj)
+
+            for name, fn in (("fnet (1 frame)", fnet), ("cnet (1 frame)", cnet),
+                             (f"volume build ({edges} edges)", build), (f"lookup volume ({edges} edges)", lookup),
+                             (f"lookup on-the-fly ({edges} edges)", lookup_otf), (f"update ({edges} edges)", update)):
+                c, t = _cpu_ms(fn, reps)
+                rows[f"{name} {prec}"] = {"cpu_ms": c, "wall_ms": t}
+                print(f"  {name:<34} {prec}: {c:8.1f} ms CPU  ({t:8.1f} ms wall)")
+    RESULTS["ops"] = rows
+
+
 def _rss_mb() -> float:
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -141,7 +224,7 @@ def _rss_mb() -> float:
     return float("nan")
 
 
-def _long_child(frames: int, out: str, weights: str | None, profile: str) -> None:
+def _long_child(frames: int, out: str, weights: str | None, profile: str, extra: list[str] = ()) -> None:
     """Separate process (its own peak RSS): feeds the frames itself and samples memory every 100 frames."""
     import torch
 
@@ -156,7 +239,8 @@ def _long_child(frames: int, out: str, weights: str | None, profile: str) -> Non
     seq = generate("driving_loop", frames)
     cfg = load_config(None, overrides=[f'dataset.path="{seq.as_posix()}"', "outputs.ply=false", "outputs.plots=false",
                                        "outputs.panoptic_png=false", "run.progress=false", "vps.plugin=none",
-                                       f'run.output_dir="{Path(out).as_posix()}"', *rg_overrides(weights, profile)])
+                                       f'run.output_dir="{Path(out).as_posix()}"',
+                                       *rg_overrides(weights, profile, extra)])
     run_dir = make_run_dir(out, "long_raft_gru")
     init_run_dir(run_dir, cfg, get_registry(), {})
     samples = []
@@ -181,12 +265,15 @@ def _long_child(frames: int, out: str, weights: str | None, profile: str) -> Non
                       "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}))
 
 
-def section_memory(out: Path, frames: int, weights: str | None, profile: str, target_frames: int = 3000) -> None:
+def section_memory(out: Path, frames: int, weights: str | None, profile: str, target_frames: int = 3000,
+                   extra: list[str] = ()) -> None:
     print(f"\n== memory: {frames} frames of the driving loop at 320x240, raft_gru {profile} (load {load()}) ==")
     generate("driving_loop", frames)
     cmd = [sys.executable, __file__, "--long-child", str(frames), "--out", str(out), "--profile", profile]
     if weights:
         cmd += ["--weights", weights]
+    for e in extra:
+        cmd += ["--set", e]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         print(res.stderr[-3000:])
@@ -212,8 +299,71 @@ def section_memory(out: Path, frames: int, weights: str | None, profile: str, ta
               f"{p['retired_edges']:>7}  {p['retired_mb']:>10.1f}  {p['frontend_edges']:>14}  {p['frontend_mb']:>11.1f}")
 
 
+def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours: int, profile: str,
+                            extra: list[str] = (), stop: int | None = None) -> None:
+    """Steady-state memory of the frontend + frame graph without the mapper: every frame goes through the motion
+    filter, every ``kf_every``-th becomes a keyframe placed at its ground-truth pose (inverse depth from the
+    ground truth at 1/8), edges to the previous ``neighbours`` keyframes both ways, ``rounds`` observes of the active
+    edges (no BA between them: same cost), edges of keyframes older than ``window`` retired (what the mapper does).
+    ``stop``: process only the first ``stop`` frames of the ``frames``-frame sequence.  Independent of the weights (a random
+    network's flow cannot initialise the mapper on a realistically slow sequence, see RESULTS.md), RSS sampled every
+    100 frames on stderr as it runs."""
+    import torch
+    import torch.nn.functional as F
+
+    from pvslam_core.slam.graph import FrameGraph
+    from pvslam_core.types import EdgeObservations, Frame
+    from pvslam_plugins.datasets.synthetic.reader import SyntheticSequence
+    from pvslam_plugins.frontends.raft_gru.config import RaftGruConfig
+    from pvslam_plugins.frontends.raft_gru.frontend import RaftGruFrontend
+
+    torch.set_num_threads(1)
+    warnings.simplefilter("ignore")
+    seq = SyntheticSequence(generate("driving_loop", frames))
+    kw = dict(x.split("=", 1) for x in extra)
+    cfg = RaftGruConfig(weights="random", profile=profile, dynamic_masking=False,
+                        **{k.removeprefix("frontend."): json.loads(v) for k, v in kw.items()})
+    fe = RaftGruFrontend(cfg)
+    intr = seq.intrinsics
+    g = FrameGraph(intr.height // 8, intr.width // 8, intr.scaled(1 / 8).vector(torch.float32), capacity=64)
+    g.add_listener(fe)
+    print(f"\n== frontend + graph memory, {frames} frames, keyframe every {kf_every}, window {window}, {profile} "
+          f"(load {load()}) ==", flush=True)
+    samples, t0, c0 = [], time.perf_counter(), time.process_time()
+    for i in range(min(frames, stop or frames)):
+        a = seq.arrays(i, ("depth",))
+        img = torch.from_numpy(a["rgb"].transpose(2, 0, 1).copy())
+        fr = Frame(index=i, timestamp=i / 12.0, image=img, intrinsics=intr)
+        fe.track(fr, None)
+        if i % kf_every == 0:
+            depth = torch.from_numpy(a["depth"])[None, None]
+            disp = F.avg_pool2d(torch.where(depth > 0, 1.0 / depth.clamp(min=1e-3), torch.zeros_like(depth)), 8)[0, 0]
+            pose = torch.as_tensor(seq.poses[i], dtype=torch.float64)
+            k = g.add_keyframe(i, i / 12.0, pose, disp.clamp(min=1e-3))
+            fe.add_keyframe(int(g.ids[k]), fr, None)
+            prev = torch.arange(max(0, k - neighbours), k)
+            g.add_edges(torch.cat([prev, torch.full_like(prev, k)]), torch.cat([torch.full_like(prev, k), prev]))
+            old = (g.ii < k - window) | (g.jj < k - window)
+            g.retire_edges(old)
+            for _ in range(fe.rounds):
+                obs = fe.observe(g, g.ii.clone(), g.jj.clone())
+            g.record_observations(obs)
+        if (i + 1) % 100 == 0:
+            samples.append({"frame": i + 1, "rss_mb": _rss_mb(), "keyframes": g.n, "active_edges": g.num_edges,
+                            "retired_edges": g.num_retired, "retired_mb": g.retired_bytes() / 2**20,
+                            "frontend_edges": len(fe.edge_ids()), "frontend_mb": fe.memory_bytes() / 2**20,
+                            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0})
+            print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
+    d = {"frames": frames, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "samples": samples,
+         "rounds": fe.rounds, "frontend_cpu_s": dict(fe.stats.cpu), "frontend_counts": dict(fe.stats.counts)}
+    RESULTS["memory_frontend"] = d
+    n = min(frames, stop or frames)
+    print(f"  peak RSS {d['peak_mb']:.0f} MB; {1000 * (time.process_time() - c0) / n:.0f} ms CPU per frame; frontend "
+          f"CPU ms/frame: " + ", ".join(f"{k} {1000 * v / n:.0f}" for k, v in fe.stats.cpu.items() if v > 0), flush=True)
+
+
 def section_ate(out: Path, weights: str | None, seeds: list[int], scenarios: list[str], frames: int,
-                profile: str) -> None:
+                profile: str, extra: list[str] = ()) -> None:
     import torch
 
     torch.set_num_threads(1)
@@ -224,7 +374,8 @@ def section_ate(out: Path, weights: str | None, seeds: list[int], scenarios: lis
         for seed in seeds:
             seq = generate(scen, frames, seed)
             row = {"scenario": scen, "seed": seed}
-            for name, ov in (("flow", ['frontend.plugin="flow"']), ("raft_gru", rg_overrides(weights, profile))):
+            for name, ov in (("flow", ['frontend.plugin="flow"']),
+                             ("raft_gru", rg_overrides(weights, profile, extra))):
                 res, _ = run(seq, ov, out)
                 a = res.metrics.get("ate", {})
                 row[name] = a.get("rmse_percent_of_path", float("nan"))
@@ -240,13 +391,21 @@ def section_ate(out: Path, weights: str | None, seeds: list[int], scenarios: lis
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--only", nargs="*", choices=["speed", "memory", "ate"])
+    ap.add_argument("--only", nargs="*", choices=["ops", "speed", "memory", "memory_frontend", "ate"])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--weights", help="raft_gru weights (catalogue name or path); default: random")
     ap.add_argument("--profile", default="fast", choices=["fast", "droid"])
     ap.add_argument("--frames", type=int, default=120, help="frames of the speed run")
     ap.add_argument("--threads", type=int, nargs="*", default=[1, 2])
+    ap.add_argument("--variants", nargs="*", default=list(SPEED_VARIANTS), choices=SPEED_VARIANTS,
+                    help="runs of the speed section")
+    ap.add_argument("--set", dest="extra", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra config override for every raft_gru run (repeatable), e.g. frontend.rounds=1")
+    ap.add_argument("--ops-edges", type=int, default=12, help="edges per update call in the ops section")
+    ap.add_argument("--ops-reps", type=int, default=7)
     ap.add_argument("--long-frames", type=int, default=1000)
+    ap.add_argument("--kf-every", type=int, default=3, help="memory_frontend: a keyframe every N frames")
+    ap.add_argument("--mf-stop", type=int, help="memory_frontend: stop after this many frames")
     ap.add_argument("--seeds", type=int, nargs="*", default=[200])
     ap.add_argument("--scenarios", nargs="*", default=["driving_loop", "moving_vehicles", "indoor_handheld",
                                                        "busy_street"])
@@ -256,19 +415,24 @@ def main() -> None:
     ap.add_argument("--long-child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.long_child:
-        _long_child(args.long_child, args.out, args.weights, args.profile)
+        _long_child(args.long_child, args.out, args.weights, args.profile, args.extra)
         return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    sections = args.only or ["speed", "memory", "ate"]
+    sections = args.only or ["ops", "speed", "memory", "ate"]
     RESULTS["machine"] = {"cores": os.cpu_count(), "load_start": load(), "weights": args.weights or "random"}
+    if "ops" in sections:
+        section_ops(args.ops_edges, 3 if args.quick else args.ops_reps)
     if "speed" in sections:
-        section_speed(out, 30 if args.quick else args.frames, args.weights, args.threads)
+        section_speed(out, 30 if args.quick else args.frames, args.weights, args.threads, args.variants, args.extra)
     if "memory" in sections:
-        section_memory(out, 200 if args.quick else args.long_frames, args.weights, args.profile)
+        section_memory(out, 200 if args.quick else args.long_frames, args.weights, args.profile, extra=args.extra)
+    if "memory_frontend" in sections:
+        section_memory_frontend(200 if args.quick else args.long_frames, args.kf_every, 10, 3, args.profile,
+                                args.extra, args.mf_stop)
     if "ate" in sections:
         section_ate(out, args.weights, args.seeds, args.scenarios[:1] if args.quick else args.scenarios,
-                    40 if args.quick else args.ate_frames, args.profile)
+                    40 if args.quick else args.ate_frames, args.profile, args.extra)
     RESULTS["machine"]["load_end"] = load()
     Path(args.json).write_text(json.dumps(RESULTS, indent=1, default=str))
     print(f"\nresults: {args.json}")

@@ -17,6 +17,7 @@ Modules
 * :mod:`.edge_step`   - motion input, PVO's dynamic mask, eq. 4 weights (shared by frontend and trainer).
 * :mod:`.frontend`    - :class:`RaftGruFrontend`: DROID's motion filter, per-edge GRU state by stable ids,
   update -> BA rounds, learned damping, upsampled depth.
+* :mod:`.frontend_state` - what the frontend stores per keyframe / per edge, stage timings, :func:`load_network`.
 * :mod:`.train_ba`, :mod:`.train_data`, :mod:`.losses`, :mod:`.train` - training (DROID's losses through a
   differentiable dense BA on clips of the built-in synthetic generator).
 

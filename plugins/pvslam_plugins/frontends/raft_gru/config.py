@@ -29,9 +29,9 @@ class RaftGruConfig(PluginConfig):
     """Learned correspondence frontend: RAFT-style encoders, correlation pyramid, ConvGRU update (DROID / PVO)."""
 
     weights: Optional[str] = Field(
-        "droid", description="checkpoint: a catalogue name (`pvslam weights list`: droid, pvo-vo-vkitti2) or a file path (droid.pth, a PVO checkpoint or "
-        "this project's own); \"random\" (or null in Python) = RANDOM weights, with a loud warning: only for tests "
-        "and training from scratch")
+        "droid", description="checkpoint: a catalogue name (`pvslam weights list`: droid, pvo-vo-vkitti2) or a file "
+        "path (droid.pth, a PVO checkpoint or this project's own); \"random\" (or null in Python) = RANDOM weights, "
+        "with a loud warning: only for tests and training from scratch")
     variant: Optional[Literal["droid", "pvo"]] = Field(
         None, description="network variant; null = the checkpoint's (droid for random weights). 'pvo' adds PVO's "
         "dynamic update module: its mask head refines a per-edge dynamic mask (eq. 6) that sets eq. 4's M_d")
@@ -48,8 +48,8 @@ class RaftGruConfig(PluginConfig):
         "update per observe; the others return their last target/weight; 0 = every edge (DROID); null = profile")
     corr_impl: Optional[Literal["volume", "onthefly"]] = Field(
         None, description="correlation: per-edge stored pyramid (built once per edge, fast lookups, ~4 B x (h w)^2 "
-        "x 1.33 per edge: 7.7 MB at 320x240) or on the fly from the keyframes' features (no per-edge memory, "
-        "~2x the lookup cost); null = profile")
+        "x 1.33 per edge: 7.7 MB at 320x240) or on the fly from the keyframes' features (no per-edge memory, no "
+        "build, ~3.5x the time of a stored-volume lookup: bench/RESULTS.md); null = profile")
     keyframe_thresh: float = Field(
         2.4, gt=0, description="motion filter: a frame becomes a keyframe when the mean flow of one update step "
         "against the last keyframe exceeds this (BA px); DROID's filter_thresh (2.4 demo/EuRoC/TartanAir, 1.75 TUM)")

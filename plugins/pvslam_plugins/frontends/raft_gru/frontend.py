@@ -36,11 +36,8 @@ depth with the keyframe's learned mask; see its docstring for keyframes whose ma
 from __future__ import annotations
 
 import contextlib
-import logging
 import time
-import warnings
 from collections import OrderedDict
-from dataclasses import dataclass, field
 from typing import Any, Optional
 
 import torch
@@ -54,78 +51,10 @@ from .config import RaftGruConfig
 from .corr import CorrVolume, OnTheFlyCorr, coords_grid
 from .edge_step import droid_weight, motion_input, pvo_dynamic, pvo_weight, residual_dynamic
 from .encoders import STRIDE
+from .frontend_state import (  # noqa: F401  (DAMPING_INIT, STAGES, RandomWeightsWarning: re-exported)
+    DAMPING_INIT, STAGES, EdgeState, KeyframeState, RandomWeightsWarning, StageStats, load_network)
 from .net import RaftGruNet
 from .upsample import upsample_disp
-
-LOG = logging.getLogger("pvslam.frontend.raft_gru")
-
-DAMPING_INIT = 1e-6  # DROID's FactorGraph.damping buffer starts at 1e-6 for frames never updated
-
-
-class RandomWeightsWarning(UserWarning):
-    """``weights = None``: the network is randomly initialised and its flow is meaningless."""
-
-
-def load_network(cfg: RaftGruConfig, device: Any = "cpu") -> RaftGruNet:
-    """The network a config asks for (eval mode, on ``device``); see ``RaftGruConfig.weights``."""
-    from .checkpoint import load_model
-
-    if cfg.random_weights:
-        msg = ("raft_gru: weights = \"random\" -> RANDOMLY INITIALISED network: its flow, weights and poses are "
-               "meaningless. Use weights = \"droid\" (`pvslam weights fetch droid`), a checkpoint path, or train one "
-               "(`pvslam train frontend --plugin raft_gru`).")
-        warnings.warn(msg, RandomWeightsWarning, stacklevel=2)
-        LOG.warning(msg)
-        return RaftGruNet(cfg.variant or "droid").to(device).eval()
-    from pvslam_core.weights import resolve_weights
-
-    path = resolve_weights(cfg.weights)
-    model, ckpt = load_model(path, map_location=device, variant=cfg.variant)
-    LOG.info("raft_gru: loaded %s network from %s%s", ckpt.variant, path,
-             f" ({'; '.join(ckpt.notes)})" if ckpt.notes else "")
-    return model
-
-
-@dataclass
-class _Keyframe:
-    image: torch.Tensor  # uint8 [3, H, W] RGB (to recompute evicted features)
-    frame_index: int
-    damping: torch.Tensor  # float32 [h, w] learned eta of the last update with this keyframe as a source
-    fmap: Optional[torch.Tensor] = None  # [128, h, w] matching features
-    net0: Optional[torch.Tensor] = None  # [128, h, w] initial GRU state of its edges
-    inp: Optional[torch.Tensor] = None  # [128, h, w] context of its edges
-    seg: Optional[torch.Tensor] = None  # int64 [h, w] panoptic ids at the BA resolution
-    things: Optional[torch.Tensor] = None  # int64 [K] ids of movable thing segments
-    upmask: Optional[torch.Tensor] = None  # float16 [576, h, w] convex-upsampling logits of its last update
-    disp_up: Optional[torch.Tensor] = None  # float16 [H, W] upsampled inverse depth saved when the mask went
-    disp_lo: Optional[torch.Tensor] = None  # float32 [h, w] the inverse depth disp_up was made from
-
-
-@dataclass
-class _Edge:
-    net: torch.Tensor  # [128, h, w] GRU hidden state
-    target: torch.Tensor  # float32 [h, w, 2] (x, y) in the target keyframe
-    weight: torch.Tensor  # float32 [h, w, 2] confidence handed to the BA (after eq. 4)
-    dynamic: Optional[torch.Tensor] = None  # float32 [h, w] 1 = moving
-    raw_mask: Optional[torch.Tensor] = None  # pvo: float32 [h, w, 2] static logits (eq. 6 accumulates here)
-    delta_dy: Optional[torch.Tensor] = None  # pvo: float32 [h, w, 2] object flow on dynamic pixels
-    corr: Optional[CorrVolume] = None  # corr_impl="volume": this edge's pyramid
-    updates: int = 0  # GRU updates this edge received
-
-
-STAGES = ("track", "fnet", "filter", "cnet", "reproject", "corr", "update", "weights", "recompute")
-
-
-@dataclass
-class _Stats:
-    """Per-stage wall seconds and CPU seconds of the calling thread (``time.thread_time``: with one torch thread
-    that is all the work; with more, OpenMP workers' time is not included).  ``fnet`` and ``filter`` are parts of
-    ``track``; ``recompute`` includes its own ``fnet``/``cnet``."""
-
-    seconds: dict = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
-    cpu: dict = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
-    counts: dict = field(default_factory=lambda: {k: 0 for k in ("track", "keyframes", "observe", "edge_updates",
-                                                                 "edges_returned", "recomputed")})
 
 
 class RaftGruFrontend(Frontend):
@@ -150,13 +79,13 @@ class RaftGruFrontend(Frontend):
         self.corr_impl = self.cfg.resolved("corr_impl")
         vt = self.cfg.vote_thresh
         self.vote_thresh = vt if vt is not None else (0.8 if self.variant == "pvo" else 0.5)
-        self._kfs: dict[int, _Keyframe] = {}  # stable id -> keyframe (insertion order = time order)
+        self._kfs: dict[int, KeyframeState] = {}  # stable id -> keyframe (insertion order = time order)
         self._lru: OrderedDict[int, None] = OrderedDict()  # ids whose features are in memory, least recent first
-        self._edges: dict[tuple[int, int], _Edge] = {}  # (src id, dst id) -> per-edge state
+        self._edges: dict[tuple[int, int], EdgeState] = {}  # (src id, dst id) -> per-edge state
         self._pending: Optional[dict] = None  # the last tracked frame's fmap (reused when it becomes a keyframe)
         self._graph = None  # last graph seen (for initial_depth and evictions)
         self._coords0: dict[tuple[int, int], torch.Tensor] = {}
-        self.stats = _Stats()
+        self.stats = StageStats()
 
     # ------------------------------------------------------------------------------------------- helpers --
     def _autocast(self):
@@ -218,7 +147,7 @@ class RaftGruFrontend(Frontend):
             kf.disp_lo = disp.clone()
         kf.fmap = kf.net0 = kf.inp = kf.upmask = None
 
-    def _features(self, kf_id: int) -> _Keyframe:
+    def _features(self, kf_id: int) -> KeyframeState:
         """The keyframe with its features in memory (recomputed from its image after an eviction)."""
         kf = self._kfs[kf_id]
         if kf.fmap is None:
@@ -294,7 +223,7 @@ class RaftGruFrontend(Frontend):
                            target=target.permute(2, 0, 1).contiguous(), weight=weight.permute(2, 0, 1).contiguous(),
                            message=f"mean flow {mean_flow:.2f} px to keyframe {last_id}")
 
-    def _filter_flow(self, last: _Keyframe, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _filter_flow(self, last: KeyframeState, fmap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """DROID's motion filter: ``track_iters`` update steps of the edge last keyframe -> frame from the identity
         (the first with zero motion input, as upstream).  Returns ``target, weight (h, w, 2)``."""
         h, w = fmap.shape[-2:]
@@ -333,7 +262,7 @@ class RaftGruFrontend(Frontend):
         net0, inp = self._cnet(frame.image)
         h, w = fmap.shape[-2:]
         seg_ids, things = self._seg_info(seg, h, w)
-        self._kfs[kf_id] = _Keyframe(image=frame.image.cpu(), frame_index=int(frame.index),
+        self._kfs[kf_id] = KeyframeState(image=frame.image.cpu(), frame_index=int(frame.index),
                                      damping=torch.full((h, w), DAMPING_INIT, device=self.device), fmap=fmap,
                                      net0=net0, inp=inp, seg=seg_ids, things=things)
         self._touch(kf_id)
@@ -424,7 +353,7 @@ class RaftGruFrontend(Frontend):
         for e, key in enumerate(keys):
             if key not in self._edges:  # DROID add_factors: target = reprojection, weight 0, net = source's net0
                 src = self._features(key[0])
-                self._edges[key] = _Edge(
+                self._edges[key] = EdgeState(
                     net=src.net0.clone(), target=coords1[e].clone(), weight=torch.zeros(h, w, 2, device=self.device),
                     raw_mask=torch.zeros(h, w, 2, device=self.device) if self.variant == "pvo" else None,
                     delta_dy=torch.zeros(h, w, 2, device=self.device) if self.variant == "pvo" else None)
@@ -465,7 +394,8 @@ class RaftGruFrontend(Frontend):
 
     def _update(self, keys, ii: torch.Tensor, jj: torch.Tensor, coords1: torch.Tensor, valid: torch.Tensor,
                 ids: list[int]) -> None:
-        """One GRU update of edges ``keys`` (graph indices ``ii -> jj``) at the reprojection ``coords1 (E, h, w, 2)``."""
+        """One GRU update of edges ``keys`` (graph indices ``ii -> jj``) at the reprojection ``coords1 (E, h, w,
+        2)``."""
         E = len(keys)
         h, w = coords1.shape[1:3]
         edges = [self._edges[k] for k in keys]
@@ -522,7 +452,7 @@ class RaftGruFrontend(Frontend):
                 if self.cfg.upsample:
                     kf.upmask = out.upmask[0, u].half()
 
-    def _sources_seg(self, srcs: list[_Keyframe], h: int, w: int):
+    def _sources_seg(self, srcs: list[KeyframeState], h: int, w: int):
         """``(E, h, w)`` panoptic ids of the edges' source keyframes (zeros = void where a source has none) and the
         thing ids allowed to vote (None: every segment)."""
         if all(s.seg is None for s in srcs):
