@@ -8,7 +8,9 @@ Sections (each prints its figures and a target line ``[PASS]``/``[MISS]`` with t
   throughput  frames/s end-to-end at 320x240 and at KITTI resolution (evaluation excluded)
   accuracy    Sim(3) ATE on the built-in driving loop: online BA + loop closure, loop off, offline BA
   peers       the same driving loop through a textbook OpenCV VO and COLMAP (pycolmap), side by side
-  long        3000-frame run: last-500 vs first-500 mean per-frame time, peak memory (separate process)
+  long        3000-frame run: last-500 vs first-500 mean per-frame time, peak memory, ATE, loops and map
+              fragments (separate process); and a forced tracking loss (driving_block with 30 frames cut out):
+              the new map fragment must be merged back by the revisit's loop
   kitti       ATE on the KITTI 06 and 01 excerpts in ../shared/data (skipped if absent)
 Results are also written as JSON to bench/results_pipeline.json.
 """
@@ -244,7 +246,8 @@ def _long_child(frames: int, out: str) -> None:
                       "peak_mb": peak_mb, "keyframes": r.metrics["timing"]["keyframes"], "samples": samples,
                       "ate_pct": ate.get("rmse_percent_of_path"), "ate_m": ate.get("rmse"),
                       "path_m": ate.get("path_length"), "reinitialisations": r.metrics["timing"]["reinitialisations"],
-                      "loops": len(r.loops)}))
+                      "loops": len(r.loops), "loop_bas": sum(1 for c in r.loops if c.loop_ba),
+                      "fragments": len(pipe.mapper.fragments.starts), "unmerged": pipe.mapper.fragments.unmerged}))
 
 
 def section_long(out: Path, quick: bool, frames: int = 3000) -> None:
@@ -265,8 +268,9 @@ def section_long(out: Path, quick: bool, frames: int = 3000) -> None:
     cpu_ratio = d["last_cpu"] / d["first_cpu"]
     print(f"  CPU per frame (process): first {1000 * d['first_cpu']:.1f} ms, last {1000 * d['last_cpu']:.1f} ms, "
           f"ratio {cpu_ratio:.2f} (wall ratio {ratio:.2f}; on a shared machine the CPU ratio is the reliable one)")
-    print(f"  ATE {d['ate_pct']} % of {d['path_m']} m ({d['ate_m']} m), {d['loops']} loops, "
-          f"{d['reinitialisations']} re-initialisations")
+    print(f"  ATE {d['ate_pct']} % of {d['path_m']} m ({d['ate_m']} m), {d['loops']} loops ({d['loop_bas']} with a "
+          f"loop BA), {d['reinitialisations']} re-initialisations, {d['fragments']} map fragment(s), "
+          f"{d['unmerged']} separate map(s) at the end")
     print("  frame  keyframes  active edges  retired edges  frontend edge states  frontend MB")
     for s_ in d["samples"]:
         print(f"  {s_['frame']:>5}  {s_['keyframes']:>9}  {s_['active_edges']:>12}  {s_['retired_edges']:>13}  "
@@ -275,9 +279,70 @@ def section_long(out: Path, quick: bool, frames: int = 3000) -> None:
     if states:
         target("active edges bounded", max(states) <= 2 * min(states[len(states) // 2:] or states) + 50,
                f"max {max(states)}, last {states[-1]}", "flat over the run")
-    target(f"per-frame time last/first ({d['frames']} frames)", ratio <= 1.2,
+    # the CPU ratio decides: wall time on a shared machine follows the other jobs, not this run
+    target(f"per-frame time last/first ({d['frames']} frames)", cpu_ratio <= 1.2,
            f"{ratio:.2f} wall, {cpu_ratio:.2f} CPU", "<= 1.2 on 3000 frames")
     target("peak memory", d["peak_mb"] < 2048, f"{d['peak_mb']:.0f} MB", "< 2 GB")
+    if d["ate_pct"] is not None:
+        target(f"ATE over the {d['frames']}-frame run", d["ate_pct"] <= 0.5, f"{d['ate_pct']:.2f} % of path",
+               "<= 0.5 % of path")
+    target("one trajectory in one frame", d["unmerged"] == 1,
+           f"{d['unmerged']} separate map(s) from {d['fragments']} fragment(s)", "every fragment merged")
+
+
+def _cut_sequence(src: Path, dst: Path, a: int, b: int) -> int:
+    """A copy of synthetic sequence ``src`` without frames ``[a, b)`` (a jump in the video: tracking is lost and
+    the map re-initialises); image folders are linked, the lists and ground truth filtered.  Returns the frames."""
+    dst.mkdir(parents=True, exist_ok=True)
+    for d in ("rgb", "depth", "panoptic", "dynamic"):
+        if (src / d).exists() and not (dst / d).exists():
+            os.symlink(src / d, dst / d)
+    keep: list[int] = []
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        lines = (src / name).read_text().splitlines()
+        body = [l for l in lines if l.strip() and not l.startswith("#")]
+        keep = [i for i in range(len(body)) if not a <= i < b]
+        (dst / name).write_text("\n".join([l for l in lines if l.startswith("#")] + [body[i] for i in keep]) + "\n")
+    (dst / "calib.txt").write_text((src / "calib.txt").read_text())
+    pan = json.loads((src / "panoptic.json").read_text())
+    pan["frames"] = [pan["frames"][i] for i in keep]
+    (dst / "panoptic.json").write_text(json.dumps(pan))
+    meta = json.loads((src / "meta.json").read_text())
+    (dst / "meta.json").write_text(json.dumps({**meta, "num_frames": len(keep)}))
+    new = {old: n for n, old in enumerate(keep)}
+    loops = json.loads((src / "loops.json").read_text())
+    loops["pairs"] = [[new[i], new[j]] for i, j in loops["pairs"] if i in new and j in new]
+    (dst / "loops.json").write_text(json.dumps(loops))
+    return len(keep)
+
+
+def section_fragments(out: Path) -> None:
+    """A forced tracking loss: driving_block (a revisit ~190 frames after the start) with frames 100-129 cut out.
+    The map re-initialises after the jump; the revisit's loop must merge the new fragment into the first one."""
+    print("\n== forced tracking loss: driving_block without frames 100-129 ==")
+    from pvslam_core.registry import get_registry
+
+    gen = get_registry().get("dataset", "synthetic").extras["generate"]
+    src = gen("driving_block", None, num_frames=None, width=320, height=240, seed=0, progress=False)
+    seq = out / "driving_block_cut"
+    n = _cut_sequence(Path(src), seq, 100, 130)
+    rows = {}
+    for name, path in (("uncut", Path(src)), ("cut", seq)):
+        r = run([f'dataset.path="{path.as_posix()}"', "outputs.ply=false", "outputs.plots=false"], out)
+        log = Path(r.run_dir, "log.txt").read_text() if r.run_dir else ""
+        reinit = r.metrics["timing"]["reinitialisations"]
+        merged = log.count("map fragments merged")
+        a = r.metrics.get("ate", {})
+        rows[name] = {"ate_pct": a.get("rmse_percent_of_path"), "reinitialisations": reinit, "merges": merged,
+                      "separate_maps": reinit + 1 - merged, "loops": len(r.loops)}
+        print(f"  {name} ({len(r.poses)} frames): ATE {a.get('rmse_percent_of_path', float('nan')):.3f} % of "
+              f"{a.get('path_length', float('nan')):.0f} m, {reinit} re-initialisation(s), {merged} merge(s), "
+              f"{len(r.loops)} loops")
+    RESULTS["forced_loss"] = rows
+    cut = rows["cut"]
+    target("forced tracking loss: one trajectory in one frame", cut["reinitialisations"] >= 1
+           and cut["separate_maps"] == 1, f"{cut['reinitialisations']} re-init, {cut['separate_maps']} separate map(s)",
+           "re-initialised and merged back")
 
 
 def section_kitti(out: Path, quick: bool) -> None:
@@ -321,6 +386,7 @@ def main() -> None:
     if "peers" in sections:
         section_peers(out, args.quick, acc, colmap=not args.no_colmap)
     if "long" in sections:
+        section_fragments(out)
         section_long(out, args.quick, args.long_frames)
     if "kitti" in sections:
         section_kitti(out, args.quick)

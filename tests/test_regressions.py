@@ -1,18 +1,21 @@
 """Accuracy bounds that fail when a core piece of the default pipeline breaks, and tests of those tests.
 
 Each bound is checked on the default configuration (it must hold) and on a deliberately broken configuration (it
-must NOT hold), so a change that turns a piece off without anyone noticing fails the suite:
+must NOT hold), so a change that switches a piece off without anyone noticing fails the suite:
 
-* dense BA off (``optimizer.iters = 0``, no final BA) and robust kernels off (least squares in the BA and the
-  motion-only BA) on a 140-frame stretch of the driving loop;
+* dense BA off (``optimizer.iters = 0``, no final / loop BA) and robust kernels off (least squares in the BA and
+  the motion-only BA) on a 140-frame loop-free stretch of the driving loop;
 * loop closure off on ``driving_block`` (the driving loop around a small block: a revisit after ~190 frames);
 * dynamic masking off on a street with moving vehicles (oracle labels, so only the masking differs).
 
-Runs are bit-reproducible, so each figure is one run; the bounds sit between the measured good and broken values
-(measured figures in the comments; ``bench/RESULTS.md`` has the spread over seeds).
+Runs are bit-reproducible on one machine (one torch thread), so each figure in a test is one run; the bounds sit
+between the good and broken values measured over dataset seeds 0, 1, 2 (figures in the comments, measured on
+2026-12-01 at ef4e534 with the uncommitted work of issues 13/14/17 in the tree: ``run_config`` with each test's
+overrides on ``generate(scenario, num_frames=..., seed=s)``).  The tests run seed 0.
 """
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -25,28 +28,43 @@ pytestmark = pytest.mark.slow
 
 BA_OFF = ["optimizer.iters=0", "optimizer.final_iters=0", "optimizer.loop_iters=0"]
 ROBUST_OFF = ['optimizer.robust="none"', 'graph.motion_robust="none"']
+LOOP_OFF = ["loop.plugin=none"]
+MASK_OFF = ["frontend.dynamic_masking=false"]
+NO_SEG = ["segmenter.plugin=none", "vps.plugin=none"]  # nothing in these scenes needs labels: cheaper runs
 
 
 def _seq(scenario: str, frames: int | None = None) -> Path:
     from pvslam_plugins.datasets.synthetic.generator import generate
 
-    return generate(scenario, None, num_frames=frames, progress=False)
+    return generate(scenario, None, num_frames=frames, progress=False)  # cached, shared with other tests
 
 
-def _run(tmp_path: Path, seq: Path, *extra: str):
-    ov = [f'run.output_dir="{(tmp_path / "runs").as_posix()}"', "run.progress=false", f'dataset.path="{seq.as_posix()}"',
-          "outputs.ply=false", "outputs.plots=false", *extra]
-    return run_config(None, overrides=ov)
+def _overrides(out: Path, seq: Path, *extra: str) -> list[str]:
+    plugin = [e for e in extra if e.startswith("dataset.plugin=")]  # before the plugin's own keys
+    return [*plugin, f'run.output_dir="{out.as_posix()}"', "run.progress=false", f'dataset.path="{seq.as_posix()}"',
+            "outputs.ply=false", "outputs.plots=false", *(e for e in extra if e not in plugin)]
+
+
+def _run(out: Path, seq: Path, *extra: str, registry=None):
+    res = run_config(None, overrides=_overrides(out, seq, *extra), registry=registry)
+    assert not res.metrics.get("failed"), res.metrics
+    return res
 
 
 def _ate(res) -> float:
-    a = res.metrics.get("ate", {}).get("rmse_percent_of_path", float("nan"))
+    a = res.metrics.get("ate", {}).get("rmse_percent_of_path")
     return float(a) if a is not None else math.nan
 
 
 # ------------------------------------------------------------------------------------- BA and robust kernels --
-DRIVE_FRAMES = 140
-DRIVE_BOUND = 2.0  # % of path: default measured {drive_good}; BA off {ba_off}; robust kernels off {robust_off}
+DRIVE_FRAMES = 140  # the same cached sequence as tests/test_end_to_end.py
+# ATE, % of the ~93 m path (dataset seeds 0 / 1 / 2):
+#   default             0.18 / 0.21 / 0.51   (full default with labels + VPS, seed 0: 0.18)
+#   BA off             11.2  / 10.8 / 12.2
+#   robust kernels off  3.14 / 2.91 / 2.42
+# The bound leaves about 3x above the worst default (the issue's audit saw 0.39-0.64 % on older trees) and 1.6x
+# below the best robust-off run.
+DRIVE_BOUND = 1.5
 
 
 @pytest.fixture(scope="module")
@@ -54,20 +72,156 @@ def drive140():
     return _seq("driving_loop", DRIVE_FRAMES)
 
 
-def test_default_drive_within_bound(tmp_path, drive140):
-    res = _run(tmp_path, drive140, "segmenter.plugin=none", "vps.plugin=none")
-    ate = _ate(res)
+@pytest.fixture(scope="module")
+def drive_good(tmp_path_factory, drive140):
+    """The default run (labels and VPS off)."""
+    return _run(tmp_path_factory.mktemp("drive_good"), drive140, *NO_SEG)
+
+
+def test_default_drive_within_bound(drive_good):
+    ate = _ate(drive_good)
     assert ate < DRIVE_BOUND, ate
-    t = res.metrics["timing"]
+    t = drive_good.metrics["timing"]
     assert t["tracking_failures"] == 0 and t["reinitialisations"] == 0
-    assert np.isfinite(res.poses.numpy()).all() and res.poses.shape[0] == DRIVE_FRAMES
+    assert drive_good.poses.shape[0] == DRIVE_FRAMES and np.isfinite(drive_good.poses.numpy()).all()
 
 
 @pytest.mark.parametrize("broken", [BA_OFF, ROBUST_OFF], ids=["ba_off", "robust_off"])
 def test_bound_catches_broken_drive(tmp_path, drive140, broken):
-    """Test of the test above: with the piece switched off, the same bound fails."""
-    ate = _ate(_run(tmp_path, drive140, "segmenter.plugin=none", "vps.plugin=none", *broken))
+    """Test of the test above: with the piece switched off, the same bound fails (the run itself still works)."""
+    res = _run(tmp_path, drive140, *NO_SEG, *broken)
+    assert res.poses.shape[0] == DRIVE_FRAMES and np.isfinite(res.poses.numpy()).all()
+    ate = _ate(res)
     assert not ate < DRIVE_BOUND, ate
+
+
+# ------------------------------------------------------------------------------------------ loop closure --
+# driving_block (229 frames, 152 m): ground-truth revisits (within 3 m) are frames 204-228 against frames 0-24.
+# "Loop gap": for every ground-truth loop pair (i, j), after the Sim(3) alignment of the whole trajectory,
+# | (p_i - p_j) - (g_i - g_j) |: how far apart the estimate puts two places that are the same place.  It is what
+# loop closure fixes directly; the whole-trajectory ATE moves less (a loop spreads the drift it removes).
+# Dataset seeds 0 / 1 / 2:
+#   loop closure on:  ATE 0.118 / 0.139 / 0.145 %, mean loop gap 0.17 / 0.16 / 0.15 m, 2 verified loops each
+#                     (one true; the other, frame ~190 -> 0-2, sees the start from ~10 m before it, outside the
+#                     3 m ground-truth radius, and is scored a false positive)
+#   loop closure off: ATE 0.316 / 0.257 / 0.586 %, mean loop gap 1.72 / 1.31 / 3.26 m
+LOOP_GAP_BOUND = 0.5  # metres
+LOOP_ATE_RATIO = 0.75  # loop closure on must be below this fraction of the ATE with it off (measured 0.25-0.54)
+
+
+@pytest.fixture(scope="module")
+def block():
+    return _seq("driving_block")
+
+
+def _shared_run(tmp_path_factory, key: str, seq: Path, *extra: str):
+    """``_run`` once per test session even under pytest-xdist: these runs feed tests that xdist may send to
+    different workers, so the first worker to need one computes it (under a file lock, in the base temp folder
+    all workers share) and the others load its pickled result (bit-identical tensors, the same run folder)."""
+    import os
+    import pickle
+
+    from filelock import FileLock  # a dependency of torch
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's base folder, above the per-worker ones
+    out = root / f"shared_run_{key}"
+    with FileLock(str(out) + ".lock"):
+        pkl = out / "result.pkl"
+        if pkl.is_file():
+            return pickle.loads(pkl.read_bytes())
+        res = _run(out, seq, *extra)
+        pkl.write_bytes(pickle.dumps(res))
+        return res
+
+
+@pytest.fixture(scope="module")
+def block_on(tmp_path_factory, block):
+    return _shared_run(tmp_path_factory, "block_on", block, *NO_SEG)
+
+
+@pytest.fixture(scope="module")
+def block_off(tmp_path_factory, block):
+    return _shared_run(tmp_path_factory, "block_off", block, *NO_SEG, *LOOP_OFF)
+
+
+def _loop_gap(res) -> float:
+    """Mean loop gap (metres, see above) over the ground-truth loop pairs, written by the run itself."""
+    from pvslam_core.evaluation.trajectory import aligned_positions
+    from pvslam_core.outputs.trajectory_io import read_tum
+
+    d = Path(res.run_dir)
+    ts, est = read_tum(d / "trajectory.txt")
+    gts, gt = read_tum(d / "groundtruth.txt")
+    pairs = np.asarray(json.loads((d / "groundtruth_loops.json").read_text())["pairs"])  # [P, 2] frame indices
+    assert len(pairs) > 0 and len(ts) == len(gts)
+    r = aligned_positions(ts, est, gts, gt, align="sim3")
+    e, g = np.asarray(r["est_xyz"]), np.asarray(r["gt_xyz"])  # [N, 3] each, frame order
+    assert len(e) == len(g) == len(ts), "every frame must be associated for frame-index lookups"
+    i, j = pairs[:, 0], pairs[:, 1]
+    return float(np.linalg.norm((e[i] - e[j]) - (g[i] - g[j]), axis=1).mean())
+
+
+def _closes_loop(res) -> None:
+    """The assertions of the loop test, shared with its test of the test."""
+    path = Path(res.run_dir) / "loops.json"
+    loops = json.loads(path.read_text())["loops"] if path.is_file() else []
+    verified = [lp for lp in loops if lp["verified"] and lp.get("loop_ba", True)]
+    assert verified, f"no geometrically verified loop that reached the BA: {loops}"
+    cfg = json.loads((Path(res.run_dir) / "config.json").read_text())["loop"]
+    assert all(lp["inliers"] >= cfg["min_inliers"] for lp in verified), (verified, cfg)  # RANSAC essential-matrix
+    assert res.metrics["loops"]["num_tp"] >= 1, res.metrics["loops"]  # one of them is a true revisit
+    gap = _loop_gap(res)
+    assert gap < LOOP_GAP_BOUND, gap
+
+
+def test_revisit_closes_a_verified_loop(block_on):
+    _closes_loop(block_on)
+    t = block_on.metrics["timing"]
+    assert t["frames"] == block_on.poses.shape[0] and np.isfinite(block_on.poses.numpy()).all()
+    assert t["tracking_failures"] == 0 and t["reinitialisations"] == 0
+
+
+def test_loop_closure_reduces_ate(block_on, block_off):
+    on, off = _ate(block_on), _ate(block_off)
+    assert on < LOOP_ATE_RATIO * off, (on, off)
+    assert _loop_gap(block_on) < 0.5 * _loop_gap(block_off)
+
+
+def test_loop_test_catches_loop_closure_off(block_off):
+    """Test of the test: without loop closure, the loop test fails, on the loop gap as well as on detection."""
+    with pytest.raises(AssertionError):
+        _closes_loop(block_off)
+    gap = _loop_gap(block_off)
+    assert not gap < LOOP_GAP_BOUND, gap
+
+
+# --------------------------------------------------------------------------------------- dynamic masking --
+MV_FRAMES = 120  # moving_vehicles: a lead car, overtaking cars and an oncoming bus in the first 120 frames
+# ATE, % of the path, oracle labels (the masking is the frontend's eq. 4 on the labelled things), seeds 0 / 1 / 2:
+#   masking on   0.78 / 0.58 / 0.46
+#   masking off 11.8  / 5.36 / 1.64
+# How much the masking matters depends on where the vehicles are (seed 2's street barely needs it), so the bound
+# is for the seed-0 street the test runs: 2.6x above its default, 5.9x below its masking-off run.
+MV_BOUND = 2.0
+
+
+@pytest.fixture(scope="module")
+def street():
+    return _seq("moving_vehicles", MV_FRAMES)
+
+
+@pytest.mark.parametrize("broken", [[], MASK_OFF], ids=["default", "mask_off"])
+def test_moving_vehicles_bound(tmp_path, street, broken):
+    """The bound on the default configuration, and its test of the test with the dynamic masking off."""
+    res = _run(tmp_path, street, "segmenter.plugin=labels", "vps.plugin=none", *broken)  # oracle labels
+    assert res.poses.shape[0] == MV_FRAMES and np.isfinite(res.poses.numpy()).all()
+    ate = _ate(res)
+    if broken:
+        assert not ate < MV_BOUND, ate
+    else:
+        assert ate < MV_BOUND, ate
 
 
 # ------------------------------------------------------------------------------- no ground truth leaks in --
@@ -115,15 +269,19 @@ def _no_gt_registry():
     return build_registry(extra_modules=(Plugin,))
 
 
-def test_estimate_does_not_depend_on_ground_truth(tmp_path, drive140):
+def test_estimate_does_not_depend_on_ground_truth(tmp_path, block, block_on):
     """The same frames with and without ground truth give bit-identical trajectories: nothing in estimation reads
-    ground truth (the oracle segmenter, which does by design, is off)."""
-    base = ["segmenter.plugin=none", "vps.plugin=none", "run.max_frames=80"]
-    with_gt = _run(tmp_path, drive140, *base)
-    reg = _no_gt_registry()
-    ov = [f'run.output_dir="{(tmp_path / "runs2").as_posix()}"', "run.progress=false", "dataset.plugin=no_gt",
-          f'dataset.path="{drive140.as_posix()}"', "outputs.ply=false", "outputs.plots=false", *base]
-    without = run_config(None, overrides=ov, registry=reg)
-    assert "ate" not in without.metrics  # really no ground truth
-    assert with_gt.poses.shape == without.poses.shape
-    assert (with_gt.poses == without.poses).all()
+    ground truth (the oracle segmenter, which does by design, is off).  On driving_block, so tracking, BA, loop
+    detection, verification and the loop BA / pose graph are all covered."""
+    without = _run(tmp_path, block, "dataset.plugin=no_gt", *NO_SEG, registry=_no_gt_registry())
+    assert "ate" not in without.metrics and "loops" not in without.metrics  # really no ground truth
+    assert not (Path(without.run_dir) / "groundtruth.txt").exists()
+    assert "ate" in block_on.metrics and block_on.loops  # ... and the reference run had it, and closed loops
+    assert without.poses.shape == block_on.poses.shape and without.poses.shape[1] == 7
+    assert _same(without.poses, block_on.poses)
+    assert _same(without.keyframe_indices, block_on.keyframe_indices)
+    assert without.loops == block_on.loops  # the same closures (frames, keyframes, scores, inliers)
+
+
+def _same(a, b) -> bool:
+    return a.shape == b.shape and bool((a == b).all())

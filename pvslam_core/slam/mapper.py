@@ -10,6 +10,8 @@ only.  Per new keyframe ``k``::
     rounds x (obs = frontend.observe(active edges); optimizer.step(obs))          # online BA
     candidates = loop_detector.query(id); closure = policy.decide(candidates)     # one loop owner
     if closure: loop edges (i, j-1), (i, j), (i, j+1); optimizer.loop(...) unless gated
+        (a closure into an older map fragment not merged yet first relocalises k and moves the current fragment
+         into that map: see .fragments)
     motion-only BA of the frames anchored to the previous keyframe; drop a redundant keyframe
 
 Provisional keyframes (``graph.provisional_keyframes``).  Tracking needs a recent reference (the frontend's motion
@@ -41,6 +43,7 @@ from .frame_poses import FrameEntry, FramePoses
 from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph, _grid
 from .bootstrap import Bootstrap
 from .keyframing import keyframe_distance
+from .fragments import Fragments, align_fragment, fragment_indices, relocalise, replace_gap_frames
 from .loops import LoopPolicy
 
 LOG = logging.getLogger("pvslam")
@@ -60,6 +63,8 @@ class Mapper(GraphListener):
         self.graph = FrameGraph(self.ba_shape[0], self.ba_shape[1], intr.vector(torch.float32, device), device=device)
         self.frames = FramePoses(self.graph, self.cfg.motion_robust, self.cfg.motion_robust_scale)
         self.policy = LoopPolicy(pcfg.loop_closure, self.graph)
+        self.fragments = Fragments()  # map fragments after re-initialisations, merged by loops (see .fragments)
+        self.policy.fragments = self.fragments
         self.bootstrap = Bootstrap(self.cfg)  # map initialisation (sliding pairs, H/E model selection)
         for listener in (frontend, loop_detector, self):
             self.graph.add_listener(listener)
@@ -337,6 +342,8 @@ class Mapper(GraphListener):
             return
         c = decision.closure
         j = g.index_of(c.kf_j)
+        if decision.merge and not self._merge_fragments(k, j):
+            return
         ii, jj = loop_edges(k, j, g.n, self.cfg.bidirectional)
         added = g.add_edges(ii, jj, EDGE_LOOP)
         if not bool(added.any()):
@@ -355,6 +362,32 @@ class Mapper(GraphListener):
         g.age_edges(pair[0], pair[1])
         if report.rejected:
             LOG.warning("loop BA rejected: %s", report.message)
+        else:
+            LOG.debug("loop BA %d <-> %d: %s", k, j, report.message)
+
+    def _merge_fragments(self, k: int, j: int) -> bool:
+        """A verified loop from keyframe ``k`` (current fragment) to ``j`` (an older fragment not merged with it):
+        relocalise ``k`` in ``j``'s map from the flow ``j -> k`` and ``j``'s depth, move the current fragment there
+        by the Sim(3) this gives, and merge the two (see :mod:`.fragments`).  False when relocalisation fails (the
+        loop is then not closed)."""
+        g = self.graph
+        jt, kt = torch.tensor([j]), torch.tensor([k])
+        obs = self._observe(jt, kt)
+        self._release_pairs(jt, kt)  # not an edge yet: the loop edges that follow are observed afresh
+        reloc = relocalise(g.poses[j], g.disps[j], g.disps[k], g.intrinsics, obs.target[0], obs.weight[0])
+        if reloc is None:
+            LOG.info("fragment merge %d <-> %d: relocalisation failed", k, j)
+            return False
+        idx = fragment_indices(g, self.fragments, g.id_of(k))
+        align_fragment(self, idx, k, reloc)
+        self.fragments.merge(g.id_of(k), g.id_of(j))
+        first = int(idx[0])
+        if first > 0 and self.fragments.same(g.id_of(first - 1), g.id_of(k)):
+            replace_gap_frames(self, first)  # the frames lost between the two, now both in one frame
+        LOG.warning("map fragments merged: keyframe %d relocalised against keyframe %d (median error %.2f BA px, "
+                    "%d matches, scale %.3g); %d keyframes moved, %d separate map(s) left", k, j, reloc.error,
+                    reloc.matched, reloc.scale, len(idx), self.fragments.unmerged)
+        return True
 
     # ------------------------------------------------------------------------------------ pose filling --
     def _fill_pending(self, a_id: int) -> None:
@@ -411,6 +444,7 @@ class Mapper(GraphListener):
         LOG.warning("re-initialising the map at frame %d (new fragment from keyframe %d)", frame.index,
                     self.fragment_start)
         kf_id = self._add_keyframe(frame, seg, pose.double(), disp=None)
+        self.fragments.start(kf_id)
         return self._result(frame, self.frames.entries[-1], ref, track, kf_id=kf_id)
 
     # -------------------------------------------------------------------------------------- the end --
@@ -430,6 +464,9 @@ class Mapper(GraphListener):
 
     def finalize(self) -> None:
         self._settle_provisional(keep=True)  # it holds the last frames' reference; the final BA optimises it
+        if self.fragments.unmerged > 1:
+            LOG.warning("%d map fragments were never joined by a loop (%d merged): the trajectory is in %d unrelated "
+                        "frames", len(self.fragments.starts), self.fragments.merges, self.fragments.unmerged)
         if self.graph.n and self.initialized:
             self._fill_pending(self.graph.id_of(-1))
         if self.graph.n > 1 and self.initialized:
