@@ -264,7 +264,11 @@ class Pipeline:
         tracking = {"initialized": bool(self.ever_initialized), "active_edges": g.num_edges,
                     "retired_edges": g.num_retired, "keyframes_added": g.next_id,
                     "keyframes_removed": g.next_id - g.n,
-                    "keyframes_provisional_removed": mapper.provisional_removed}
+                    "keyframes_provisional_removed": mapper.provisional_removed,
+                    # map fragments (a re-initialisation starts one; a verified loop merges it back): "maps" is how
+                    # many separate frames the trajectory ends in (1 = one trajectory in one frame)
+                    "fragments": len(mapper.fragments.starts), "fragment_merges": mapper.fragments.merges,
+                    "maps": mapper.fragments.unmerged}
         if not self.ever_initialized:
             LOG.error("no motion was estimated: the map never initialised (too little parallax, too few frames or "
                       "no texture); the trajectory holds placeholder poses")

@@ -248,11 +248,15 @@ def test_fragment_after_a_loss_is_merged_at_the_revisit(tmp_path, loop):
     assert first < FRAGMENT_BOUND, first
     idx = np.r_[0:60, 150:n]  # before the loss, and after the revisit of the start
     joint = ate(ts[idx], poses[idx], gts[idx], gt[idx])["rmse"]
+    tr = res.metrics["tracking"]
+    assert tr["fragments"] == 2, tr
     if not loop:
         assert not re.search(r"fragments merged", log)
+        assert tr["fragment_merges"] == 0 and tr["maps"] == 2, tr
         assert not joint < MERGE_GAP_BOUND, joint
         return
     assert re.search(r"fragments merged", log), "the second fragment was never joined to the first"
     assert not re.search(r"never joined", log)
+    assert tr["fragment_merges"] == 1 and tr["maps"] == 1, tr  # one trajectory in one frame
     assert joint < MERGE_GAP_BOUND, joint
     assert res.metrics["ate"]["rmse_percent_of_path"] < 15.0, res.metrics["ate"]
