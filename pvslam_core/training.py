@@ -74,3 +74,19 @@ def train(interface: str, plugin: str, config: Optional[str | Path] = None, over
     summary = trainer.run(cfg, out, resume) or {}
     write_json_atomic(out / "summary.json", summary)
     return out, summary
+
+
+def prepare_run(cfg: Any, out_dir: str | Path) -> tuple[Path, Path]:
+    """The common start of a trainer's ``run``: torch intra-op threads (``cfg.threads`` when > 0), the global torch
+    seed (``cfg.seed``, when the config has one), and the data cache folder (``cfg.data_cache``, else
+    ``out_dir/data``: rendered training data is reused by a resumed run).  Returns ``(out_dir, cache_dir)``."""
+    import torch
+
+    threads = int(getattr(cfg, "threads", 0) or 0)
+    if threads > 0:
+        torch.set_num_threads(threads)
+    if getattr(cfg, "seed", None) is not None:
+        torch.manual_seed(int(cfg.seed))
+    out = Path(out_dir)
+    cache = Path(cfg.data_cache) if getattr(cfg, "data_cache", None) else out / "data"
+    return out, cache

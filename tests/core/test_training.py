@@ -56,3 +56,24 @@ def test_train_errors(tmp_path, registry):
         train("frontend", "flow", registry=build_registry(extra_modules=(ToyPlugin(),)))
     with pytest.raises(FileNotFoundError):
         train("loop", "toy", resume=True, out_dir=tmp_path / "missing", registry=registry)
+
+
+def test_prepare_run_sets_threads_seed_and_cache(tmp_path):
+    import types
+
+    import torch
+
+    from pvslam_core.training import prepare_run
+
+    n = torch.get_num_threads()
+    try:
+        cfg = types.SimpleNamespace(threads=1, seed=7, data_cache=None)
+        out, cache = prepare_run(cfg, str(tmp_path))
+        assert out == tmp_path and cache == tmp_path / "data" and torch.get_num_threads() == 1
+        a = torch.rand(3)
+        prepare_run(cfg, tmp_path)
+        assert torch.equal(a, torch.rand(3))  # the seed was set again: the same stream
+        other = types.SimpleNamespace(threads=0, seed=None, data_cache=str(tmp_path / "shared"))
+        assert prepare_run(other, tmp_path)[1] == tmp_path / "shared" and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(n)

@@ -29,6 +29,7 @@ import torch
 from pydantic import Field, field_validator, model_validator
 
 from pvslam_core.config_base import PluginConfig
+from pvslam_core.training import prepare_run
 
 __all__ = ["TrainConfig", "run"]
 
@@ -202,11 +203,7 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     from .net import RaftGruNet
     from .train_data import sample_clip
 
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
-    out = Path(out)
-    cache = Path(cfg.data_cache) if cfg.data_cache else out / "data"
-    torch.manual_seed(cfg.seed)
+    out, cache = prepare_run(cfg, out)
     if cfg.init is None:
         model = RaftGruNet(cfg.variant)
     else:

@@ -26,6 +26,7 @@ import torch
 from pydantic import Field, field_validator
 
 from pvslam_core.config_base import PluginConfig
+from pvslam_core.training import prepare_run
 
 __all__ = ["TrainConfig", "run", "DEFAULT_SCENARIOS"]
 
@@ -164,11 +165,7 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     from .losses import panoptic_fpn_losses
     from .model import PanopticFPN
 
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
-    out = Path(out)
-    cache = Path(cfg.data_cache) if cfg.data_cache else out / "data"
-    torch.manual_seed(cfg.seed)
+    out, cache = prepare_run(cfg, out)
     cats = synthetic_category_set()
     model = PanopticFPN(preset("reduced"), cats)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)

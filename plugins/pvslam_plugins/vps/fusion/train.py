@@ -23,6 +23,7 @@ import torch
 from pydantic import Field
 
 from pvslam_core.config_base import PluginConfig
+from pvslam_core.training import prepare_run
 
 __all__ = ["TrainConfig", "run"]
 
@@ -107,11 +108,7 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     from .data import load_pairs
     from .layer import FeatureFusion, load_fusion
 
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
-    out = Path(out)
-    cache = Path(cfg.data_cache) if cfg.data_cache else out / "data"
-    torch.manual_seed(cfg.seed)
+    out, cache = prepare_run(cfg, out)
     model = build_model(PanopticFPNSegmenterConfig(weights=cfg.segmenter_weights))
     for q in model.parameters():
         q.requires_grad_(False)
