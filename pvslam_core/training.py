@@ -90,3 +90,28 @@ def prepare_run(cfg: Any, out_dir: str | Path) -> tuple[Path, Path]:
     out = Path(out_dir)
     cache = Path(cfg.data_cache) if getattr(cfg, "data_cache", None) else out / "data"
     return out, cache
+
+
+def save_training_state(path: Path, model, optimizer, generator, counter_key: str, counter: int,
+                        elapsed: float) -> None:
+    """Write a trainer's resumable state atomically (a ``.tmp`` beside ``path``, then a rename, so a run killed
+    while saving keeps its previous checkpoint): model, optimiser, the data generator's state, the step counter
+    under ``counter_key`` and the training seconds so far."""
+    import torch
+
+    path = Path(path)
+    tmp = path.with_suffix(".tmp")
+    torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "generator": generator.get_state(),
+                counter_key: counter, "elapsed": elapsed}, tmp)
+    tmp.replace(path)
+
+
+def load_training_state(path: Path, model, optimizer, generator, counter_key: str) -> tuple[int, float]:
+    """Restore what :func:`save_training_state` wrote (``weights_only``); returns ``(counter, elapsed)``."""
+    import torch
+
+    state = torch.load(Path(path), map_location="cpu", weights_only=True)
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    generator.set_state(state["generator"])
+    return int(state[counter_key]), float(state["elapsed"])

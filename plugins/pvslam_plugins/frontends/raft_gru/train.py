@@ -29,7 +29,7 @@ import torch
 from pydantic import Field, field_validator, model_validator
 
 from pvslam_core.config_base import PluginConfig
-from pvslam_core.training import prepare_run
+from pvslam_core.training import load_training_state, prepare_run, save_training_state
 
 __all__ = ["TrainConfig", "run"]
 
@@ -216,11 +216,7 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     step, elapsed = 0, 0.0
     last = out / "last.pt"
     if resume and last.is_file():
-        state = torch.load(last, map_location="cpu", weights_only=True)
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        gen.set_state(state["generator"])
-        step, elapsed = int(state["step"]), float(state["elapsed"])
+        step, elapsed = load_training_state(last, model, opt, gen, "step")
 
     t_data = time.perf_counter()
     train_seqs, val = _load_data(cfg, cache)
@@ -239,10 +235,7 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
             w.writerows(rows)
 
     def save_state() -> None:
-        tmp = last.with_suffix(".tmp")
-        torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "generator": gen.get_state(),
-                    "step": step, "elapsed": elapsed}, tmp)
-        tmp.replace(last)
+        save_training_state(last, model, opt, gen, "step", step, elapsed)
 
     def validate() -> dict:
         m = evaluate(model, val, lcfg)

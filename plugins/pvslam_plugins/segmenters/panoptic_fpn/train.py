@@ -26,7 +26,7 @@ import torch
 from pydantic import Field, field_validator
 
 from pvslam_core.config_base import PluginConfig
-from pvslam_core.training import prepare_run
+from pvslam_core.training import load_training_state, prepare_run, save_training_state
 
 __all__ = ["TrainConfig", "run", "DEFAULT_SCENARIOS"]
 
@@ -173,11 +173,7 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     start, elapsed = 0, 0.0
     last = out / "last.pt"
     if resume and last.is_file():
-        state = torch.load(last, map_location="cpu", weights_only=True)
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        gen.set_state(state["generator"])
-        start, elapsed = int(state["iteration"]), float(state["elapsed"])
+        start, elapsed = load_training_state(last, model, opt, gen, "iteration")
 
     t_data = time.perf_counter()
     train = _samples(cfg, cache, cfg.train_seeds, cfg.frames_per_sequence, cfg.progress, "render train frames")
@@ -195,10 +191,7 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
         writer.writerows(rows)
 
     def save_state(it: int) -> None:
-        tmp = last.with_suffix(".tmp")
-        torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "generator": gen.get_state(),
-                    "iteration": it, "elapsed": elapsed}, tmp)
-        tmp.replace(last)
+        save_training_state(last, model, opt, gen, "iteration", it, elapsed)
 
     # one permutation per epoch, drawn from the (checkpointed) generator: a resumed run sees the same order
     epoch_len = max(1, len(train) // cfg.batch_size)
