@@ -418,6 +418,20 @@ class FrameGraph:
 _GRIDS: dict[tuple[int, int, str], torch.Tensor] = {}
 
 
+def median_disp_map(graph: Optional["FrameGraph"]) -> Optional[torch.Tensor]:
+    """A constant inverse-depth map ``[h, w]`` (BA resolution, float32) at the median of the newest keyframe's
+    finite positive inverse depths, or None when there is no such keyframe: a frontend's ``initial_depth`` guess for
+    a new keyframe, as DROID-SLAM 2025 does (a median is robust to the few near/far outliers that pull a mean)."""
+    if graph is None or int(graph.n) < 1:
+        return None
+    d = graph.disps[-1]
+    d = d[torch.isfinite(d) & (d > 0)]
+    if d.numel() == 0:
+        return None
+    h, w = graph.ba_shape
+    return torch.full((int(h), int(w)), float(d.median()), dtype=torch.float32, device=graph.disps.device)
+
+
 def _grid(h: int, w: int, device: torch.device) -> torch.Tensor:
     """float32 ``[2, h, w]`` pixel coordinates ``(x, y)`` (cached)."""
     key = (h, w, str(device))

@@ -50,6 +50,7 @@ import torch
 from pvslam_core.slam.confidence import observed_flow_weight
 from pvslam_core.interfaces import Frontend
 from pvslam_core.types import EdgeObservations, Frame, PanopticSegmentation, TrackResult
+from pvslam_core.slam.graph import median_disp_map
 
 from . import dynamic as D
 from .dynamic_masking import DynamicMasking
@@ -323,15 +324,8 @@ class FlowFrontend(DynamicMasking, Frontend):
                 del self._edges[(b, a)]
 
     def initial_depth(self, graph, kf_id: int) -> Optional[torch.Tensor]:
-        g = graph
-        if g is None or int(g.n) < 1:
-            return None
-        d = g.disps[-1]
-        d = d[torch.isfinite(d) & (d > 0)]
-        if d.numel() == 0:
-            return None
-        h, w = g.ba_shape
-        return torch.full((int(h), int(w)), float(d.median()), dtype=torch.float32, device=g.disps.device)
+        """The newest keyframe's median inverse depth everywhere (:func:`pvslam_core.slam.graph.median_disp_map`)."""
+        return median_disp_map(graph)
 
     # --------------------------------------------------------------------------------------- observe --
     def observe(self, graph, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:

@@ -46,6 +46,7 @@ import torch.nn.functional as F
 from pvslam_core.geometry.projective import reproject
 from pvslam_core.interfaces import Frontend
 from pvslam_core.types import EdgeObservations, Frame, PanopticSegmentation, TrackResult
+from pvslam_core.slam.graph import median_disp_map
 
 from .config import RaftGruConfig
 from .corr import CorrVolume, OnTheFlyCorr, coords_grid
@@ -282,15 +283,8 @@ class RaftGruFrontend(Frontend):
             self._edges.pop(key, None)
 
     def initial_depth(self, graph, kf_id: int) -> Optional[torch.Tensor]:
-        """A constant map at the newest keyframe's median inverse depth (DROID-SLAM 2025 uses a median)."""
-        if graph is None or int(graph.n) < 1:
-            return None
-        d = graph.disps[-1]
-        d = d[torch.isfinite(d) & (d > 0)]
-        if d.numel() == 0:
-            return None
-        h, w = graph.ba_shape
-        return torch.full((int(h), int(w)), float(d.median()), dtype=torch.float32, device=graph.disps.device)
+        """The newest keyframe's median inverse depth everywhere (:func:`pvslam_core.slam.graph.median_disp_map`)."""
+        return median_disp_map(graph)
 
     # ------------------------------------------------------------------------------------ upsampling --
     def upsampled_disp(self, graph, kf_id: int) -> torch.Tensor:
