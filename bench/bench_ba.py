@@ -1,8 +1,11 @@
 """Dense BA benchmark: time per Gauss-Newton iteration as keyframes / edges / pixels grow, a side-by-side
 with ``scipy.optimize.least_squares`` (trf + jac_sparsity) on the same synthetic problem, and the peak memory of
-one large global-BA-sized problem with chunked vs unchunked linearisation (``max_chunk_pixels``).
+one large global-BA-sized problem with chunked vs unchunked linearisation (``max_chunk_pixels``), and the CPU time of
+the loop closure's Sim(3) pose graph against its number of keyframes (with the closed-form Sim(3) ``W`` matrix and
+with the 6x6 matrix exponential it replaced).
 
     python bench/bench_ba.py [--device cpu|cuda] [--threads N] [--quick] [--mem-keyframes N] [--no-memory]
+    python bench/bench_ba.py --only-pose-graph        # the pose-graph table alone (~1 minute)
 
 Prints three tables (and writes them as markdown with ``--out FILE``).  Whole run: about 2 minutes on CPU.
 The memory table runs each configuration in a fresh subprocess (peak RSS = ``ru_maxrss`` of that process).
@@ -125,6 +128,76 @@ def scipy_comparison(n: int = 5, h: int = 15, w: int = 20, iters: int = 20) -> d
 NO_CHUNKING = 10**12  # max_chunk_pixels larger than any problem: one chunk, every per-pixel tensor at once
 
 
+def _drifted_circle(n: int):
+    """A circle of ``n`` keyframes (30 m radius) with 0.1 % scale drift and 0.001 rad yaw drift per keyframe, the
+    odometry chain and one loop edge (n-1 -> 0) measured from the ground truth: a closure after a lap."""
+    import math
+
+    from pvslam_core.geometry.lie import se3_inv, sim3_from_se3
+    from pvslam_core.geometry.pose_graph import odometry_measurements
+
+    gt = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        T = se3_exp(torch.tensor([0, 0, 0, 0, -a, 0.0], dtype=torch.float64))
+        T[:3] = torch.tensor([30 * math.cos(a), 0, 30 * math.sin(a)], dtype=torch.float64)
+        gt.append(T)
+    gt = torch.stack(gt)
+    c = torch.tensor([0.999 ** k for k in range(n)], dtype=torch.float64)
+    est = [gt[0]]
+    yaw = se3_exp(torch.tensor([0, 0, 0, 0, 0.001, 0], dtype=torch.float64))
+    for k in range(n - 1):
+        rel = se3_mul(se3_inv(gt[k]), gt[k + 1])
+        rel[:3] *= c[k]
+        est.append(se3_mul(est[-1], se3_mul(rel, yaw)))
+    S = sim3_from_se3(torch.stack(est), 1.0)
+    ii, jj, Z = odometry_measurements(S)
+    Zl = sim3_from_se3(se3_mul(se3_inv(gt[n - 1]), gt[0]), c[n - 1])
+    Zl[:3] *= c[n - 1]
+    w = torch.ones(len(ii) + 1, dtype=torch.float64)
+    w[-1] = 10.0
+    fixed = torch.zeros(n, dtype=torch.bool)
+    fixed[0] = True
+    return S, torch.cat([ii, torch.tensor([n - 1])]), torch.cat([jj, torch.tensor([0])]), torch.cat([Z, Zl[None]]), \
+        fixed, w
+
+
+def pose_graph_timing(sizes=(50, 150, 450, 900), reps: int = 2) -> list[dict]:
+    """CPU seconds of one ``sim3_pose_graph`` solve (25 iterations at most, the loop BA's setting) per size, with the
+    closed-form ``W`` and with the matrix-exponential one (``expm([[M, I], [0, 0]])``, the previous code)."""
+    import pvslam_core.geometry.lie as lie
+    from pvslam_core.geometry.lie import hat
+    from pvslam_core.geometry.pose_graph import sim3_pose_graph
+
+    def W_expm(phi, sigma):
+        shape = phi.shape[:-1]
+        I3 = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(shape + (3, 3))
+        G = torch.zeros(shape + (6, 6), dtype=phi.dtype, device=phi.device)
+        G[..., :3, :3] = hat(phi) + sigma[..., None] * I3
+        G[..., :3, 3:] = I3
+        return torch.linalg.matrix_exp(G)[..., :3, 3:]
+
+    closed = lie._sim3_W
+    rows = []
+    for n in sizes:
+        prob = _drifted_circle(n)
+        row = {"keyframes": n}
+        for name, fn in (("closed", closed), ("expm", W_expm)):
+            lie._sim3_W = fn
+            try:
+                best = float("inf")
+                for _ in range(reps):
+                    t0 = time.process_time()
+                    res = sim3_pose_graph(*prob, iters=25)
+                    best = min(best, time.process_time() - t0)
+            finally:
+                lie._sim3_W = closed
+            row[name] = best
+            row[name + "_cost"] = (res.cost_before, res.cost_after, res.iterations)
+        rows.append(row)
+    return rows
+
+
 def _rss_mb() -> float:
     r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return r / 2**20 if sys.platform == "darwin" else r / 1024.0  # bytes on macOS, KiB on Linux
@@ -214,6 +287,19 @@ def memory_comparison(n: int = 400, radius: int = 3, iters: int = 2, reps: int =
             "parent_mb": _rss_mb()}
 
 
+def print_pose_graph(rows: list[dict], quiet: bool = False) -> list[str]:
+    lines = [f"## Sim(3) pose graph of a loop closure: CPU s per solve (best of 2; {torch.get_num_threads()} threads)", "",
+             "| keyframes | closed-form W | matrix-exponential W (before) | speed-up | cost before -> after, iterations |",
+             "|---:|---:|---:|---:|---|"]
+    for r in rows:
+        cb, ca, it = r["closed_cost"]
+        lines.append(f"| {r['keyframes']} | {r['closed']:.3f} | {r['expm']:.3f} | {r['expm'] / max(r['closed'], 1e-9):.1f}x "
+                     f"| {cb:.4g} -> {ca:.3g}, {it} |")
+    if not quiet:
+        print("\n".join(lines))
+    return lines
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
@@ -224,6 +310,7 @@ def main(argv=None) -> None:
     ap.add_argument("--mem-keyframes", type=int, default=400, help="keyframes of the memory problem (radius 3: "
                     "about 6 edges per keyframe)")
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory table")
+    ap.add_argument("--only-pose-graph", action="store_true", help="only the Sim(3) pose-graph table")
     ap.add_argument("--mem-radius", type=int, default=3, help=argparse.SUPPRESS)
     ap.add_argument("--memory-make", default="", help=argparse.SUPPRESS)
     ap.add_argument("--memory-child", default="", help=argparse.SUPPRESS)
@@ -240,6 +327,9 @@ def main(argv=None) -> None:
         _memory_child(args.memory_child, args.mcp, args.mem_iters, args.mem_reps)
         return
     dtype = {"auto": None, "float32": torch.float32, "float64": torch.float64}[args.dtype]
+    if args.only_pose_graph:
+        print_pose_graph(pose_graph_timing())
+        return
     if args.device == "cpu" and not args.no_memory:  # measured first (printed last): this process is still small
         m = memory_comparison(n=args.mem_keyframes, radius=args.mem_radius, threads=args.threads)
     lines = []
@@ -294,6 +384,10 @@ def main(argv=None) -> None:
         if m["parent_mb"] >= min(r["base_mb"] for r in m["rows"]):
             emit()
             emit(f"(the launching process peaked at {m['parent_mb']:.0f} MB, which floors the children's ru_maxrss)")
+    if args.device == "cpu":
+        emit()
+        for line in print_pose_graph(pose_graph_timing((50, 150, 450) if args.quick else (50, 150, 450, 900)), quiet=True):
+            emit(line)
     if args.out:
         with open(args.out, "w") as fh:
             fh.write("\n".join(lines) + "\n")

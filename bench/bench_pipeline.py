@@ -233,7 +233,8 @@ def _long_child(frames: int, out: str) -> None:
             t_prev, c_prev = now, cnow
             if pipe.frames_done % 250 == 0:
                 g, fe = pipe.mapper.graph, pipe.frontend
-                samples.append({"frame": pipe.frames_done, "keyframes": g.n, "active_edges": g.num_edges,
+                samples.append({"frame": pipe.frames_done, "cpu_s": sum(cs), "map_cpu_s": dict(pipe.mapper.cpu),
+                                "keyframes": g.n, "active_edges": g.num_edges,
                                 "retired_edges": g.num_retired,
                                 "frontend_edge_states": len(fe.cached_edges()) if hasattr(fe, "cached_edges") else None,
                                 "frontend_mb": fe.memory_bytes() / 2**20 if hasattr(fe, "memory_bytes") else None})
@@ -271,10 +272,17 @@ def section_long(out: Path, quick: bool, frames: int = 3000) -> None:
     print(f"  ATE {d['ate_pct']} % of {d['path_m']} m ({d['ate_m']} m), {d['loops']} loops ({d['loop_bas']} with a "
           f"loop BA), {d['reinitialisations']} re-initialisations, {d['fragments']} map fragment(s), "
           f"{d['unmerged']} separate map(s) at the end")
-    print("  frame  keyframes  active edges  retired edges  frontend edge states  frontend MB")
+    print("  frame  keyframes  active edges  retired edges  frontend edge states  frontend MB  "
+          "CPU ms/frame since the previous row (of it: mapping parts track / pose_guess / edges / ba / loops / fill)")
+    prev = {"frame": 0, "cpu_s": 0.0, "map_cpu_s": {}}
     for s_ in d["samples"]:
+        n = max(1, s_["frame"] - prev["frame"])
+        parts = " / ".join(f"{1000 * (s_['map_cpu_s'].get(k, 0.0) - prev['map_cpu_s'].get(k, 0.0)) / n:.1f}"
+                           for k in ("track", "pose_guess", "edges", "ba", "loops", "fill"))
         print(f"  {s_['frame']:>5}  {s_['keyframes']:>9}  {s_['active_edges']:>12}  {s_['retired_edges']:>13}  "
-              f"{s_['frontend_edge_states']!s:>20}  {s_['frontend_mb'] or 0:>11.1f}")
+              f"{s_['frontend_edge_states']!s:>20}  {s_['frontend_mb'] or 0:>11.1f}  "
+              f"{1000 * (s_['cpu_s'] - prev['cpu_s']) / n:.1f} ({parts})")
+        prev = s_
     states = [s_["active_edges"] for s_ in d["samples"]]
     if states:
         target("active edges bounded", max(states) <= 2 * min(states[len(states) // 2:] or states) + 50,

@@ -5,6 +5,7 @@ long run, and ATE against the classical ``flow`` frontend on held-out synthetic 
     python bench/bench_raft_gru.py --only speed --frames 120               # frames/s + profile (about 10 min)
     python bench/bench_raft_gru.py --only memory --long-frames 1000        # long run in a child process
     python bench/bench_raft_gru.py --only memory_frontend --set frontend.rounds=1   # steady state, no mapper
+    python bench/bench_raft_gru.py --only memory_frontend --mf-stop 300 --mf-ba     # ... with the online BA
     python bench/bench_raft_gru.py --only ate --weights runs/rg/model_final.pth --seeds 200 201
     python bench/bench_raft_gru.py --quick                                 # a smoke run of every section
 
@@ -300,12 +301,15 @@ def section_memory(out: Path, frames: int, weights: str | None, profile: str, ta
 
 
 def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours: int, profile: str,
-                            extra: list[str] = (), stop: int | None = None) -> None:
+                            extra: list[str] = (), stop: int | None = None, ba: bool = False) -> None:
     """Steady-state memory of the frontend + frame graph without the mapper: every frame goes through the motion
     filter, every ``kf_every``-th becomes a keyframe placed at its ground-truth pose (inverse depth from the
     ground truth at 1/8), edges to the previous ``neighbours`` keyframes both ways, ``rounds`` observes of the active
     edges (no BA between them: same cost), edges of keyframes older than ``window`` retired (what the mapper does).
-    ``stop``: process only the first ``stop`` frames of the ``frames``-frame sequence.  Independent of the weights (a random
+    ``stop``: process only the first ``stop`` frames of the ``frames``-frame sequence.  ``ba``: after each observe
+    the dense BA the mapper would run (``pvslam_core.geometry.ba.dense_ba``, configs/raft_gru.toml's optimizer: 2
+    iterations, no robust kernel, the learned damping; every keyframe of the window free but the oldest), timed as
+    stage ``ba``: the per-frame CPU then includes the online BA.  Independent of the weights (a random
     network's flow cannot initialise the mapper on a realistically slow sequence, see RESULTS.md), RSS sampled every
     100 frames on stderr as it runs."""
     import torch
@@ -329,6 +333,9 @@ def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours:
     g.add_listener(fe)
     print(f"\n== frontend + graph memory, {frames} frames, keyframe every {kf_every}, window {window}, {profile} "
           f"(load {load()}) ==", flush=True)
+    from pvslam_core.geometry.ba import dense_ba
+
+    ba_cpu = 0.0
     samples, t0, c0 = [], time.perf_counter(), time.process_time()
     for i in range(min(frames, stop or frames)):
         a = seq.arrays(i, ("depth",))
@@ -347,6 +354,14 @@ def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours:
             g.retire_edges(old)
             for _ in range(fe.rounds):
                 obs = fe.observe(g, g.ii.clone(), g.jj.clone())
+                if ba and g.n > 1:
+                    cb = time.thread_time()
+                    live = torch.unique(torch.cat([g.ii, g.jj]))
+                    free = torch.zeros(g.n, dtype=torch.bool)
+                    free[live] = True
+                    free[live.min()] = False  # the window's oldest keyframe fixes the gauge
+                    dense_ba(g, obs, free, iters=2, robust=None)
+                    ba_cpu += time.thread_time() - cb
             g.record_observations(obs)
         if (i + 1) % 100 == 0:
             samples.append({"frame": i + 1, "rss_mb": _rss_mb(), "keyframes": g.n, "active_edges": g.num_edges,
@@ -354,12 +369,17 @@ def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours:
                             "frontend_edges": len(fe.edge_ids()), "frontend_mb": fe.memory_bytes() / 2**20,
                             "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0})
             print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
-    d = {"frames": frames, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "samples": samples,
-         "rounds": fe.rounds, "frontend_cpu_s": dict(fe.stats.cpu), "frontend_counts": dict(fe.stats.counts)}
-    RESULTS["memory_frontend"] = d
     n = min(frames, stop or frames)
-    print(f"  peak RSS {d['peak_mb']:.0f} MB; {1000 * (time.process_time() - c0) / n:.0f} ms CPU per frame; frontend "
-          f"CPU ms/frame: " + ", ".join(f"{k} {1000 * v / n:.0f}" for k, v in fe.stats.cpu.items() if v > 0), flush=True)
+    cpu = time.process_time() - c0
+    d = {"frames": frames, "processed": n, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+         "samples": samples, "rounds": fe.rounds, "frontend_cpu_s": dict(fe.stats.cpu),
+         "frontend_counts": dict(fe.stats.counts), "cpu_s": cpu, "ba_cpu_s": ba_cpu, "load_end": load(),
+         "cpu_ms_per_frame": 1000 * cpu / n, "fps_1core": n / cpu}
+    RESULTS["memory_frontend"] = d
+    print(f"  peak RSS {d['peak_mb']:.0f} MB; {1000 * cpu / n:.0f} ms CPU per frame = {n / cpu:.2f} frames/s on one "
+          f"core (load {load()}); frontend CPU ms/frame: "
+          + ", ".join(f"{k} {1000 * v / n:.0f}" for k, v in fe.stats.cpu.items() if v > 0)
+          + (f"; ba {1000 * ba_cpu / n:.0f}" if ba else ""), flush=True)
 
 
 def section_ate(out: Path, weights: str | None, seeds: list[int], scenarios: list[str], frames: int,
@@ -406,6 +426,7 @@ def main() -> None:
     ap.add_argument("--long-frames", type=int, default=1000)
     ap.add_argument("--kf-every", type=int, default=3, help="memory_frontend: a keyframe every N frames")
     ap.add_argument("--mf-stop", type=int, help="memory_frontend: stop after this many frames")
+    ap.add_argument("--mf-ba", action="store_true", help="memory_frontend: run the online dense BA after each observe")
     ap.add_argument("--seeds", type=int, nargs="*", default=[200])
     ap.add_argument("--scenarios", nargs="*", default=["driving_loop", "moving_vehicles", "indoor_handheld",
                                                        "busy_street"])
@@ -429,7 +450,7 @@ def main() -> None:
         section_memory(out, 200 if args.quick else args.long_frames, args.weights, args.profile, extra=args.extra)
     if "memory_frontend" in sections:
         section_memory_frontend(200 if args.quick else args.long_frames, args.kf_every, 10, 3, args.profile,
-                                args.extra, args.mf_stop)
+                                args.extra, args.mf_stop, args.mf_ba)
     if "ate" in sections:
         section_ate(out, args.weights, args.seeds, args.scenarios[:1] if args.quick else args.scenarios,
                     40 if args.quick else args.ate_frames, args.profile, args.extra)

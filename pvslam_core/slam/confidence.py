@@ -122,6 +122,8 @@ def segment_vote(
     thresh: float = 0.5,
     thing_mask: Optional[Union[torch.Tensor, Sequence[int]]] = None,
     pixel_thresh: float = 0.5,
+    valid: Optional[torch.Tensor] = None,
+    keep_pixels: bool = True,
 ) -> torch.Tensor:
     """Mark a whole panoptic segment dynamic when more than ``thresh`` of its pixels are dynamic.
 
@@ -135,10 +137,16 @@ def segment_vote(
         thing_mask: if given, only these segments vote: a bool lookup table indexed by id, or a sequence/tensor
             of the ids that are things.  ``None``: every non-void segment votes.
         pixel_thresh: per-pixel binarisation threshold.
+        valid: optional bool ``[..., h, w]`` (like ``dynamic_prob``): only these pixels count in a segment's
+            fraction (pixels that cannot be judged, e.g. ones that leave the other view, neither vote for nor
+            against); a segment without valid pixels never votes.  ``None``: every pixel counts.
+        keep_pixels: True (PVO's segm_filter): the result is the per-pixel mask OR the voted segments; False: only
+            the voted segments (for callers that bring their own per-pixel evidence, e.g. grouped regions).
 
     Returns:
         bool ``[..., h, w]``: the per-pixel mask OR the voted segments (pixels of segments that did not vote keep
-        their own value, as PVO's segm_filter does).  Vectorised: one scatter-add over (batch, segment).
+        their own value, as PVO's segm_filter does), or only the voted segments with ``keep_pixels=False``.
+        Vectorised: one scatter-add over (batch, segment).
     """
     dyn = dynamic_prob > pixel_thresh if dynamic_prob.dtype != torch.bool else dynamic_prob
     if dyn.dim() < 2:
@@ -157,14 +165,19 @@ def segment_vote(
     key = flat_seg + (torch.arange(batch, device=dyn.device) * k)[:, None]
     key = key.reshape(-1)
     # index_add_ rather than torch.bincount: the latter is ~50x slower on CPU in recent torch builds
-    ones = torch.ones(key.numel(), dtype=torch.float32, device=dyn.device)
+    if valid is None:
+        ones = torch.ones(key.numel(), dtype=torch.float32, device=dyn.device)
+    else:
+        if tuple(valid.shape) != tuple(dyn.shape):
+            raise ValueError(f"valid {tuple(valid.shape)} does not match dynamic_prob {tuple(dyn.shape)}")
+        ones = valid.to(device=dyn.device, dtype=torch.float32).reshape(-1)
     counts = torch.zeros(batch * k, dtype=torch.float32, device=dyn.device).index_add_(0, key, ones)
     dyn_counts = torch.zeros(batch * k, dtype=torch.float32, device=dyn.device).index_add_(
-        0, key, flat_dyn.reshape(-1).to(torch.float32))
+        0, key, flat_dyn.reshape(-1).to(torch.float32) * ones)
     frac = dyn_counts / counts.clamp(min=1)
     eligible = uniq != 0
     if thing_mask is not None:
         eligible = eligible & _thing_lookup(uniq, thing_mask)
-    seg_dyn = (frac > thresh).reshape(batch, k) & eligible[None, :]
+    seg_dyn = (frac > thresh).reshape(batch, k) & (counts > 0).reshape(batch, k) & eligible[None, :]
     voted = seg_dyn.reshape(-1)[key].reshape(batch, h * w)
-    return (flat_dyn | voted).reshape(dyn.shape)
+    return ((flat_dyn | voted) if keep_pixels else voted).reshape(dyn.shape)

@@ -186,6 +186,10 @@ class Mapper(GraphListener):
             self._fill_pending(a_id)
             return self._result(frame, entry, ref, track, kf_id=kf_id)
         if not self.initialized:
+            # the window's retirement rule applies before initialisation too: otherwise a fragment that does not
+            # initialise keeps every neighbour edge active and a learned frontend its per-edge state (~5.7 MB per
+            # keyframe for raft_gru); the initialisation pairs are observed directly, not as edges
+            self.graph.retire_edges(retirement_mask(self.graph, k, self.cfg))
             self._try_initialise(k)
             return self._result(frame, entry, ref, track, kf_id=kf_id)
         self._optimize_window(k, self.frontend.rounds)

@@ -70,3 +70,20 @@ def test_segmenter_categories_reach_the_outputs(seams_registry, fake_config_file
     assert b > r + 50 and b > g
     r, g, b = cols[~robot].astype(float).mean(0)
     assert r > b + 50 and g > b + 50
+
+
+def test_edges_retire_before_initialisation(seams_registry, fake_config_file):
+    """A fragment that never initialises (warm-up longer than the run) keeps only the window's edges active and the
+    frontend hears of the others, as after initialisation (it used to keep every neighbour edge of the run)."""
+    fakes_seams.StatefulFrontend.instances.clear()
+    try:
+        res = run_config(fake_config_file, registry=seams_registry, overrides=[
+            'frontend.plugin="stateful"', "dataset.frames=40", "frontend.keyframe_every=1",
+            "graph.active_window=4", "graph.warmup=1000"])
+        tracking = res.metrics["tracking"]
+    except Exception as exc:  # a run without any pose estimate may stop with an error; the graph is what counts
+        pytest.fail(f"run failed: {exc}")
+    fe = fakes_seams.StatefulFrontend.instances[-1]
+    assert not tracking["initialized"]
+    assert 0 < tracking["active_edges"] <= 4 * 3 * 2, tracking
+    assert len(fe.retired) >= 40 and fe.errors == []

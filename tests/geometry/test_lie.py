@@ -213,3 +213,26 @@ def test_property_log_exp(t, axis, angle, sigma):
     assert torch.allclose(sim3_log(sim3_exp(xs)), xs, atol=1e-8)
     T = se3_exp(xi)
     assert torch.allclose(se3_to_matrix(se3_inv(T)), torch.linalg.inv(se3_to_matrix(T)), atol=1e-9)
+
+
+def test_sim3_W_closed_form_matches_matrix_exponential():
+    """The closed-form / series Sim3 'V' matrix equals its definition through a 6x6 matrix exponential,
+    ``expm([[M, I], [0, 0]]) = [[e^M, W], [0, I]]``, over tiny, small, mixed and large arguments (both branches and
+    the switch between them at max(|sigma|, theta) = 0.1)."""
+    from pvslam_core.geometry.lie import _sim3_W, hat
+
+    gen = torch.Generator().manual_seed(0)
+    dirs = torch.nn.functional.normalize(torch.randn(64, 3, generator=gen, dtype=torch.float64), dim=-1)
+    thetas = torch.tensor([0.0, 1e-9, 1e-6, 1e-3, 0.05, 0.0999, 0.1001, 0.3, 1.0, 2.5, 3.1], dtype=torch.float64)
+    sigmas = torch.tensor([0.0, -1e-8, 1e-6, -1e-3, 0.05, 0.0999, -0.1001, 0.4, -1.2, 3.0], dtype=torch.float64)
+    T, S = torch.meshgrid(thetas, sigmas, indexing="ij")
+    phi = dirs[torch.arange(T.numel()) % 64] * T.reshape(-1, 1)
+    sigma = S.reshape(-1, 1)
+    M = hat(phi) + sigma[..., None] * torch.eye(3, dtype=torch.float64)
+    G = torch.zeros(phi.shape[0], 6, 6, dtype=torch.float64)
+    G[:, :3, :3] = M
+    G[:, :3, 3:] = torch.eye(3, dtype=torch.float64)
+    ref = torch.linalg.matrix_exp(G)[:, :3, 3:]
+    W = _sim3_W(phi, sigma)
+    err = (W - ref).abs().amax(dim=(-2, -1)) / ref.abs().amax(dim=(-2, -1))
+    assert float(err.max()) < 1e-13, float(err.max())

@@ -184,3 +184,58 @@ def test_sim3_pose_graph_sparse_matches_dense():
     assert sparse.cost_after < 1e-6 * sparse.cost_before
     assert torch.allclose(dense.poses[:, :3], sparse.poses[:, :3], atol=1e-6)
     assert float((sparse.poses[:, :3] - gt[:, :3]).norm(dim=-1).max()) < 1e-4
+
+
+def test_pose_graph_spans_the_loop_only():
+    """The first loop BA's Sim(3) pose graph runs over keyframes j..n-1 with j fixed (a 3000-frame run spent most of its
+    later laps in pose graphs over every keyframe): keyframes before j keep their poses and depths bit for bit, and
+    the corrected poses equal those of the same pose graph over all keyframes with keyframe 0 fixed (the keyframes
+    before j hang off the chain without a cycle, so the full problem has the same optimum)."""
+    n, j = 16, 4
+    base = make_problem(n=n, trajectory="loop", radius=2, seed=1)
+    ii = torch.cat([base.ii, torch.tensor([j, n - 1])])
+    jj = torch.cat([base.jj, torch.tensor([n - 1, j])])
+    pr = make_problem(n=n, trajectory="loop", radius=2, seed=1, edges=(ii, jj))
+    p0, d0 = scale_drifted(pr, rate=0.96, yaw_drift=0.01)
+    g = pr.graph(p0.clone(), d0.clone())
+    opt = make("online_ba", loop_iters=0)  # the pose graph alone
+    rep = opt.loop(g, pr.obs(), [_loop(n - 1, j)])
+    assert f"over keyframes {j}..{n - 1}" in rep.message and opt.last_pgo["applied"], rep.message
+    assert float((g.poses[:j + 1] - p0[:j + 1]).abs().max()) < 1e-12 and torch.equal(g.disps[:j], d0[:j])
+
+    # reference: the whole chain, keyframe 0 fixed, the same loop measurement (old keyframe j as the reference)
+    e = int(torch.nonzero((pr.ii == j) & (pr.jj == n - 1))[0])
+    Zl, _, _ = loop_relative_sim3(p0[j], d0[j], p0[n - 1], d0[n - 1], pr.intr, pr.target[e], pr.weight[e])
+    S = sim3_from_se3(p0, 1.0)
+    oi, oj, Z = odometry_measurements(S)
+    w = torch.ones(len(oi) + 1, dtype=torch.float64)
+    w[-1] = opt.config.pgo_loop_weight
+    fixed = torch.zeros(n, dtype=torch.bool)
+    fixed[0] = True
+    ref = sim3_pose_graph(S, torch.cat([oi, torch.tensor([j])]), torch.cat([oj, torch.tensor([n - 1])]),
+                          torch.cat([Z, Zl[None]]), fixed, w, iters=opt.config.pgo_iters)
+    assert float((ref.poses[:j + 1, :3] - p0[:j + 1, :3]).norm(dim=-1).max()) < 1e-6  # untouched there too
+    assert float((g.poses[:, :3] - ref.poses[:, :3]).norm(dim=-1).max()) < 1e-5
+    assert umeyama_ate(g.poses[:, :3], pr.poses[:, :3]) < 0.5 * umeyama_ate(p0[:, :3], pr.poses[:, :3])
+
+
+def test_pose_graph_corrects_only_since_the_previous_loop():
+    """A second closure's pose graph bends only the chain since the newest keyframe of the previous loop BA (those
+    before were corrected by it); the old keyframe of the loop and that keyframe stay fixed."""
+    n = 16
+    base = make_problem(n=n, trajectory="loop", radius=2, seed=1)
+    extra = torch.tensor([[2, 11], [11, 2], [4, 15], [15, 4]])
+    pr = make_problem(n=n, trajectory="loop", radius=2, seed=1,
+                      edges=(torch.cat([base.ii, extra[:, 0]]), torch.cat([base.jj, extra[:, 1]])))
+    g = pr.graph(*scale_drifted(pr, rate=0.96, yaw_drift=0.01))
+    opt = make("online_ba", loop_iters=0)
+    rep = opt.loop(g, pr.obs(), [_loop(11, 2)])
+    assert "over keyframes 2..15" in rep.message and opt.last_pgo["applied"], rep.message
+    p1 = g.poses.clone()
+    rep = opt.loop(g, pr.obs(), [_loop(15, 4)])
+    assert "over keyframes 11..15" in rep.message, rep.message
+    assert float((g.poses[:12] - p1[:12]).abs().max()) < 1e-12  # up to the previous loop's newest keyframe: untouched
+    assert float((g.poses[12:] - p1[12:]).abs().max()) > 1e-3
+    # a loop whose old side is newer than the previous correction starts the chain at its old keyframe
+    rep = make("online_ba", loop_iters=0).loop(g, pr.obs(), [_loop(15, 4)])
+    assert "over keyframes 4..15" in rep.message or "skipped" in rep.message, rep.message

@@ -180,6 +180,20 @@ class FlowFrontendConfig(PluginConfig):
         "px, grown by dynamic_grow): a moving vehicle is a region, isolated pixels are left to the robust kernel. "
         "With a segmenter the regions are OR-ed with the segment vote (dynamic.py).",
     )
+    depth_check: float = Field(
+        0.0, ge=0.0,
+        description="Also a candidate: a pixel whose inverse depth, moved from its keyframe into the other one, "
+        "differs from that keyframe's own estimate by more than this x its median inverse depth (dynamic.py, "
+        "depth_candidates: vehicles moving along the camera's direction are epipolar-consistent, the residual "
+        "test cannot see them). 0 = off.",
+    )
+    dynamic_persist: bool = Field(
+        False,
+        description="A keyframe keeps the mask it inherited from its reference (moved along the tracked flow) OR-ed "
+        "into every later judgement of its edges: once seen moving, a vehicle stays masked while tracked, also on "
+        "the edges where it is epipolar-consistent (dynamic_masking.py). Off by default: mixed on the tune seeds "
+        "(better on the busy street, worse on moving_vehicles; bench/RESULTS.md, moving objects).",
+    )
     dynamic_min_area: int = Field(4, ge=1, description="Smallest dynamic region kept (BA px).")
     dynamic_grow: int = Field(1, ge=0, description="Dynamic regions are dilated by this many BA px.")
     dynamic_track: bool = Field(
@@ -196,6 +210,13 @@ class FlowFrontendConfig(PluginConfig):
         description="A segment becomes dynamic when more than this fraction of its pixels is dynamic.",
     )
     things_only: bool = Field(True, description="Only thing segments (cars, people) vote; stuff keeps per-pixel masks.")
+    vote_keeps_candidates: bool = Field(
+        True,
+        description="With a segmenter and dynamic_regions: also keep every raw residual candidate pixel outside the "
+        "voted segments (PVO's segm_filter; segments vote over all their pixels). False: voted movable segments "
+        "(voting over their judged pixels) OR the coherent regions, the same per-pixel evidence as without a "
+        "segmenter (dynamic_masking.py; worse on the moving-vehicles tune seeds, bench/RESULTS.md).",
+    )
 
     @field_validator("flow_scale")
     @classmethod

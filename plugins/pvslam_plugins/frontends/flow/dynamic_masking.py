@@ -49,6 +49,14 @@ class DynamicMasking:
         same = (P[ii.to(dev)] == P[jj.to(dev)]).all(-1)
         valid = valid & ~same[:, None, None]
         dyn = D.residual_candidates(res, valid, self.cfg.dynamic_thresh, self.cfg.dynamic_rel_thresh)
+        if self.cfg.depth_check > 0:
+            # the second geometric cue: depths that disagree across the two keyframes (dynamic.py)
+            from pvslam_core.geometry.projective import edge_transforms
+
+            R, t = edge_transforms(P, ii.to(dev), jj.to(dev))
+            dd = graph.disps.to(dev)
+            dyn = dyn | D.depth_candidates(R, t, dd[ii.to(dev)], dd[jj.to(dev)], coords, valid,
+                                           graph.intrinsics, self.cfg.depth_check)
         regions = D.group_regions(dyn, self.cfg.dynamic_min_area, self.cfg.dynamic_grow) \
             if self.cfg.dynamic_regions else None
         ids = graph.ids
@@ -60,12 +68,41 @@ class DynamicMasking:
             if self.cfg.things_only:
                 tid = [s_.thing_ids for s_ in srcs if s_.thing_ids is not None and s_.thing_ids.numel()]
                 things = torch.unique(torch.cat(tid)) if tid else torch.zeros(0, dtype=torch.int64)
-            dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, thing_mask=things)
-            if regions is not None:  # both cues: a segment that voted or a coherent region
-                dyn = dyn | regions.to(dyn.device)
+            if regions is not None and not self.cfg.vote_keeps_candidates:
+                # the segment-free evidence plus the vote: a movable thing segment is dynamic when the geometry
+                # inside it says it moves (more than vote_thresh of its judged pixels are candidates), elsewhere
+                # the coherent regions, exactly as without a segmenter.  Not the default: on the moving-vehicles
+                # tune seeds it did worse than also keeping the raw candidates (config.py, vote_keeps_candidates)
+                dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, thing_mask=things, valid=valid,
+                                   keep_pixels=False) | regions.to(dyn.device)
+            else:
+                dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, thing_mask=things)
+                if regions is not None:  # both cues: a segment that voted or a coherent region
+                    dyn = dyn | regions.to(dyn.device)
         elif regions is not None:
             dyn = regions.to(dyn.device)
+        if self.cfg.dynamic_persist:
+            dyn = dyn | self._persisted(srcs, [int(ids[int(i)]) for i in ii.tolist()], h, w).to(dyn.device)
         return dyn, dyn.float().mean(dim=(1, 2)).tolist(), valid.sum(dim=(1, 2)).tolist()
+
+    def _persisted(self, srcs: list, sids: list[int], h: int, w: int) -> torch.Tensor:
+        """bool ``[N, h, w]``: the mask each source keyframe inherited from its reference (moved along the tracked
+        flow, before its own edges judged it), kept for the keyframe's whole life (``dynamic_persist``): a vehicle
+        seen moving once stays masked while it is tracked, also on the edges where it happens to be
+        epipolar-consistent."""
+        pri = getattr(self, "_dyn_priors", None)
+        if pri is None:
+            pri = self._dyn_priors = {}
+        for sid in [k for k in pri if k not in self._kfs]:  # keyframes the graph removed
+            del pri[sid]
+        out = torch.zeros(len(sids), h, w, dtype=torch.bool)
+        for n, (kf, sid) in enumerate(zip(srcs, sids)):
+            if sid not in pri:  # first judgement: what it holds now is the inherited mask (or nothing)
+                pri[sid] = (kf.dyn > 0).cpu() if (kf.dyn is not None and not kf.dyn_judged
+                                                   and tuple(kf.dyn.shape) == (h, w)) else None
+            if pri[sid] is not None:
+                out[n] = pri[sid]
+        return out
 
     def _update_dynamic(self, graph, ii, jj, need: list[int], entries: list, target: torch.Tensor) -> None:
         """Residual of observed targets against the current reprojection -> dynamic masks for edges ``need``."""

@@ -55,6 +55,7 @@ from .encoders import STRIDE
 from .frontend_state import (  # noqa: F401  (DAMPING_INIT, STAGES, RandomWeightsWarning: re-exported)
     DAMPING_INIT, STAGES, EdgeState, KeyframeState, RandomWeightsWarning, StageStats, load_network)
 from .net import RaftGruNet
+from .update import GateContext
 from .upsample import upsample_disp
 
 
@@ -86,6 +87,7 @@ class RaftGruFrontend(Frontend):
         self._pending: Optional[dict] = None  # the last tracked frame's fmap (reused when it becomes a keyframe)
         self._graph = None  # last graph seen (for initial_depth and evictions)
         self._coords0: dict[tuple[int, int], torch.Tensor] = {}
+        self._zero_motion: dict = {}  # context shape -> the zero motion input's share of the GRU gates
         self.stats = StageStats()
 
     # ------------------------------------------------------------------------------------------- helpers --
@@ -144,9 +146,9 @@ class RaftGruFrontend(Frontend):
             return
         if kf.upmask is not None and self._graph is not None and self._graph.has_id(kf_id):
             disp = self._graph.disps[self._graph.index_of(kf_id)].float().to(self.device)
-            kf.disp_up = upsample_disp(disp[None, None], kf.upmask.float()[None, None])[0, 0].half()
+            kf.disp_up = upsample_disp(disp[None, None], self._upmask(kf)[None, None])[0, 0].half()
             kf.disp_lo = disp.clone()
-        kf.fmap = kf.net0 = kf.inp = kf.upmask = None
+        kf.fmap = kf.net0 = kf.inp = kf.upmask = kf.gates = kf.filter_gates = None
 
     def _features(self, kf_id: int) -> KeyframeState:
         """The keyframe with its features in memory (recomputed from its image after an eviction)."""
@@ -158,6 +160,35 @@ class RaftGruFrontend(Frontend):
             self.stats.counts["recomputed"] += 1
         self._touch(kf_id)
         return kf
+
+    def _upmask(self, kf: KeyframeState) -> torch.Tensor:
+        """float32 ``[576, h, w]`` convex-upsampling logits of the keyframe's last update (from its stored features;
+        the same numbers as computing them in the update, rounded to fp16 as they were stored before)."""
+        with torch.no_grad(), self._autocast():
+            return self.model.update.agg.upmask_of(kf.upmask[None, None])[0, 0].half().float()
+
+    def _gates(self, kf: KeyframeState, motion_filter: bool = False) -> GateContext:
+        """The keyframe's share of the GRU gates (:class:`.update.GateContext`), computed at its first use: its
+        context ``inp`` (every edge leaving it), or for the motion filter also ``net0`` and the zero motion input.
+        Same numbers as the plain update to float rounding (``tests/test_fast_paths.py``), fewer convolutions."""
+        attr = "filter_gates" if motion_filter else "gates"
+        g = getattr(kf, attr)
+        if g is None:
+            base = self._gates(kf) if motion_filter else None
+            with self._timed("gates"), torch.no_grad(), self._autocast():
+                upd = self.model.update
+                if motion_filter:  # = gate_context(inp, net=net0, zero_motion=True) from the parts computed anyway
+                    part = upd.gru.context(bias=False, net=kf.net0[None])
+                    zero = self._zero_motion.get(kf.inp.shape)
+                    if zero is None:  # the zero motion's features are the same constant map for every keyframe
+                        h, w = kf.inp.shape[-2:]
+                        flow0 = upd.flow_encoder(kf.inp.new_zeros(1, upd.motion_dim, h, w))
+                        zero = self._zero_motion[kf.inp.shape] = upd.gru.context(bias=False, motion=flow0).zrq
+                    g = GateContext(base.zrq + part.zrq + zero, ("net", "inp", "motion"), part.glo)
+                else:
+                    g = upd.gate_context(kf.inp[None])
+            setattr(kf, attr, g)
+        return g
 
     def _seg_info(self, seg: Optional[PanopticSegmentation], h: int, w: int):
         if seg is None or seg.ids is None:
@@ -184,6 +215,7 @@ class RaftGruFrontend(Frontend):
         for kf in self._kfs.values():
             n += sum(nb(t) for t in (kf.image, kf.damping, kf.fmap, kf.net0, kf.inp, kf.seg, kf.things, kf.upmask,
                                      kf.disp_up, kf.disp_lo))
+            n += sum(nb(g.zrq) + nb(g.glo) for g in (kf.gates, kf.filter_gates) if g is not None)
         for e in self._edges.values():
             n += sum(nb(t) for t in (e.net, e.target, e.weight, e.dynamic, e.raw_mask, e.delta_dy))
             n += e.corr.nbytes() if e.corr is not None else 0
@@ -230,7 +262,7 @@ class RaftGruFrontend(Frontend):
         h, w = fmap.shape[-2:]
         coords0 = self._grid(h, w)
         with torch.no_grad(), self._autocast():
-            vol = CorrVolume(last.fmap[None, None], fmap[None, None])
+            vol = CorrVolume(last.fmap[None, None], fmap[None, None], pool="features")
             net, inp = last.net0[None, None], last.inp[None, None]
             coords1 = coords0.expand(1, 1, h, w, 2)
             target, raw_mask, delta_dy = coords1, None, None
@@ -239,7 +271,7 @@ class RaftGruFrontend(Frontend):
                 motion = None
                 if it > 0:
                     motion = motion_input(self.variant, coords0, coords1, target, delta_dy, raw_mask)
-                out = self.model.update(net, inp, corr, motion)
+                out = self.model.update(net, None, corr, motion, ctx=self._gates(last, motion_filter=it == 0))
                 net = out.net
                 target = coords1 + out.delta.float()
                 if self.variant == "pvo":
@@ -263,6 +295,8 @@ class RaftGruFrontend(Frontend):
         net0, inp = self._cnet(frame.image)
         h, w = fmap.shape[-2:]
         seg_ids, things = self._seg_info(seg, h, w)
+        if self._kfs:  # only the newest keyframe is the motion filter's reference
+            self._kfs[next(reversed(self._kfs))].filter_gates = None
         self._kfs[kf_id] = KeyframeState(image=frame.image.cpu(), frame_index=int(frame.index),
                                      damping=torch.full((h, w), DAMPING_INIT, device=self.device), fmap=fmap,
                                      net0=net0, inp=inp, seg=seg_ids, things=things)
@@ -300,7 +334,7 @@ class RaftGruFrontend(Frontend):
         disp = graph.disps[graph.index_of(int(kf_id))].float().to(self.device)
         h, w = disp.shape
         if kf.upmask is not None:
-            return upsample_disp(disp[None, None], kf.upmask.float()[None, None])[0, 0]
+            return upsample_disp(disp[None, None], self._upmask(kf)[None, None])[0, 0]
         size = (STRIDE * h, STRIDE * w)
         if kf.disp_up is not None:
             ratio = disp / kf.disp_lo.clamp(min=1e-6)
@@ -354,6 +388,8 @@ class RaftGruFrontend(Frontend):
         lo = n - self.update_window
         upd = [e for e, key in enumerate(keys)
                if self.update_window == 0 or self._edges[key].updates == 0 or max(ii_l[e], jj_l[e]) >= lo]
+        # sorted by source (stable): the edges of one source keyframe share its gate context, added per run
+        upd.sort(key=lambda e: ii_l[e])
         if upd:
             self._update([keys[e] for e in upd], ii[upd], jj[upd], coords1[upd], valid[upd], ids)
         entries = [self._edges[k] for k in keys]
@@ -382,8 +418,8 @@ class RaftGruFrontend(Frontend):
             edge = self._edges[key]
             if edge.corr is None:
                 a, b = self._features(key[0]).fmap, self._features(key[1]).fmap
-                edge.corr = CorrVolume(a[None, None].to(dtype), b[None, None].to(dtype))
-            out.append(edge.corr(coords1[:, e:e + 1].to(dtype)))
+                edge.corr = CorrVolume(a[None, None].to(dtype), b[None, None].to(dtype), pool="features")
+            out.append(edge.corr(coords1[:, e:e + 1]))  # fp32 coordinates (bf16 would round to 1/4 px at 32+ px)
         return torch.cat(out, dim=1)
 
     def _update(self, keys, ii: torch.Tensor, jj: torch.Tensor, coords1: torch.Tensor, valid: torch.Tensor,
@@ -406,9 +442,15 @@ class RaftGruFrontend(Frontend):
             motion = motion_input(self.variant, self._grid(h, w), c1, target0, delta_dy,
                                   None if raw_mask is None else raw_mask[None])
             net = torch.stack([e.net for e in edges])[None]
-            inp = torch.stack([s.inp for s in srcs])[None]
+            srcs_run = list(dict.fromkeys(a for a, _ in keys))  # the edges are sorted by source: one run each
+            if sum(1 for x, y in zip(keys, keys[1:]) if x[0] != y[0]) != len(srcs_run) - 1:
+                raise RuntimeError("raft_gru: _update needs the edges grouped by source keyframe")
+            gates = [self._gates(self._kfs[a]) for a in srcs_run]
+            ctx = GateContext(torch.cat([g.zrq for g in gates]), gates[0].const,
+                              groups=[sum(1 for a, _ in keys if a == s) for s in srcs_run])
             with self._timed("update"), self._autocast():
-                out = self.model.update(net, inp, corr, motion, ii.to(self.device), jj.to(self.device))
+                out = self.model.update(net, None, corr, motion, ii.to(self.device), jj.to(self.device), ctx=ctx,
+                                        upmask=False)
         self.stats.counts["edge_updates"] += E
         with self._timed("weights"):
             delta = out.delta[0].float()
@@ -444,7 +486,7 @@ class RaftGruFrontend(Frontend):
                 kf = self._kfs[ids[fr]]
                 kf.damping = eta[u]
                 if self.cfg.upsample:
-                    kf.upmask = out.upmask[0, u].half()
+                    kf.upmask = out.agg_features[0, u]
 
     def _sources_seg(self, srcs: list[KeyframeState], h: int, w: int):
         """``(E, h, w)`` panoptic ids of the edges' source keyframes (zeros = void where a source has none) and the

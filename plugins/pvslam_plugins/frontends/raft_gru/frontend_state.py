@@ -16,6 +16,7 @@ import torch
 from .config import RaftGruConfig
 from .corr import CorrVolume
 from .net import RaftGruNet
+from .update import GateContext
 
 LOG = logging.getLogger("pvslam.frontend.raft_gru")
 
@@ -58,7 +59,10 @@ class KeyframeState:
     inp: Optional[torch.Tensor] = None  # [128, h, w] context of its edges
     seg: Optional[torch.Tensor] = None  # int64 [h, w] panoptic ids at the BA resolution
     things: Optional[torch.Tensor] = None  # int64 [K] ids of movable thing segments
-    upmask: Optional[torch.Tensor] = None  # float16 [576, h, w] convex-upsampling logits of its last update
+    gates: Optional[GateContext] = None  # [1, 384, h, w] its context's share of the GRU gates (edges leaving it)
+    filter_gates: Optional[GateContext] = None  # ... plus net0 and zero motion (motion filter; newest keyframe only)
+    upmask: Optional[torch.Tensor] = None  # [128, h, w] its last update's aggregated features: the convex-upsampling
+    # logits are made from them when needed (RaftGruFrontend._upmask; 128 channels instead of 576)
     disp_up: Optional[torch.Tensor] = None  # float16 [H, W] upsampled inverse depth saved when the mask went
     disp_lo: Optional[torch.Tensor] = None  # float32 [h, w] the inverse depth disp_up was made from
 
@@ -77,14 +81,15 @@ class EdgeState:
     updates: int = 0  # GRU updates this edge received
 
 
-STAGES = ("track", "fnet", "filter", "cnet", "reproject", "corr", "update", "weights", "recompute")
+STAGES = ("track", "fnet", "filter", "cnet", "gates", "reproject", "corr", "update", "weights", "recompute")
 
 
 @dataclass
 class StageStats:
     """Per-stage wall seconds and CPU seconds of the calling thread (``time.thread_time``: with one torch thread
     that is all the work; with more, OpenMP workers' time is not included).  ``fnet`` and ``filter`` are parts of
-    ``track``; ``recompute`` includes its own ``fnet``/``cnet``."""
+    ``track``; ``recompute`` includes its own ``fnet``/``cnet``; ``gates`` (the keyframes' :class:`GateContext`, made at
+    their first use) is counted inside ``filter`` when the motion filter makes it."""
 
     seconds: dict = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     cpu: dict = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))

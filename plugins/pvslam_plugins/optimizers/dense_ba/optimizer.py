@@ -43,6 +43,7 @@ class DenseBAOptimizer(Optimizer):
         self.config = config
         self.device = device
         self.last_pgo: dict = {}
+        self._corrected_id: Optional[int] = None  # stable id of the newest keyframe of the last loop BA
 
     # ------------------------------------------------------------------------------------------ helpers
     def _ba(self, graph, obs: EdgeObservations, free: torch.Tensor, iters: int, lm: float, ep: float,
@@ -92,6 +93,8 @@ class DenseBAOptimizer(Optimizer):
         for i, j in pairs:  # the old side of each loop anchors the map (and the monocular scale)
             free[min(i, j)] = False
         rep = self._ba(graph, obs, free, c.loop_iters, c.loop_lm, c.loop_ep)
+        if not rep.rejected:  # the keyframes up to this loop's newest one are corrected (see sim3_correction)
+            self._corrected_id = int(graph.id_of(max(max(i, j) for i, j in pairs)))
         return _merge([rep], msg)
 
     def finalize(self, graph, observe: Callable[[torch.Tensor, torch.Tensor], EdgeObservations]) -> OptimizerReport:
@@ -117,14 +120,33 @@ class DenseBAOptimizer(Optimizer):
         return max(abs(float(r[6])), float(r[3:6].norm()), float(r[:3].norm()) / depth)
 
     def sim3_correction(self, graph, obs: EdgeObservations, loops: list[tuple[int, int]]) -> str:
-        """Sim(3) pose graph over all keyframes: odometry edges (k, k+1) with their current relative pose (scale 1)
-        plus one edge per observed loop edge, measured by :func:`loop_relative_sim3` with the old keyframe fixed.
-        Applies the corrected poses and divides each keyframe's inverse depth by its scale.  Returns a message."""
+        """Sim(3) pose graph of the drift since the last correction: the odometry chain (k, k+1) from keyframe ``p``
+        to the newest, with their current relative poses (scale 1), plus one edge per observed loop edge, measured
+        by :func:`loop_relative_sim3` with the old keyframe fixed.  ``p`` is the newest keyframe of the previous
+        loop call when it lies between the loop's old keyframe and the new one, else the oldest loop keyframe;
+        ``p`` and the loops' old keyframes are fixed.  Applies the corrected poses to the chain and divides each
+        chain keyframe's inverse depth by its scale.  Returns a message.
+
+        Why not all keyframes with keyframe 0 fixed: the graph holds the chain and this call's loop edges only, so
+        it cannot know what earlier loops corrected.  On repeated laps (closures go to the previous lap, see the loop
+        policy) a closure then bent every keyframe from the old keyframe on, i.e. the part of the previous lap that
+        earlier closures had tied to the lap before it; and the pose graph over every keyframe made the later laps
+        of a 3000-frame run ~1.4 s per closure.  The keyframes up to the previous correction are as good as the map
+        gets; the chain since then holds this loop's drift (ORB-SLAM corrects the keyframes since the loop's old
+        side too, keeping older loop edges; keeping those fixed is the simpler equivalent here)."""
         c = self.config
         n = graph.n
+        dev = graph.device
+        lo = min(min(i, j) for i, j in loops)  # the oldest loop keyframe
+        p = self._chain_start(graph, lo, min(max(i, j) for i, j in loops))
+        olds = sorted({min(i, j) for i, j in loops if min(i, j) < p})  # fixed nodes outside the chain
+        nodes = torch.cat([torch.tensor(olds, dtype=torch.int64), torch.arange(p, n)]).to(dev)  # graph indices
+        local = {g: l for l, g in enumerate(nodes.tolist())}
         poses, disps, intr = graph.poses, graph.disps, graph.intrinsics
-        S = sim3_from_se3(poses, 1.0)
-        ii, jj, Z = odometry_measurements(S)
+        S_all = sim3_from_se3(poses, 1.0)
+        S = S_all[nodes]  # [m, 8]
+        ii, jj, Z = odometry_measurements(S_all[p:])
+        ii, jj = ii + len(olds), jj + len(olds)
         w = [torch.ones(len(ii), dtype=torch.float64, device=graph.device)]
         e_ii, e_jj, e_Z = [ii], [jj], [Z]
         oii, ojj = obs.ii.to(graph.device), obs.jj.to(graph.device)
@@ -140,10 +162,12 @@ class DenseBAOptimizer(Optimizer):
                                                   obs.target[e].to(graph.device), obs.weight[e].to(graph.device))
                 if used < c.pgo_min_pixels or not bool(torch.isfinite(Zab).all()) or not (0.05 < s < 20.0):
                     continue
-                e_ii.append(torch.tensor([a], device=graph.device))
-                e_jj.append(torch.tensor([b], device=graph.device))
+                if a not in local or b not in local:
+                    continue
+                e_ii.append(torch.tensor([local[a]], device=dev))
+                e_jj.append(torch.tensor([local[b]], device=dev))
                 e_Z.append(Zab[None])
-                drift = max(drift, self._drift(S, a, b, Zab, disps[b_old]))
+                drift = max(drift, self._drift(S_all, a, b, Zab, disps[b_old]))
                 w.append(torch.full((1,), c.pgo_loop_weight, dtype=torch.float64, device=graph.device))
                 used_loops += 1
                 break
@@ -152,8 +176,8 @@ class DenseBAOptimizer(Optimizer):
         if drift < c.pgo_min_drift:
             self.last_pgo = {"applied": False, "drift": drift}
             return f"sim3 pgo skipped (drift {drift:.3g} < pgo_min_drift)"
-        fixed = torch.zeros(n, dtype=torch.bool, device=graph.device)
-        fixed[0] = True
+        fixed = torch.zeros(len(nodes), dtype=torch.bool, device=dev)
+        fixed[: len(olds) + 1] = True  # the loops' old keyframes and the chain's first keyframe p
         res = sim3_pose_graph(S, torch.cat(e_ii), torch.cat(e_jj), torch.cat(e_Z), fixed, torch.cat(w),
                               iters=c.pgo_iters)
         scales = res.poses[:, 7]
@@ -163,11 +187,23 @@ class DenseBAOptimizer(Optimizer):
         if not ok:
             log.warning("sim3 pose graph gave a degenerate result; poses left unchanged")
             return "sim3 pgo rejected (degenerate result)"
-        idx = torch.arange(n, device=graph.device)
-        graph.set_poses(idx, res.poses[:, :7])
-        graph.set_disps(idx, (disps / scales.to(disps.dtype).reshape(n, 1, 1)).clamp(min=1e-3))
-        return (f"sim3 pgo: {used_loops} loop edge(s), cost {res.cost_before:.4g} -> {res.cost_after:.4g} "
-                f"in {res.iterations} it")
+        chain = res.poses[len(olds):]  # [n - p, 8]
+        idx = torch.arange(p, n, device=dev)
+        graph.set_poses(idx, chain[:, :7])
+        graph.set_disps(idx, (disps[p:] / chain[:, 7].to(disps.dtype).reshape(-1, 1, 1)).clamp(min=1e-3))
+        return (f"sim3 pgo: {used_loops} loop edge(s) over keyframes {p}..{n - 1}, cost {res.cost_before:.4g} -> "
+                f"{res.cost_after:.4g} in {res.iterations} it")
+
+    def _chain_start(self, graph, lo: int, newest_new: int) -> int:
+        """First keyframe of the pose graph's chain: the newest keyframe of the previous loop call when it is still
+        in the graph and lies strictly between ``lo`` and the loops' new keyframes, else ``lo``."""
+        if self._corrected_id is None:
+            return lo
+        try:
+            p = int(graph.index_of(self._corrected_id))
+        except (KeyError, IndexError, ValueError):
+            return lo
+        return p if lo < p < newest_new else lo
 
 
 def make_dense_ba(config: BAConfigBase, context: Optional[BuildContext] = None) -> DenseBAOptimizer:

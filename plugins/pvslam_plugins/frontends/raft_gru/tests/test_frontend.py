@@ -258,7 +258,7 @@ def test_eviction_recompute_and_upsampled_disp(net, rgb):
                                atol=1e-5, rtol=0)
     # upsampling: convex with the learned mask while it is in memory ...
     up = fe.upsampled_disp(g, 3)
-    want = upsample_disp(g.disps[3][None, None], fe._kfs[3].upmask.float()[None, None])[0, 0]
+    want = upsample_disp(g.disps[3][None, None], fe._upmask(fe._kfs[3])[None, None])[0, 0]
     assert up.shape == (H, W) and torch.allclose(up, want)
     # ... and after eviction the saved upsampling follows later changes of the low-resolution depth
     for k in range(6, 11):
