@@ -234,15 +234,6 @@ def refine_relative_pose(x0: np.ndarray, x1: np.ndarray, starts: list, f_scale: 
             break
     return out
 
-def _transfer_error(H: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
-    """Symmetric transfer error ``max(|p1 - H p0|, |p0 - H^-1 p1|)`` [N] in pixels."""
-    def apply(M, p):
-        q = np.hstack([p, np.ones((len(p), 1))]) @ M.T
-        return q[:, :2] / np.where(np.abs(q[:, 2:]) < 1e-12, 1e-12, q[:, 2:])
-
-    Hinv = np.linalg.inv(H)
-    return np.maximum(np.linalg.norm(p1 - apply(H, p0), axis=1), np.linalg.norm(p0 - apply(Hinv, p1), axis=1))
-
 
 def homography_score_ratio(H: np.ndarray, E: np.ndarray, p0: np.ndarray, p1: np.ndarray, K: np.ndarray,
                            sigma: float = 0.5) -> float:

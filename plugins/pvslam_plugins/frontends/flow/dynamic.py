@@ -11,8 +11,8 @@ is OR-ed with these regions: either cue marks a pixel dynamic.
 Per keyframe the frontend keeps one mask (:func:`keyframe_vote`: the pixels found dynamic on at least half of its
 judged edges), used where an edge has no mask of its own yet (its first observation) and for the motion filter's
 targets (the frames tracked against that keyframe), so a bus does not drag the non-keyframe poses either.  A new
-keyframe starts from its reference keyframe's mask moved along the tracked flow (:func:`warp_mask`), and by default
-keeps that inherited mask OR-ed into every later judgement of its edges (``dynamic_persist``): a vehicle that
+keyframe starts from its reference keyframe's mask moved along the tracked flow (:func:`warp_mask`), and with
+``dynamic_persist`` (off by default) keeps that inherited mask OR-ed into every later judgement of its edges: a vehicle that
 moves along the camera's direction of travel is epipolar-consistent on most edges and was flagged only on some, so
 once seen moving it stays masked while tracked.  An optional second cue, :func:`depth_candidates`
 (``depth_check``, off: it did not help on the tune seeds), flags depths that disagree across two keyframes.  Every mask
@@ -28,6 +28,8 @@ from typing import Optional
 import cv2
 import numpy as np
 import torch
+
+from pvslam_core.geometry.projective import project_points
 
 
 def residual_candidates(res: torch.Tensor, valid: torch.Tensor, thresh: float, rel_thresh: float) -> torch.Tensor:
@@ -91,9 +93,10 @@ def depth_candidates(R: torch.Tensor, t: torch.Tensor, disp_i: torch.Tensor, dis
     """Pixels whose depth disagrees across two keyframes: bool ``[N, h, w]``.
 
     Keyframe ``i``'s inverse depth ``disp_i [N, h, w]`` moved by the edge transform ``(R [N, 3, 3], t [N, 3])``
-    (camera i -> camera j) predicts the inverse depth each pixel has in ``j``: ``d / Z`` with ``Z = r_3 . ray +
-    t_z d``; ``disp_j [N, h, w]`` (keyframe ``j``'s own estimate) sampled bilinearly at ``coords [N, h, w, 2]``
-    (the pixel's reprojection, BA px) is what ``j`` believes.  A static point agrees once both depths have been
+    (camera i -> camera j) predicts the inverse depth each pixel has in ``j``: ``d / Z`` with ``Z`` the homogeneous
+    depth of :func:`~pvslam_core.geometry.projective.project_points` (``r_3 . ray + t_z d``); ``disp_j [N, h, w]``
+    (keyframe ``j``'s own estimate) sampled bilinearly at ``coords [N, h, w, 2]`` (the pixel's reprojection, BA px)
+    is what ``j`` believes.  A static point agrees once both depths have been
     through BA; a vehicle whose speed relative to the camera changes does not, even where every two-view flow is
     epipolar-consistent (it moves along the camera's direction of travel).  A pixel is a candidate when the two
     differ by more than ``thresh`` x the median inverse depth of ``j`` over the judged pixels (the scale of the
@@ -104,13 +107,7 @@ def depth_candidates(R: torch.Tensor, t: torch.Tensor, disp_i: torch.Tensor, dis
     if N == 0:
         return torch.zeros(0, h, w, dtype=torch.bool, device=disp_i.device)
     dt = disp_i.dtype
-    fx, fy, cx, cy = (float(v) for v in intr.reshape(-1)[:4].tolist())
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=dt, device=disp_i.device),
-                            torch.arange(w, dtype=dt, device=disp_i.device), indexing="ij")
-    x0, y0 = (xs - cx) / fx, (ys - cy) / fy  # [h, w] normalised rays of keyframe i
-    R, t = R.to(dt), t.to(dt)
-    Z = R[:, 2, 0, None, None] * x0 + R[:, 2, 1, None, None] * y0 + R[:, 2, 2, None, None] \
-        + t[:, 2, None, None] * disp_i  # [N, h, w] homogeneous depth in j
+    Z = project_points(R.to(dt), t.to(dt), disp_i.reshape(N, -1), intr.reshape(-1)[:4], h, w)["z"].reshape(N, h, w)
     pred = disp_i / torch.where(Z > 0, Z, torch.ones_like(Z))  # inverse depth in j
     u, v = coords[..., 0].to(dt), coords[..., 1].to(dt)
     grid = torch.stack([2 * u / max(w - 1, 1) - 1, 2 * v / max(h - 1, 1) - 1], -1)  # [N, h, w, 2]

@@ -82,26 +82,19 @@ class DynamicMasking:
         elif regions is not None:
             dyn = regions.to(dyn.device)
         if self.cfg.dynamic_persist:
-            dyn = dyn | self._persisted(srcs, [int(ids[int(i)]) for i in ii.tolist()], h, w).to(dyn.device)
+            dyn = dyn | self._persisted(srcs, h, w).to(dyn.device)
         return dyn, dyn.float().mean(dim=(1, 2)).tolist(), valid.sum(dim=(1, 2)).tolist()
 
-    def _persisted(self, srcs: list, sids: list[int], h: int, w: int) -> torch.Tensor:
+    @staticmethod
+    def _persisted(srcs: list, h: int, w: int) -> torch.Tensor:
         """bool ``[N, h, w]``: the mask each source keyframe inherited from its reference (moved along the tracked
-        flow, before its own edges judged it), kept for the keyframe's whole life (``dynamic_persist``): a vehicle
-        seen moving once stays masked while it is tracked, also on the edges where it happens to be
+        flow when it was added, ``_Keyframe.dyn_prior``), kept for the keyframe's whole life (``dynamic_persist``):
+        a vehicle seen moving once stays masked while it is tracked, also on the edges where it happens to be
         epipolar-consistent."""
-        pri = getattr(self, "_dyn_priors", None)
-        if pri is None:
-            pri = self._dyn_priors = {}
-        for sid in [k for k in pri if k not in self._kfs]:  # keyframes the graph removed
-            del pri[sid]
-        out = torch.zeros(len(sids), h, w, dtype=torch.bool)
-        for n, (kf, sid) in enumerate(zip(srcs, sids)):
-            if sid not in pri:  # first judgement: what it holds now is the inherited mask (or nothing)
-                pri[sid] = (kf.dyn > 0).cpu() if (kf.dyn is not None and not kf.dyn_judged
-                                                   and tuple(kf.dyn.shape) == (h, w)) else None
-            if pri[sid] is not None:
-                out[n] = pri[sid]
+        out = torch.zeros(len(srcs), h, w, dtype=torch.bool)
+        for n, kf in enumerate(srcs):
+            if kf.dyn_prior is not None and tuple(kf.dyn_prior.shape) == (h, w):
+                out[n] = kf.dyn_prior
         return out
 
     def _update_dynamic(self, graph, ii, jj, need: list[int], entries: list, target: torch.Tensor) -> None:

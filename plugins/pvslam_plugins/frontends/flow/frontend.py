@@ -69,6 +69,7 @@ class _Keyframe:
     thing_ids: Optional[torch.Tensor] = None  # int64 [K] ids of thing segments
     dyn: Optional[torch.Tensor] = None  # float32 [h, w] geometric dynamic mask (dynamic.py), 1 = moving
     dyn_judged: bool = False  # dyn comes from this keyframe's own edges (else: moved from its reference's)
+    dyn_prior: Optional[torch.Tensor] = None  # bool [h, w] the mask moved from its reference (dynamic_persist)
 
 
 @dataclass
@@ -308,6 +309,8 @@ class FlowFrontend(DynamicMasking, Frontend):
             ref = self._kfs[pend["last_sid"]].dyn  # its moving regions, moved along the tracked flow
             if ref is not None and tuple(ref.shape) == tuple(pend["fwd"][0].shape[-2:]) and bool((ref > 0).any()):
                 self._kfs[sid].dyn = D.warp_mask(ref, torch.from_numpy(pend["fwd"][0]), self.cfg.dynamic_grow)
+                if self.cfg.dynamic_persist:
+                    self._kfs[sid].dyn_prior = (self._kfs[sid].dyn > 0).cpu()
         self._pending = None
 
     # -------------------------------------------------------------------------------- graph listener --

@@ -132,8 +132,8 @@ class DenseBAOptimizer(Optimizer):
         policy) a closure then bent every keyframe from the old keyframe on, i.e. the part of the previous lap that
         earlier closures had tied to the lap before it; and the pose graph over every keyframe made the later laps
         of a 3000-frame run ~1.4 s per closure.  The keyframes up to the previous correction are as good as the map
-        gets; the chain since then holds this loop's drift (ORB-SLAM corrects the keyframes since the loop's old
-        side too, keeping older loop edges; keeping those fixed is the simpler equivalent here)."""
+        gets; the chain since then holds this loop's drift (ORB-SLAM instead keeps the older loop edges in its graph;
+        fixing the corrected keyframes is the simpler stand-in, not an equivalent)."""
         c = self.config
         n = graph.n
         dev = graph.device
@@ -141,15 +141,15 @@ class DenseBAOptimizer(Optimizer):
         p = self._chain_start(graph, lo, min(max(i, j) for i, j in loops))
         olds = sorted({min(i, j) for i, j in loops if min(i, j) < p})  # fixed nodes outside the chain
         nodes = torch.cat([torch.tensor(olds, dtype=torch.int64), torch.arange(p, n)]).to(dev)  # graph indices
-        local = {g: l for l, g in enumerate(nodes.tolist())}
+        local = {g: l for l, g in enumerate(nodes.tolist())}  # graph index -> node; every loop end is a node
         poses, disps, intr = graph.poses, graph.disps, graph.intrinsics
         S_all = sim3_from_se3(poses, 1.0)
         S = S_all[nodes]  # [m, 8]
         ii, jj, Z = odometry_measurements(S_all[p:])
         ii, jj = ii + len(olds), jj + len(olds)
-        w = [torch.ones(len(ii), dtype=torch.float64, device=graph.device)]
+        w = [torch.ones(len(ii), dtype=torch.float64, device=dev)]
         e_ii, e_jj, e_Z = [ii], [jj], [Z]
-        oii, ojj = obs.ii.to(graph.device), obs.jj.to(graph.device)
+        oii, ojj = obs.ii.to(dev), obs.jj.to(dev)
         used_loops, drift = 0, 0.0
         for li, lj in loops:
             a_new, b_old = max(li, lj), min(li, lj)
@@ -159,16 +159,14 @@ class DenseBAOptimizer(Optimizer):
                     continue
                 e = int(m[0])
                 Zab, s, used = loop_relative_sim3(poses[a], disps[a], poses[b], disps[b], intr,
-                                                  obs.target[e].to(graph.device), obs.weight[e].to(graph.device))
+                                                  obs.target[e].to(dev), obs.weight[e].to(dev))
                 if used < c.pgo_min_pixels or not bool(torch.isfinite(Zab).all()) or not (0.05 < s < 20.0):
-                    continue
-                if a not in local or b not in local:
                     continue
                 e_ii.append(torch.tensor([local[a]], device=dev))
                 e_jj.append(torch.tensor([local[b]], device=dev))
                 e_Z.append(Zab[None])
                 drift = max(drift, self._drift(S_all, a, b, Zab, disps[b_old]))
-                w.append(torch.full((1,), c.pgo_loop_weight, dtype=torch.float64, device=graph.device))
+                w.append(torch.full((1,), c.pgo_loop_weight, dtype=torch.float64, device=dev))
                 used_loops += 1
                 break
         if used_loops == 0:
@@ -201,7 +199,7 @@ class DenseBAOptimizer(Optimizer):
             return lo
         try:
             p = int(graph.index_of(self._corrected_id))
-        except (KeyError, IndexError, ValueError):
+        except KeyError:  # removed since
             return lo
         return p if lo < p < newest_new else lo
 

@@ -22,6 +22,8 @@ def _run(persist: bool):
     extra = torch.zeros(BA_H, BA_W, dtype=torch.bool)
     extra[1:4, 1:4] = True  # a region the reference saw moving that this pair's geometry does not flag
     fe._kfs[2].dyn = torch.maximum(inherited, extra.float())
+    if persist:  # what add_keyframe keeps of the inherited mask
+        fe._kfs[2].dyn_prior = fe._kfs[2].dyn > 0
     g3 = _graph3()
     first = fe.observe(g3, torch.tensor([2]), torch.tensor([1])).dynamic[0]
     judged = fe.observe(g3, torch.tensor([2]), torch.tensor([1])).dynamic[0]
