@@ -158,6 +158,8 @@ def reduced(num_thing_classes: int = 3, num_sem_classes: int = 11, categories: s
 
 
 PRESETS = {"coco_r50": PanopticFPNConfig, "vkitti2_r50": _vkitti2, "reduced": reduced}
+# the preset names as a config field type (the segmenter and the fusion VPS head, which decodes with its heads)
+PresetName = Literal["reduced", "coco_r50", "vkitti2_r50"]
 
 
 def preset(name: str) -> PanopticFPNConfig:

@@ -31,6 +31,8 @@ from pvslam_core.config_base import PluginConfig
 from pvslam_core.interfaces import Segmenter
 from pvslam_core.types import Category, Frame, PanopticSegmentation
 
+from .config import PresetName
+
 __all__ = ["PanopticFPNSegmenterConfig", "PanopticFPNSegmenter", "DeferredPanoptic", "make_segmenter",
            "build_model", "SHIPPED_WEIGHTS", "DEFAULT_WEIGHTS"]
 
@@ -42,7 +44,7 @@ DEFAULT_WEIGHTS = {"reduced": str(SHIPPED_WEIGHTS), "coco_r50": "panoptic-fpn-r5
 
 
 class PanopticFPNSegmenterConfig(PluginConfig):
-    preset: Literal["reduced", "coco_r50", "vkitti2_r50"] = Field(
+    preset: PresetName = Field(
         "reduced", description="architecture: 'reduced' (trained here on the synthetic scenarios, shipped), "
         "'coco_r50' (detectron2 model zoo, 133 COCO categories) or 'vkitti2_r50' (PVO's Virtual KITTI 2 model)")
     weights: Optional[str] = Field(

@@ -6,10 +6,11 @@ from typing import Literal, Optional
 from pydantic import Field
 
 from pvslam_core.config_base import PluginConfig
+from pvslam_plugins.segmenters.panoptic_fpn.config import PresetName
 
 
 class FusionConfig(PluginConfig):
-    preset: Literal["reduced", "coco_r50", "vkitti2_r50"] = Field(
+    preset: PresetName = Field(
         "reduced", description="PanopticFPN architecture whose heads decode the fused features; must be the "
         "segmenter's (the head reads the segmenter's FPN features from each segmentation)")
     segmenter_weights: Optional[str] = Field(
