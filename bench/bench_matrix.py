@@ -63,7 +63,7 @@ def seed_set_of(seed: int) -> str:
 
 
 def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool, colmap: bool,
-         jobs: int) -> list[dict]:
+         jobs: int, overrides: tuple[str, ...] = ()) -> list[dict]:
     """One job per (synthetic scenario, seed) and one per KITTI excerpt, longest first (parallel efficiency)."""
     default_len = {"driving_city": 550, "driving_loop": 488, "handheld_fast": 360, "indoor_handheld": 330}
     cells = []
@@ -71,7 +71,7 @@ def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool
         for seed in ([0] if sc.startswith("kitti_") else seeds):
             cells.append({"scenario": sc, "seed": None if sc.startswith("kitti_") else seed, "frames": frames,
                           "out": str(out), "labels": labels, "colmap": colmap,
-                          "colmap_threads": 1 if jobs > 1 else -1,
+                          "colmap_threads": 1 if jobs > 1 else -1, "overrides": list(overrides),
                           "set": "shared" if sc.startswith("kitti_") else seed_set_of(seed)})
     return sorted(cells, key=lambda c: -(min(frames or 10 ** 9, default_len.get(c["scenario"], 300))))
 
@@ -278,6 +278,9 @@ def main(argv=None) -> int:
                     "each belongs to)")
     ap.add_argument("--frames", type=int, help="first N frames of every sequence (a shorter, cheaper matrix)")
     ap.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
+    ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for every pvslam run (repeatable, TOML value syntax, as `pvslam run "
+                    "--set`): compare a variant with the default on the same cells")
     ap.add_argument("--labels", action="store_true", help="also run pvslam with the oracle labels (synthetic only)")
     ap.add_argument("--colmap", action="store_true", help="also run COLMAP (pycolmap; slow)")
     ap.add_argument("--json", help="write the rows, summary and targets to this JSON file")
@@ -322,7 +325,12 @@ def main(argv=None) -> int:
         print("REPORT seeds: measure on them, never tune on them.")
     print(f"commit {commit()}; {platform.node()} {os.cpu_count()} CPUs; jobs {args.jobs}; frames "
           f"{args.frames or 'default lengths'}; run directories in {out}", flush=True)
-    cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs)
+    if args.override:
+        from pvslam_core.config import load_config
+
+        load_config(None, overrides=args.override)  # a typo fails here, not in every cell
+        print(f"overrides for every pvslam run: {' '.join(args.override)}")
+    cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs, tuple(args.override))
     t0 = time.perf_counter()
     rows = []
     if args.jobs > 1:

@@ -212,7 +212,8 @@ def run_cell(job: dict) -> dict:
     for key, labels in variants:
         try:
             kind = scenario if scenario.startswith("kitti_") else "synthetic"
-            r = run_pvslam(pvslam_overrides(kind, seq_dir, fps, frames, labels), out / "runs",
+            r = run_pvslam(pvslam_overrides(kind, seq_dir, fps, frames, labels) + list(job.get("overrides") or ()),
+                           out / "runs",
                            f"{scenario}-s{seed}-{key}")
             r.update(ate_pct(r.pop("timestamps"), r.pop("poses"), gt_ts, gt))
             i = r["init_frame"]

@@ -84,6 +84,9 @@ class RunSection(PluginConfig):
     checkpoint_every: int = Field(20, ge=1, description="rewrite the trajectory files every N keyframes")
     read_ahead: int = Field(2, ge=0, description="frames read and decoded ahead on a background thread (0: none); "
                             "decoding overlaps the mapping on a second core, memory stays bounded")
+    keep_freed_memory: bool = Field(True, description="Linux/glibc: keep freed memory in the process for reuse "
+                                    "instead of returning and re-faulting it on every BA call (about 12 % less CPU; "
+                                    "pvslam_core/allocator.py); process-wide, set once")
     write_behind: int = Field(4, ge=0, description="panoptic PNG writes queued to a background thread (0: written "
                               "in the pipeline thread); a write error still stops the run, one frame later")
 
@@ -100,6 +103,10 @@ class GraphSection(PluginConfig):
 
     ba_downsample: int = Field(8, ge=1, description="BA resolution = image size / ba_downsample")
     warmup: int = Field(5, ge=2, description="keyframes collected before the map is initialised")
+    warmup_seconds: float = Field(
+        0.65, ge=0, description="...or fewer (at least 3) once they span this many seconds of video (0: off). A slow "
+        "camera over a textureless room made its 5th keyframe only 1.4-2.1 s into the motion; on the 10-12 frames/s "
+        "driving sequences (a keyframe every ~2 frames) 5 keyframes come first (pvslam_core/slam/bootstrap.py)")
     init_min_parallax_deg: float = Field(
         0.5, gt=0, description="two-view initialisation needs at least this median parallax (degrees); KITTI 01's "
         "highway frames give 0.7-0.8 deg between nearby keyframes (far, forward-looking points)")
@@ -147,6 +154,13 @@ class GraphSection(PluginConfig):
         "cauchy", description="robust kernel of the motion-only BA that places non-keyframes and guesses new "
         "keyframe poses ('none': least squares)")
     motion_robust_scale: float = Field(1.0, gt=0, description="its scale in BA-resolution pixels")
+    proximity_max_flow: float = Field(
+        8.0, ge=0, description="keep a proximity edge only when the 90th percentile of its induced "
+        "translation-only flow (the parallax; both directions, BA px, under the current estimate) is at most this; "
+        "0: no limit. Proximity edges are chosen on "
+        "the mean flow, and a forward-driving camera's keyframes 4-25 back qualify while the near road between them "
+        "moves 10-50 BA px, which DIS does not find but reports as consistent: on the synthetic moving_vehicles "
+        "street those edges made the scale grow 2x over 200 frames (pvslam_core/slam/keyframing.py)")
 
 
 class LoopClosureSection(PluginConfig):

@@ -146,6 +146,10 @@ class Pipeline:
         cv2.setRNGSeed(self.pcfg.run.seed)  # RANSAC (two-view init, loop verification) draws from OpenCV's RNG
         if self.pcfg.run.threads > 0:
             torch.set_num_threads(self.pcfg.run.threads)
+        if self.pcfg.run.keep_freed_memory:
+            from .allocator import keep_freed_memory
+
+            keep_freed_memory()
         info = self.info
         ds = self.pcfg.graph.ba_downsample
         if info.intrinsics.width % ds or info.intrinsics.height % ds:

@@ -198,22 +198,24 @@ def test_loop_test_catches_loop_closure_off(block_off):
 
 
 # --------------------------------------------------------------------------------------- dynamic masking --
-MV_FRAMES = 120  # moving_vehicles: a lead car, overtaking cars and an oncoming bus in the first 120 frames
-# ATE, % of the path, oracle labels (the masking is the frontend's eq. 4 on the labelled things), seeds 0 / 1 / 2:
-#   masking on   0.78 / 0.58 / 0.46
-#   masking off 11.8  / 5.36 / 1.64
-# How much the masking matters depends on where the vehicles are (seed 2's street barely needs it), so the bound
-# is for the seed-0 street the test runs: 2.6x above its default, 5.9x below its masking-off run.
-MV_BOUND = 2.0
+MV_FRAMES = 120  # busy_street: buses and cars up to a third of the image crossing and driving alongside
+# ATE, % of the path, oracle labels (the masking is the frontend's eq. 4 on the labelled things), 120 frames, seeds
+# 0 / 1 / 2 (measured by helper H1, session 2026-12-02, with graph.proximity_max_flow):
+#   busy_street      masking on 7.70 / 1.27 / 3.49   off 19.64 / 2.66 / 9.55
+#   moving_vehicles  masking on 0.81 / 0.25 / 0.25   off  0.62 / 0.35 / 1.08
+# moving_vehicles was this test's street until its scale drift (long proximity edges over the near road) was
+# fixed: since then masking barely matters there, so the test runs the seed-0 busy street, where it does; the
+# bound is 1.6x above its default and 1.6x below its masking-off run.
+MV_BOUND = 12.0
 
 
 @pytest.fixture(scope="module")
 def street():
-    return _seq("moving_vehicles", MV_FRAMES)
+    return _seq("busy_street", MV_FRAMES)
 
 
 @pytest.mark.parametrize("broken", [[], MASK_OFF], ids=["default", "mask_off"])
-def test_moving_vehicles_bound(tmp_path, street, broken):
+def test_dynamic_masking_bound(tmp_path, street, broken):
     """The bound on the default configuration, and its test of the test with the dynamic masking off."""
     res = _run(tmp_path, street, "segmenter.plugin=labels", "vps.plugin=none", *broken)  # oracle labels
     assert res.poses.shape[0] == MV_FRAMES and np.isfinite(res.poses.numpy()).all()

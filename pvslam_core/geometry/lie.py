@@ -60,18 +60,57 @@ def hat(v: torch.Tensor) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------------------------- quaternions
+_CONJ: dict = {}
+
+
 def quat_conj(q: torch.Tensor) -> torch.Tensor:
-    return torch.cat([-q[..., :3], q[..., 3:]], dim=-1)
+    # one multiplication by a cached (-1, -1, -1, 1) (exact) instead of a negation, two slices and a cat
+    key = (q.dtype, str(q.device))
+    sign = _CONJ.get(key)
+    if sign is None:
+        sign = _CONJ[key] = torch.tensor([-1.0, -1.0, -1.0, 1.0], dtype=q.dtype, device=q.device)
+    return q * sign
+
+
+_CONST: dict = {}
+
+
+def _bilinear_tables(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Constant tables (cached per dtype/device) that turn the two quaternion formulas below into one small matmul
+    of the outer product ``a_i b_j [..., 16]``: ``QM [16, 4]`` (Hamilton product, entries +-1) and ``RM [16, 9]`` /
+    ``RI [9]`` (rotation matrix ``RI + RM^T (q q^T)``, entries +-2).  Why: the element-wise formulas were ~40 tiny
+    tensor ops each (Python dispatch dominated: these run ~10k times per run); the coefficients are exact (0, +-1,
+    +-2), so the rotation matrix is bit-identical and the product differs only in the order of a 4-term sum."""
+    key = (dtype, str(device))
+    hit = _CONST.get(key)
+    if hit is None:
+        X, Y, Z, W = range(4)
+        qm = torch.zeros(4, 4, 4, dtype=torch.float64)  # [i (of a), j (of b), out]
+        for (i, j, o, sgn) in [
+            (W, X, X, 1), (X, W, X, 1), (Y, Z, X, 1), (Z, Y, X, -1),
+            (W, Y, Y, 1), (Y, W, Y, 1), (Z, X, Y, 1), (X, Z, Y, -1),
+            (W, Z, Z, 1), (Z, W, Z, 1), (X, Y, Z, 1), (Y, X, Z, -1),
+            (W, W, W, 1), (X, X, W, -1), (Y, Y, W, -1), (Z, Z, W, -1),
+        ]:
+            qm[i, j, o] = sgn
+        rm = torch.zeros(4, 4, 9, dtype=torch.float64)  # one coefficient per monomial q_i q_j (i <= j)
+        for (i, j, o, c) in [
+            (Y, Y, 0, -2), (Z, Z, 0, -2), (X, Y, 1, 2), (Z, W, 1, -2), (X, Z, 2, 2), (Y, W, 2, 2),
+            (X, Y, 3, 2), (Z, W, 3, 2), (X, X, 4, -2), (Z, Z, 4, -2), (Y, Z, 5, 2), (X, W, 5, -2),
+            (X, Z, 6, 2), (Y, W, 6, -2), (Y, Z, 7, 2), (X, W, 7, 2), (X, X, 8, -2), (Y, Y, 8, -2),
+        ]:
+            rm[i, j, o] = c
+        ri = torch.eye(3, dtype=torch.float64).reshape(9)
+        hit = tuple(t.reshape(-1, t.shape[-1]).to(device, dtype) if t.dim() > 1 else t.to(device, dtype)
+                    for t in (qm, rm, ri))
+        _CONST[key] = hit
+    return hit
 
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product of ``[x, y, z, w]`` quaternions."""
-    av, aw = a[..., :3], a[..., 3:]
-    bv, bw = b[..., :3], b[..., 3:]
-    av, bv = torch.broadcast_tensors(av, bv)
-    v = aw * bv + bw * av + torch.cross(av, bv, dim=-1)
-    w = aw * bw - (av * bv).sum(-1, keepdim=True)
-    return torch.cat([v, w], dim=-1)
+    outer = a.unsqueeze(-1) * b.unsqueeze(-2)  # [..., 4, 4] (broadcast batch and dtype)
+    return outer.reshape(outer.shape[:-2] + (16,)) @ _bilinear_tables(outer.dtype, outer.device)[0]
 
 
 def quat_rotate(q: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -83,19 +122,12 @@ def quat_rotate(q: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Unit quaternion ``[..., 4]`` (xyzw) -> rotation matrix ``[..., 3, 3]``."""
-    x, y, z, w = q.unbind(-1)
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    m = torch.stack(
-        [
-            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-        ],
-        dim=-1,
-    )
+    """Unit quaternion ``[..., 4]`` (xyzw) -> rotation matrix ``[..., 3, 3]``:
+    ``[[1 - 2(yy + zz), 2(xy - wz), 2(xz + wy)], [2(xy + wz), 1 - 2(xx + zz), 2(yz - wx)],
+    [2(xz - wy), 2(yz + wx), 1 - 2(xx + yy)]]`` (one matmul of ``q q^T`` with exact coefficients)."""
+    _, rm, ri = _bilinear_tables(q.dtype, q.device)
+    outer = q.unsqueeze(-1) * q.unsqueeze(-2)
+    m = outer.reshape(outer.shape[:-2] + (16,)) @ rm + ri  # (not addmm: it would add the 1 first)
     return m.reshape(q.shape[:-1] + (3, 3))
 
 
@@ -125,15 +157,34 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     return torch.where(q[..., 3:] < 0, -q, q)
 
 
+def _select(small: torch.Tensor, x: torch.Tensor, f_small, f_large) -> torch.Tensor:
+    """``where(small, f_small(x), f_large(x with 1 where small))``, evaluating one branch only when all entries
+    take it (bit-identical; on the CPU, where the test costs no device sync: these run on a handful of elements,
+    so every skipped tiny op counts)."""
+    if x.device.type == "cpu" and not x.requires_grad:
+        if not bool(small.any()):
+            return f_large(x)
+        if bool(small.all()):
+            return f_small(x)
+    return torch.where(small, f_small(x), f_large(torch.where(small, torch.ones_like(x), x)))
+
+
 def so3_exp(phi: torch.Tensor) -> torch.Tensor:
     """Rotation vector ``[..., 3]`` -> unit quaternion ``[..., 4]``."""
-    th2 = (phi * phi).sum(-1, keepdim=True)
+    return _so3_exp(phi, (phi * phi).sum(-1, keepdim=True))
+
+
+def _so3_exp(phi: torch.Tensor, th2: torch.Tensor) -> torch.Tensor:
     small = th2 < _eps(phi.dtype) ** 2 * 100
-    th2s = torch.where(small, torch.ones_like(th2), th2)
-    th = torch.sqrt(th2s)
-    k = torch.where(small, 0.5 - th2 / 48.0 + th2 * th2 / 3840.0, torch.sin(0.5 * th) / th)
-    w = torch.where(small, 1.0 - th2 / 8.0 + th2 * th2 / 384.0, torch.cos(0.5 * th))
-    return torch.cat([k * phi, w], dim=-1)
+
+    def taylor(t2):
+        return torch.cat([(0.5 - t2 / 48.0 + t2 * t2 / 3840.0) * phi, 1.0 - t2 / 8.0 + t2 * t2 / 384.0], dim=-1)
+
+    def closed(t2):
+        th = torch.sqrt(t2)
+        return torch.cat([torch.sin(0.5 * th) / th * phi, torch.cos(0.5 * th)], dim=-1)
+
+    return _select(small, th2, taylor, closed)
 
 
 def so3_log(q: torch.Tensor) -> torch.Tensor:
@@ -152,11 +203,16 @@ def so3_log(q: torch.Tensor) -> torch.Tensor:
 def _so3_left_jacobian_coeffs(th2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Coefficients ``a, b`` of ``V = I + a phi^ + b phi^2`` (SO3 left Jacobian)."""
     small = th2 < 1e-6 if th2.dtype == torch.float64 else th2 < 1e-3
-    t2 = torch.where(small, torch.ones_like(th2), th2)
-    th = torch.sqrt(t2)
-    a = torch.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - torch.cos(th)) / t2)
-    b = torch.where(small, 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0, (th - torch.sin(th)) / (t2 * th))
-    return a, b
+
+    def taylor(t2):
+        return torch.cat([0.5 - t2 / 24.0 + t2 * t2 / 720.0, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0], dim=-1)
+
+    def closed(t2):
+        th = torch.sqrt(t2)
+        return torch.cat([(1.0 - torch.cos(th)) / t2, (th - torch.sin(th)) / (t2 * th)], dim=-1)
+
+    ab = _select(small, th2, taylor, closed)
+    return ab[..., 0:1], ab[..., 1:2]
 
 
 def _so3_left_jacobian_inv_coeff(th2: torch.Tensor) -> torch.Tensor:
@@ -186,7 +242,7 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     c1 = torch.cross(phi, tau, dim=-1)
     c2 = torch.cross(phi, c1, dim=-1)
     t = tau + a * c1 + b * c2
-    return torch.cat([t, so3_exp(phi)], dim=-1)
+    return torch.cat([t, _so3_exp(phi, th2)], dim=-1)
 
 
 def se3_log(T: torch.Tensor) -> torch.Tensor:
@@ -210,7 +266,12 @@ def se3_mul(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     """Composition ``A o B`` (apply B first)."""
     q = quat_mul(A[..., 3:], B[..., 3:])
     q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
-    t = quat_rotate(A[..., 3:], B[..., :3]) + A[..., :3]
+    # R_A t_B + t_A with the rotation matrix (4 ops; the two cross products of quat_rotate were ~10)
+    R, tB = quat_to_rotmat(A[..., 3:]), B[..., :3].unsqueeze(-1)
+    if R.dtype != tB.dtype:  # mixed precision promotes, as the element-wise formula did
+        ct = torch.promote_types(R.dtype, tB.dtype)
+        R, tB = R.to(ct), tB.to(ct)
+    t = (R @ tB).squeeze(-1) + A[..., :3]
     t, q = _bcast_last(t, q)
     return torch.cat([t, q], dim=-1)
 

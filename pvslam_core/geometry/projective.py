@@ -36,13 +36,13 @@ def pixel_grid(h: int, w: int, device: str | torch.device = "cpu", dtype: torch.
 _RAYS: dict = {}
 
 
-def _rays(h: int, w: int, fx: float, fy: float, cx: float, cy: float, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normalised ray coordinates ``X0, Y0 [h*w]`` of the pixel grid (cached: the BA calls this every iteration)."""
+def _rays(h: int, w: int, fx: float, fy: float, cx: float, cy: float, dtype, device) -> torch.Tensor:
+    """Normalised rays ``[3, h*w] = (X0, Y0, 1)`` of the pixel grid (cached: the BA calls this every iteration)."""
     key = (h, w, fx, fy, cx, cy, dtype, str(device))
     hit = _RAYS.get(key)
     if hit is None:
         grid = pixel_grid(h, w, device, dtype).reshape(-1, 2)
-        hit = ((grid[:, 0] - cx) / fx, (grid[:, 1] - cy) / fy)
+        hit = torch.stack([(grid[:, 0] - cx) / fx, (grid[:, 1] - cy) / fy, torch.ones_like(grid[:, 0])])
         if len(_RAYS) > 32:
             _RAYS.clear()
         _RAYS[key] = hit
@@ -71,33 +71,55 @@ def project_points(
     ``R [E,3,3]``, ``t [E,3]``, ``d [E, h*w]`` in one dtype.  Returns a dict with ``u, v [E, P]``, ``valid``,
     ``z`` (homogeneous depth) and with ``jacobians``: ``Ji, Jj [E, P, 2, 6]`` and ``Jd [E, P, 2]``.
     ``jacobians="j"`` skips ``Ji`` (it is ``-Jj Ad`` with ``Ad = out["Ad"]``, the adjoint of ``G_ij``);
-    ``jacobians="parts"`` returns only the rows ``JuT, JvT [E, 6, P]`` (transposed), ``Jdu, Jdv [E, P]`` and ``Ad``.
+    ``jacobians="parts"`` returns only the rows ``JuT, JvT [E, 6, P]`` (transposed), ``Jdu, Jdv [E, P]`` and ``Ad``;
+    ``jacobians="pose"`` only ``JuT, JvT`` (motion-only BA).
     ``translation_only`` uses ``R = I`` (for the frame distance).
     """
     dtype, device = d.dtype, d.device
     fx, fy, cx, cy = (float(v) for v in intr.tolist())
-    X0, Y0 = _rays(h, w, fx, fy, cx, cy, dtype, device)
+    rays = _rays(h, w, fx, fy, cx, cy, dtype, device)  # [3, P]
     if translation_only:
-        X = X0 + t[:, 0:1] * d
-        Y = Y0 + t[:, 1:2] * d
+        X = rays[0] + t[:, 0:1] * d
+        Y = rays[1] + t[:, 1:2] * d
         Z = 1.0 + t[:, 2:3] * d
     else:
-        X = R[:, 0, 0:1] * X0 + R[:, 0, 1:2] * Y0 + R[:, 0, 2:3] + t[:, 0:1] * d
-        Y = R[:, 1, 0:1] * X0 + R[:, 1, 1:2] * Y0 + R[:, 1, 2:3] + t[:, 1:2] * d
-        Z = R[:, 2, 0:1] * X0 + R[:, 2, 1:2] * Y0 + R[:, 2, 2:3] + t[:, 2:3] * d
+        # R (X0, Y0, 1) + t d: one [3E, 3] x [3, P] product (matmul folds the batch) instead of 21 element-wise ops
+        # (in the promoted dtype of R, t, d, as the element-wise formula was)
+        ct = torch.promote_types(torch.promote_types(R.dtype, t.dtype), dtype)
+        XYZ = torch.matmul(R.to(ct), rays.to(ct)).addcmul_(t.unsqueeze(-1), d.unsqueeze(1))  # [E, 3, P]
+        X, Y, Z = XYZ.unbind(1)
     valid = Z > min_depth
     Zs = torch.where(valid, Z, torch.ones_like(Z))
-    iz = 1.0 / Zs
+    iz = Zs.reciprocal()
     xn, yn = X * iz, Y * iz  # normalised image coordinates in camera j
     out = {"u": fx * xn + cx, "v": fy * yn + cy, "valid": valid, "z": Z}
     if not jacobians:
         return out
     hz = d * iz  # homogeneous coordinate (inverse depth of the source pixel) / z
-    zero = torch.zeros_like(xn)
     # d(u, v) / d xi_j with G_j <- Exp(xi_j) G_j  (DROID: fx [h d', 0, -X h d'^2, -X Y d'^2, 1 + X^2 d'^2, -Y d'])
     # stored transposed, [E, 6, P], which is the layout the BA's batched matmuls want
-    JuT = torch.stack([hz, zero, -xn * hz, -xn * yn, 1 + xn * xn, -yn], dim=1) * fx
-    JvT = torch.stack([zero, hz, -yn * hz, -1 - yn * yn, xn * yn, xn], dim=1) * fy
+    if torch.is_grad_enabled() and any(x.requires_grad for x in (R, t, d)):
+        zero = torch.zeros_like(xn)  # differentiable path (the raft_gru trainer's BA layer)
+        JuT = torch.stack([hz, zero, -xn * hz, -xn * yn, 1 + xn * xn, -yn], dim=1) * fx
+        JvT = torch.stack([zero, hz, -yn * hz, -1 - yn * yn, xn * yn, xn], dim=1) * fy
+    else:  # each row written once into its place (no stack copy, no extra pass for the focal length)
+        JuT, JvT = torch.empty(2, xn.shape[0], 6, xn.shape[1], dtype=xn.dtype, device=device).unbind(0)
+        torch.mul(hz, fx, out=JuT[:, 0])
+        JuT[:, 1].zero_()
+        torch.mul(xn * hz, -fx, out=JuT[:, 2])
+        xy = xn * yn
+        torch.mul(xy, -fx, out=JuT[:, 3])
+        torch.mul(xn, xn, out=JuT[:, 4]).add_(1.0).mul_(fx)
+        torch.mul(yn, -fx, out=JuT[:, 5])
+        JvT[:, 0].zero_()
+        torch.mul(hz, fy, out=JvT[:, 1])
+        torch.mul(yn * hz, -fy, out=JvT[:, 2])
+        torch.mul(yn, yn, out=JvT[:, 3]).add_(1.0).mul_(-fy)
+        torch.mul(xy, fy, out=JvT[:, 4])
+        torch.mul(xn, fy, out=JvT[:, 5])
+    out.update(JuT=JuT, JvT=JvT)
+    if jacobians == "pose":
+        return out
     Jdu = (fx * iz) * (t[:, 0:1] - t[:, 2:3] * xn)
     Jdv = (fy * iz) * (t[:, 1:2] - t[:, 2:3] * yn)
     # d / d xi_i = -Jj Ad(G_ij);  Ad = [[R, t^ R], [0, R]]
@@ -106,7 +128,7 @@ def project_points(
     Ad[:, :3, :3] = R
     Ad[:, :3, 3:] = tR
     Ad[:, 3:, 3:] = R
-    out.update(JuT=JuT, JvT=JvT, Jdu=Jdu, Jdv=Jdv, Ad=Ad)
+    out.update(Jdu=Jdu, Jdv=Jdv, Ad=Ad)
     if jacobians == "parts":
         return out
     E, P = xn.shape

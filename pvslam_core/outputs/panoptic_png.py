@@ -117,12 +117,31 @@ def _unique_segments(seg) -> list:
     return out
 
 
+def _labels(flat: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Row of each value of ``flat`` in the sorted unique non-zero ``keys`` (``-1`` where absent): a lookup table
+    when the ids are small (the usual ``category * 1000 + n``), else a binary search per pixel."""
+    K = len(keys)
+    if K == 0:
+        return np.full(flat.shape, -1, dtype=np.int64)
+    hi = int(keys[-1])
+    if int(keys[0]) > 0 and hi < 4 * flat.size + 65536:  # (a longer table costs more than the search)
+        lut = np.full(hi + 2, -1, dtype=np.int64)  # lut[0] (void, negative ids) and lut[hi + 1] stay -1
+        lut[keys] = np.arange(K)
+        return lut[np.clip(flat, 0, hi + 1)]
+    pos = np.searchsorted(keys, flat).clip(max=K - 1)
+    return np.where(keys[pos] == flat, pos, -1)
+
+
+def _segment_keys(seg) -> np.ndarray:
+    """Sorted non-void ids of ``seg.segments``."""
+    return np.array(sorted({int(s.id) for s in seg.segments} - {0}), dtype=np.int64)
+
+
 def coco_ids(seg) -> np.ndarray:
     """int64 ids ``[H, W]`` as written to the PNG: ids without a :class:`Segment` become 0 (void), so that the
     PNG and ``segments_info`` hold exactly the same ids (the COCO panoptic evaluation rejects any mismatch)."""
     ids = _np(seg.ids).astype(np.int64)
-    known = np.array(sorted({int(s.id) for s in seg.segments} - {0}), dtype=np.int64)
-    return np.where(np.isin(ids, known), ids, 0)
+    return np.where(_labels(ids, _segment_keys(seg)) >= 0, ids, 0)
 
 
 def segments_info(seg, ids: Optional[np.ndarray] = None) -> list[dict]:
@@ -130,19 +149,23 @@ def segments_info(seg, ids: Optional[np.ndarray] = None) -> list[dict]:
     present in the (COCO-cleaned) id map, with ``iscrowd`` 0, pixel ``area`` and ``bbox`` [x, y, w, h]."""
     ids = coco_ids(seg) if ids is None else ids
     h, w = ids.shape
-    flat = ids.reshape(-1)
-    present, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    # bounding boxes of every id at once: sort pixels by id, then min/max over each id's run of pixels
-    order = np.argsort(inv.reshape(-1), kind="stable")
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    xs, ys = order % w, order // w
-    x0, x1 = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)
-    y0, y1 = np.minimum.reduceat(ys, starts), np.maximum.reduceat(ys, starts)
-    row = {int(v): k for k, v in enumerate(present.tolist())}
+    keys = _segment_keys(seg)
+    K = len(keys)
+    lab = _labels(ids, keys)  # [H, W] row of each pixel's segment, -1 for void / unknown ids
+    # area and bounding box of every segment at once from pixel counts per (segment, row) and (segment, column)
+    # (bincounts instead of sorting the pixels by id: 0.3 vs 2.2 ms at 320x240)
+    rows = np.bincount((lab * h + np.arange(h)[:, None])[lab >= 0], minlength=K * h).reshape(K, h) > 0
+    cols = np.bincount((lab * w + np.arange(w)[None, :])[lab >= 0], minlength=K * w).reshape(K, w)
+    counts = cols.sum(1)
+    cols = cols > 0
+    y0, y1 = rows.argmax(1), h - 1 - rows[:, ::-1].argmax(1)
+    x0, x1 = cols.argmax(1), w - 1 - cols[:, ::-1].argmax(1)
     out = []
     for s in _unique_segments(seg):
-        k = row.get(int(s.id))
-        if int(s.id) == 0 or k is None:
+        if int(s.id) == 0:
+            continue
+        k = int(np.searchsorted(keys, int(s.id)))
+        if counts[k] == 0:
             continue
         out.append({
             "id": int(s.id),
@@ -324,8 +347,14 @@ class PanopticWriter:
         }
 
     def _journal_line(self, obj: dict) -> None:
-        # compact (the C encoder); flushed to the OS per line, so a killed process loses nothing written
-        self._journal.write(json.dumps(to_jsonable(obj), separators=(",", ":"), allow_nan=False) + "\n")
+        # compact (the C encoder); flushed to the OS per line, so a killed process loses nothing written.
+        # The lines are built here from str keys and plain numbers: encoded as they are (the recursive to_jsonable
+        # walk cost more than the encoding); only a NaN score or a numpy value takes the sanitising walk
+        try:
+            line = json.dumps(obj, separators=(",", ":"), allow_nan=False)
+        except (TypeError, ValueError):
+            line = json.dumps(to_jsonable(obj), separators=(",", ":"), allow_nan=False)
+        self._journal.write(line + "\n")
         self._journal.flush()
 
     def flush(self) -> None:

@@ -9,6 +9,14 @@ kept when *either* the mean or a high quantile of the same per-pixel distance is
 returns ``max(mean, q90 * thresh / max_flow)``, so the one threshold test of the caller (``< redundant_thresh``)
 reads "mean < thresh and q90 < max_flow".
 
+The same quantile, of the translation-only flow, decides which proximity edges the mapper keeps
+(:func:`pair_flow_quantile`, ``graph.proximity_max_flow``): a proximity edge is chosen on the *mean* distance
+(DROID-SLAM), and on a camera driving forward the keyframes 4-25 back along the road qualify (far scene: mean under
+16 BA px) while the near road between them moves 10-50 BA px, beyond what DIS finds (median flow found / true flow
+0.08 at 8-16 BA px on moving_vehicles seed 1, yet forward-backward consistent: both directions stick near zero on
+the plain road).  Those edges read as "the near field is far away" and the map's scale grew 2x over 200 frames;
+without them, or with true flow on them, it did not (bench/RESULTS.md, issue 13 / 11, session 2026-12-02).
+
 Poses are camera-to-world ``T_wc [7]``; depths are inverse depths at the BA resolution.
 """
 from __future__ import annotations
@@ -48,3 +56,20 @@ def keyframe_distance(poses_wc: torch.Tensor, disp_i: torch.Tensor, intr: torch.
     if max_flow <= 0:
         return mean
     return max(mean, float(torch.quantile(dv.float(), quantile)) * thresh / max_flow)
+
+
+def pair_flow_quantile(poses_wc: torch.Tensor, disp_i: torch.Tensor, disp_j: torch.Tensor, intr: torch.Tensor,
+                       quantile: float = 0.9, min_valid: float = 0.75) -> float:
+    """The larger of the two directions' ``quantile`` of the *translation-only* induced flow (the parallax:
+    :func:`induced_flow` with ``beta = 0``) between keyframes ``i`` (``poses_wc[0]``, inverse depth ``disp_i [h, w]``)
+    and ``j`` (``poses_wc[1]``, ``disp_j``), BA px; 1000 when fewer than ``min_valid`` of either keyframe's pixels stay
+    in front of the other camera (as :func:`keyframe_distance`).  Rotation is left out on purpose: its flow does not
+    depend on the depth, so the frontend's flow started from the predicted motion follows it (a hand-held camera
+    turning on the spot keeps its proximity edges); the parallax of a near field is what it cannot find."""
+    out = 0.0
+    for poses, disp in ((poses_wc, disp_i), (poses_wc.flip(0), disp_j)):
+        dist, valid = induced_flow(poses, disp, intr, beta=0.0)
+        if float(valid.float().mean()) < min_valid:
+            return 1000.0
+        out = max(out, float(torch.quantile(dist[valid].float(), quantile)))
+    return out

@@ -42,7 +42,7 @@ from .edges import active_edges, loop_edges, neighbour_edges, proximity_edges, r
 from .frame_poses import FrameEntry, FramePoses
 from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph, _grid
 from .bootstrap import Bootstrap
-from .keyframing import keyframe_distance
+from .keyframing import keyframe_distance, pair_flow_quantile
 from .fragments import Fragments, align_fragment, fragment_indices, relocalise, replace_gap_frames
 from .loops import LoopPolicy
 
@@ -318,9 +318,31 @@ class Mapper(GraphListener):
             ii, jj = neighbour_edges(k, self.cfg, first=self.fragment_start)
             g.add_edges(ii, jj, EDGE_ODOMETRY)
             if self.initialized:
-                ii, jj = proximity_edges(g, k, self.cfg, first=self.fragment_start)
+                ii, jj = self._reliable(*proximity_edges(g, k, self.cfg, first=self.fragment_start))
                 if ii.numel():
                     g.add_edges(ii, jj, EDGE_PROXIMITY)
+
+    def _reliable(self, ii: torch.Tensor, jj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The proximity edges ``(ii, jj)`` whose pair's 90th-percentile parallax (translation-only induced flow,
+        both directions, current estimate: :func:`.keyframing.pair_flow_quantile`) is at most
+        ``graph.proximity_max_flow`` (0: all).  Why: see :mod:`.keyframing`; a proximity edge is a long baseline
+        chosen on the *mean* flow, and the near field of a forward-moving camera moves farther than the frontend's
+        flow can follow."""
+        limit = self.cfg.proximity_max_flow
+        # a young map keeps them all: its depths come from the two-view initialisation and a few window BAs, so
+        # the parallax read from them is a guess, and the long edges are what holds its scale (with the filter from
+        # the first keyframe, driving_block seed 0 lost them all over its first 30 frames: 0.17 -> 1.03 % ATE)
+        if limit <= 0 or ii.numel() == 0 or int(ii.max()) - self.fragment_start < self.cfg.active_window:
+            return ii, jj
+        g = self.graph
+        keep = {}
+        for a, b in zip(ii.tolist(), jj.tolist()):
+            pair = (min(a, b), max(a, b))
+            if pair not in keep:  # both directions share the decision
+                poses = torch.stack([g.poses[pair[0]].double(), g.poses[pair[1]].double()])
+                keep[pair] = pair_flow_quantile(poses, g.disps[pair[0]], g.disps[pair[1]], g.intrinsics) <= limit
+        mask = torch.tensor([keep[(min(a, b), max(a, b))] for a, b in zip(ii.tolist(), jj.tolist())], dtype=torch.bool)
+        return ii[mask], jj[mask]
 
     # --------------------------------------------------------------------------------- initialisation --
     def _try_initialise(self, k: int) -> None:

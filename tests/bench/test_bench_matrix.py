@@ -129,3 +129,34 @@ def test_reprint_shows_a_saved_run(tmp_path, capsys):
     assert bench_matrix.main(["--reprint", str(tmp_path / "m.json"), "--markdown"]) == 0
     md = capsys.readouterr().out
     assert "| scenario | seed |" in md and "| 29.00 * | 1.07x |" in md
+
+
+def test_overrides_reach_every_pvslam_run_and_a_typo_fails_first(tmp_path, monkeypatch):
+    cells = bench_matrix.plan(["busy_street", "kitti_06"], [3], None, tmp_path, False, False, 1,
+                              ("graph.warmup=3",))
+    assert all(c["overrides"] == ["graph.warmup=3"] for c in cells)
+    seen = []
+
+    def fake_run(overrides, out, name):  # what the cell hands to the pipeline
+        seen.append(list(overrides))
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(matrix_jobs, "run_pvslam", fake_run)
+    monkeypatch.setattr(matrix_jobs, "synthetic_sequence", lambda *a: _fake_sequence(tmp_path))
+    row = matrix_jobs.run_cell({"scenario": "busy_street", "seed": 3, "frames": 5, "out": str(tmp_path),
+                                "overrides": ["graph.warmup=3"]})
+    assert "stop here" in row["pvslam"]["error"] and seen and seen[0][-1] == "graph.warmup=3"
+    with pytest.raises(Exception, match="warmupp"):
+        bench_matrix.main(["--scenarios", "busy_street", "--seeds", "3", "--override", "graph.warmupp=3",
+                           "--out", str(tmp_path)])
+
+
+def _fake_sequence(tmp_path):
+    """A 5-frame synthetic-like folder: meta.json and a TUM ground truth (all run_cell reads before pvslam)."""
+    import json
+
+    d = tmp_path / "seq"
+    d.mkdir(exist_ok=True)
+    (d / "meta.json").write_text(json.dumps({"fps": 10.0}))
+    (d / "groundtruth.txt").write_text("".join(f"{0.1 * i:.1f} {i} 0 0 0 0 0 1\n" for i in range(5)))
+    return d

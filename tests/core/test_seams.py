@@ -79,7 +79,7 @@ def test_edges_retire_before_initialisation(seams_registry, fake_config_file):
     try:
         res = run_config(fake_config_file, registry=seams_registry, overrides=[
             'frontend.plugin="stateful"', "dataset.frames=40", "frontend.keyframe_every=1",
-            "graph.active_window=4", "graph.warmup=1000"])
+            "graph.active_window=4", "graph.warmup=1000", "graph.warmup_seconds=0"])
         tracking = res.metrics["tracking"]
     except Exception as exc:  # a run without any pose estimate may stop with an error; the graph is what counts
         pytest.fail(f"run failed: {exc}")

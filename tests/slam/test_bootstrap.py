@@ -110,3 +110,30 @@ def test_earlier_keyframe_without_a_pose_keeps_its_neighbours(monkeypatch):
     assert not torch.equal(poses[a], poses[a + 1])  # the pair has a baseline
     for j in range(a):  # every keyframe before the pair took the pose of the one after it (= the pair's first)
         assert torch.equal(poses[j], poses[a])
+
+
+def test_warmup_ends_at_warmup_keyframes_or_three_spanning_warmup_seconds(monkeypatch):
+    """Keyframes every 0.2 s (10 frames/s, every second frame): with ``warmup = 5`` the first initialisation is
+    tried at keyframe 4, unless at least 3 keyframes span ``warmup_seconds`` first (a slow camera makes keyframes
+    rarely: collecting 5 of them took 2.1 s on a textureless room)."""
+    real_observe = Mapper._observe
+
+    def first_try(**graph):
+        tried: list[int] = []
+
+        def observe(self, ii, jj):
+            if not self.initialized:
+                tried.append(int(jj[0]))
+            return real_observe(self, ii, jj)
+
+        monkeypatch.setattr(Mapper, "_observe", observe)
+        m, ds = _build(frames=16, warmup=5, **graph)
+        for f in ds:
+            m.process(f, None)
+        assert m.initialized
+        return tried[0]
+
+    assert first_try(warmup_seconds=0) == 4  # keyframes 0..4: the count alone
+    assert first_try(warmup_seconds=0.4) == 2  # 3 keyframes (0, 0.2, 0.4 s) already span 0.4 s
+    assert first_try(warmup_seconds=0.5) == 3  # 4 keyframes span 0.6 s
+    assert first_try(warmup_seconds=5.0) == 4  # never before the count

@@ -26,7 +26,7 @@ ID_OVERFLOW = 10_000_000
 STUFF_ID_NONPOSITIVE = 9_999_000
 
 __all__ = ["ID_STRIDE", "ID_OVERFLOW", "STUFF_ID_NONPOSITIVE", "compose_id", "decompose_id", "stuff_id", "lut",
-           "working_shape", "subsample", "IdAllocator", "match_segments", "warp_previous_ids",
+           "unique_ids", "working_shape", "subsample", "IdAllocator", "match_segments", "warp_previous_ids",
            "relabel", "WarpOptions", "TrackMemory", "segment_velocities"]
 
 
@@ -48,10 +48,29 @@ def lut(keys: np.ndarray, values: np.ndarray, query: np.ndarray, default: int) -
     """values[keys == q] for each q in ``query`` (``default`` where absent)."""
     if len(keys) == 0:
         return np.full(query.shape, default, dtype=values.dtype if len(values) else np.int64)
+    lo, hi = int(keys.min()), int(keys.max())
+    if lo >= 0 and hi < 4 * query.size + 65536 and query.dtype.kind in "iu" and len(np.unique(keys)) == len(keys):
+        # small unique non-negative keys (segment ids; the table costs less than the search up to a few entries
+        # per query): a table lookup per pixel instead of a binary search (the last slot holds the default;
+        # out-of-range queries are clipped onto it, -1 indexes it too)
+        table = np.full(hi + 2, default, dtype=values.dtype)
+        table[keys] = values
+        return table[np.clip(query, -1, hi + 1)]
     order = np.argsort(keys)
     k, v = keys[order], values[order]
     pos = np.searchsorted(k, query).clip(max=len(k) - 1)
     return np.where(k[pos] == query, v[pos], default)
+
+
+def unique_ids(ids: np.ndarray) -> np.ndarray:
+    """``np.unique(ids)`` of an int id map: a bincount when the ids are small non-negative numbers (the usual
+    ``category * 1000 + n``; 0.1 vs 1 ms at 320x240), else ``np.unique``."""
+    flat = ids.reshape(-1)
+    if flat.size and flat.dtype.kind in "iu":
+        lo, hi = int(flat.min()), int(flat.max())
+        if lo >= 0 and hi < 4 * flat.size + 65536:  # (a bincount longer than that costs more than the sort)
+            return np.flatnonzero(np.bincount(flat, minlength=hi + 1)).astype(flat.dtype)
+    return np.unique(flat)
 
 
 def working_shape(h: int, w: int, max_side: Optional[int]) -> tuple[int, int]:
@@ -108,7 +127,7 @@ def match_segments(
 
     score: 'overlap' = |g & p| / |p| (PVO), 'iou' = |g & p| / |g | p|.  Ties: larger intersection, then lower ids.
     Returns ``(g, p, score)`` triples."""
-    prev_ids = sorted(set(np.unique(warped).tolist()) & set(prev_cat))
+    prev_ids = sorted(set(unique_ids(warped).tolist()) & set(prev_cat))
     if not prev_ids or not cur_things:
         return []
     g_keys = np.array(cur_things, dtype=np.int64)

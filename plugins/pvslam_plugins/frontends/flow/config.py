@@ -70,6 +70,12 @@ class FlowFrontendConfig(PluginConfig):
     )
     patch_size: Optional[int] = Field(None, ge=4, le=32, description="DIS patch size; None: preset default (8).")
     patch_stride: Optional[int] = Field(None, ge=1, le=16, description="DIS patch stride; None: preset default.")
+    flow_threads: int = Field(
+        2, ge=1, le=8,
+        description="Threads for independent DIS calls (a frame's forward and backward tracking flow, a new keyframe's "
+        "edge flows); OpenCV releases the GIL while computing, so with 2 cores they overlap. Results do not depend "
+        "on it (lanes.py).",
+    )
 
     # --- targets and confidence -----------------------------------------------------------------------------
     fb_sigma: float = Field(

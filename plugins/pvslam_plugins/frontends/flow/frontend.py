@@ -33,6 +33,9 @@ edge's median residual) are dynamic, the mask is voted over (thing) segments, an
 eq. 4 with the paper convention (static -> c, dynamic -> ~ c e^-eta; see :mod:`pvslam_core.slam.confidence`).  This
 also rejects outlier flow on static scenes.
 
+Independent DIS calls (a frame's two tracking flows, a new keyframe's edge pairs with their forward-backward checks)
+run on ``flow_threads`` threads (:mod:`.lanes`; OpenCV releases the GIL), with results bit-equal to one thread.
+
 ``initial_depth(graph, id)``: a constant map equal to the median inverse depth of the newest keyframe, as DROID-SLAM
 2025 does; a median is robust to the few near/far outliers that would pull a mean.  (The mapper prefers the
 previous keyframe's depth moved into the new pose once the map is initialised.)
@@ -56,6 +59,7 @@ from . import dynamic as D
 from .dynamic_masking import DynamicMasking
 from .recover import homography_flow
 from . import flow_ops as F
+from .lanes import DisLanes
 from .config import FlowFrontendConfig
 
 LOG = logging.getLogger("pvslam.frontend.flow")
@@ -102,16 +106,16 @@ class FlowFrontend(DynamicMasking, Frontend):
             patch_size=self.cfg.patch_size,
             patch_stride=self.cfg.patch_stride,
         )
-        self._dis = F.create_dis(self.cfg.preset, finest_scale=self.cfg.finest_scale, **dis_kw)
         tp = self.cfg.track_preset or self.cfg.preset
         tfs = self.cfg.track_finest_scale if self.cfg.track_finest_scale is not None else self.cfg.finest_scale
-        same = tp == self.cfg.preset and tfs == self.cfg.finest_scale
-        self._dis_track = self._dis if same else F.create_dis(tp, finest_scale=tfs, **dis_kw)
+        settings = {"edge": (self.cfg.preset, self.cfg.finest_scale), "track": (tp, tfs)}
         # Calls with an initial flow get their own DIS object: after such a call, OpenCV's DIS keeps using that
         # initial flow in later calls without one (verified with OpenCV 4.x/5.0), so the zero-init flows (tracking,
-        # close edges) depended on whichever edge was initialised last.
-        self._dis_init = F.create_dis(self.cfg.preset, finest_scale=self.cfg.finest_scale, **dis_kw)
-        self._dis_track_init = self._dis_init if same else F.create_dis(tp, finest_scale=tfs, **dis_kw)
+        # close edges) depended on whichever edge was initialised last.  lanes.py keeps one object per kind of call
+        # and thread, and runs independent calls on `flow_threads` threads.
+        self._lanes = DisLanes(lambda kind: F.create_dis(settings[kind.split("_")[0]][0],
+                                                         finest_scale=settings[kind.split("_")[0]][1], **dis_kw),
+                               threads=self.cfg.flow_threads)
         self._last_track: Optional[tuple] = None  # (reference frame index, frame index, fwd, bwd) of the last track
         self._reproject_fn = reproject_fn
         self._kfs: dict[int, _Keyframe] = {}  # stable keyframe id -> keyframe (insertion order = time order)
@@ -162,18 +166,24 @@ class FlowFrontend(DynamicMasking, Frontend):
     def _sigma(self) -> float:
         return self.cfg.fb_sigma * self.cfg.flow_scale
 
-    def _flow(self, dis, i0: np.ndarray, i1: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
-        t = time.perf_counter()
-        f = F.compute_flow(dis, i0, i1, init)
-        self.stats["dis_calls"] += 1
-        self.stats["dis_s"] += time.perf_counter() - t
-        return f
+    def _flows(self, calls: list) -> list[np.ndarray]:
+        """DIS flows of independent ``(kind, i0, i1, init)`` calls (lanes.py: on ``flow_threads`` threads)."""
+        flows, seconds = self._lanes.run(calls)
+        self.stats["dis_calls"] += len(calls)
+        self.stats["dis_s"] += seconds
+        return flows
 
-    def _pair(self, dis, g0: np.ndarray, g1: np.ndarray, h: int, w: int,
-              init_f: Optional[np.ndarray] = None, init_b: Optional[np.ndarray] = None):
+    def _flow(self, kind: str, i0: np.ndarray, i1: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
+        return self._flows([(kind, i0, i1, init)])[0]
+
+    def _pair_calls(self, g0: np.ndarray, g1: np.ndarray, init_f: Optional[np.ndarray] = None,
+                    init_b: Optional[np.ndarray] = None, kind: str = "edge") -> list:
+        """The forward and backward DIS calls between two grays (with initial flows: ``kind + "_init"``)."""
+        k = kind + ("_init" if init_f is not None else "")
+        return [(k, g0, g1, init_f), (k, g1, g0, init_b)]
+
+    def _pair_result(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, h: int, w: int):
         """Forward/backward flow between two grays -> BA targets/confidences and FB statistics."""
-        fwd = self._flow(dis, g0, g1, init_f)
-        bwd = self._flow(dis, g1, g0, init_b)
         return self._direction(g0, g1, fwd, bwd, h, w), self._direction(g1, g0, bwd, fwd, h, w), fwd
 
     def _direction(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, h: int, w: int):
@@ -226,9 +236,7 @@ class FlowFrontend(DynamicMasking, Frontend):
         # both flows (the forward-backward check needs them), but the backward target and confidence only if this
         # frame becomes a keyframe (add_keyframe): most frames do not
         init_f, init_b = self._velocity_init(last_track, last.frame_index, frame.index)
-        dis = self._dis_track if init_f is None else self._dis_track_init
-        fwd = self._flow(dis, last.gray, gray, init_f)
-        bwd = self._flow(dis, gray, last.gray, init_b)
+        fwd, bwd = self._flows(self._pair_calls(last.gray, gray, init_f, init_b, kind="track"))
         tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w)
         fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
         fail_frac = float(np.mean(~(fb_f <= fail_px)))  # inf (left the image) counts as failed
@@ -236,8 +244,7 @@ class FlowFrontend(DynamicMasking, Frontend):
             # a fast turn: start DIS again from the homography of LK-tracked corners (recover.py), keep the better
             hf = homography_flow(last.gray, gray)
             if hf is not None:
-                fwd2 = self._flow(self._dis_track_init, last.gray, gray, hf[0])
-                bwd2 = self._flow(self._dis_track_init, gray, last.gray, hf[1])
+                fwd2, bwd2 = self._flows(self._pair_calls(last.gray, gray, hf[0], hf[1], kind="track"))
                 tf2, wf2, fb2 = self._direction(last.gray, gray, fwd2, bwd2, h, w)
                 frac2 = float(np.mean(~(fb2 <= fail_px)))
                 self.stats["track_recoveries"] += 1
@@ -394,26 +401,43 @@ class FlowFrontend(DynamicMasking, Frontend):
         inits: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         if self.cfg.use_reprojection_init and plist:
             inits = self._reprojection_inits(graph, plist, h, w)
+        # one job per pair and initialisation (independent: on flow_threads threads, lanes.py), then the choices
+        jobs = []
+        for (a, b) in plist:
+            ga, gb = self._kfs[ids[a]].gray, self._kfs[ids[b]].gray
+            init = inits.get((a, b))
+            if init is not None:
+                jobs.append((a, b, ga, gb, init))
+            if init is None or b - a >= self.cfg.init_compare_min_gap:
+                jobs.append((a, b, ga, gb, None))
+        results = self._lanes.map(lambda job: self._pair_job(*job, h, w), jobs)
+        self.stats["dis_calls"] += 2 * len(jobs)
+        self.stats["dis_s"] += sum(r[2] for r in results)
+        done = {(job[0], job[1], job[4] is not None): r[:2] for job, r in zip(jobs, results)}
         for (a, b) in plist:
             sa, sb = ids[a], ids[b]
-            ga, gb = self._kfs[sa].gray, self._kfs[sb].gray
-            if (a, b) in inits:
-                init_f, init_b = inits[(a, b)]
-                fwd2, bwd2, _ = self._pair(self._dis_init, ga, gb, h, w, init_f, init_b)
+            if (a, b, True) in done:
+                fwd, bwd = done[(a, b, True)]
                 use = True
-                if b - a >= self.cfg.init_compare_min_gap:
-                    fwd0, bwd0, _ = self._pair(self._dis, ga, gb, h, w)
-                    use = float(fwd2[1].mean() + bwd2[1].mean()) >= float(fwd0[1].mean() + bwd0[1].mean())
+                if (a, b, False) in done:
+                    fwd0, bwd0 = done[(a, b, False)]
+                    use = float(fwd[1].mean() + bwd[1].mean()) >= float(fwd0[1].mean() + bwd0[1].mean())
                     if not use:
                         fwd, bwd = fwd0, bwd0
                 if use:
-                    fwd, bwd = fwd2, bwd2
                     self.stats["reprojection_init_used"] += 1
             else:
-                fwd, bwd, _ = self._pair(self._dis, ga, gb, h, w)
+                fwd, bwd = done[(a, b, False)]
             self._edges[(sa, sb)] = _Edge(torch.from_numpy(fwd[0]), torch.from_numpy(fwd[1]))
             self._edges[(sb, sa)] = _Edge(torch.from_numpy(bwd[0]), torch.from_numpy(bwd[1]))
             self.stats["edges_computed"] += 2
+
+    def _pair_job(self, a: int, b: int, ga: np.ndarray, gb: np.ndarray, init, h: int, w: int):
+        """Both flows of a pair (from ``init = (init_f, init_b)`` or zero) and both directions' BA targets and
+        confidences, on the calling thread's DIS objects: ``(fwd, bwd, dis seconds)``."""
+        (f, s0), (b_, s1) = (self._lanes.flow(c) for c in self._pair_calls(ga, gb, *(init or (None, None))))
+        fwd, bwd, _ = self._pair_result(ga, gb, f, b_, h, w)
+        return fwd, bwd, s0 + s1
 
     def _reprojection_inits(self, graph, plist, h, w):
         """Initial flows (flow resolution, both directions) for pairs ``(a < b)`` whose predicted mean flow is

@@ -31,7 +31,10 @@ class BAConfigBase(PluginConfig):
     robust_scale: float = Field(1.0, gt=0, description="robust kernel scale in BA-resolution pixels")
     loop_window: int = Field(0, ge=0, description="loop BA frees keyframes newer than n - loop_window (0: from the "
                              "oldest loop keyframe on, i.e. the window spans the loop)")
-    loop_iters: int = Field(8, ge=0, description="Gauss-Newton iterations of the relaxed loop BA")
+    loop_iters: int = Field(
+        4, ge=0, description="Gauss-Newton iterations of the relaxed loop BA (after the Sim(3) pose graph has moved "
+        "the chain, 4 give the same ATE as 8 on the driving loop and its 3000-frame version at half the cost; "
+        "bench/RESULTS.md, issue 14)")
     loop_lm: float = Field(1e-5, ge=0, description="multiplicative damping of the loop BA")
     loop_ep: float = Field(1e-2, ge=0, description="additive damping of the loop BA")
     sim3_pgo: bool = Field(True, description="run a Sim(3) pose-graph correction before the loop BA")

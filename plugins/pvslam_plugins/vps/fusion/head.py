@@ -34,6 +34,7 @@ from ..matching import (
     relabel,
     segment_velocities,
     subsample,
+    unique_ids,
     warp_previous_ids,
 )
 from .config import FusionConfig
@@ -162,7 +163,7 @@ class FusionHead(VPSHead):
         ids = src.ids.detach().cpu().numpy().astype(np.int64)
         h, w = ids.shape
         cur_segments = {s.id: s for s in src.segments if s.id != 0}
-        present = set(np.unique(ids).tolist()) - {0}
+        present = set(unique_ids(ids).tolist()) - {0}
         cur_things = sorted(sid for sid in present if sid in cur_segments and cur_segments[sid].isthing)
         cur_cat = {g: cur_segments[g].category_id for g in cur_things}
 

@@ -21,6 +21,7 @@ from ..matching import (  # noqa: F401 - the id layout is re-exported for caller
     relabel,
     stuff_id,
     subsample,
+    unique_ids,
     warp_previous_ids,
     working_shape,
 )
@@ -62,7 +63,7 @@ class WarpIoUHead(VPSHead):
         ids = seg.ids.detach().cpu().numpy().astype(np.int64)
         h, w = ids.shape
         cur_segments = {s.id: s for s in seg.segments if s.id != 0}
-        present = set(np.unique(ids).tolist()) - {0}
+        present = set(unique_ids(ids).tolist()) - {0}
         cur_things = sorted(sid for sid in present if sid in cur_segments and cur_segments[sid].isthing)
 
         # warping and matching at the working resolution (see WarpIoUConfig.warp_max_side)

@@ -69,6 +69,21 @@ def _quat_to_rot(q: np.ndarray) -> np.ndarray:
     ])
 
 
+_GRIDS: dict = {}
+
+
+def _pixel_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Cached read-only float32 ``(ys, xs) [h, w]`` (``np.mgrid``; rebuilt per frame it cost ~0.2 ms)."""
+    g = _GRIDS.get((h, w))
+    if g is None:
+        g = np.mgrid[0:h, 0:w].astype(np.float32)
+        g.setflags(write=False)
+        if len(_GRIDS) > 8:
+            _GRIDS.clear()
+        g = _GRIDS[(h, w)] = (g[0], g[1])
+    return g
+
+
 def rigid_flow(
     depth_prev: np.ndarray, pose_prev: np.ndarray, pose_cur: np.ndarray, intrinsics: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -76,7 +91,7 @@ def rigid_flow(
     validity mask [H, W] (depth > 0 and in front of the current camera).  Poses are T_wc ``[t, q_xyzw]``."""
     h, w = depth_prev.shape
     fx, fy, cx, cy = [float(v) for v in intrinsics[:4]]
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    ys, xs = _pixel_grid(h, w)
     z = depth_prev.astype(np.float32)
     X = np.stack([(xs - cx) / fx * z, (ys - cy) / fy * z, z], axis=0).reshape(3, -1)
     R0, t0 = _quat_to_rot(np.asarray(pose_prev[3:7], np.float64)), np.asarray(pose_prev[:3], np.float64)
@@ -134,52 +149,46 @@ def forward_warp(
         prim, sec = None, (n - 1) - np.arange(n, dtype=np.int64)
     rx, ry = np.rint(tx).astype(np.int64), np.rint(ty).astype(np.int64)
     vals = src[sel]
-    filled = _scatter_min(out, rx, ry, prim, sec, vals, h, w, None)
+    inb = np.nonzero((rx >= 0) & (rx < w) & (ry >= 0) & (ry < h))[0]
+    filled = _scatter_min(out, ry[inb] * w + rx[inb], None if prim is None else prim[inb], sec[inb], vals[inb])
     if splat != "nearest":
         # spill-over to the other integer neighbours fills only pixels no source landed on (holes): per neighbour
-        # offset, keep just the candidates that hit a hole (few), then one scatter over those
+        # offset, keep just the candidates that hit a hole (few), then one scatter over those.  The rounded
+        # position is x0 or x0 + 1, so "not the nearest pixel" and the bounds are per-axis booleans computed once
         x0, y0 = np.floor(tx).astype(np.int64), np.floor(ty).astype(np.int64)
+        up_x, up_y = rx != x0, ry != y0  # rounded up (rx == x0 + 1)
+        in_x = ((x0 >= 0) & (x0 < w), (x0 >= -1) & (x0 < w - 1))  # x0 + dx inside, dx = 0, 1
+        in_y = ((y0 >= 0) & (y0 < h), (y0 >= -1) & (y0 < h - 1))
+        other_x, other_y = (up_x, ~up_x), (up_y, ~up_y)  # x0 + dx != rx
+        t00 = y0 * w + x0
         hole = ~filled
-        parts = []
+        tq, idx = [], []
         for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
-            qx, qy = x0 + dx, y0 + dy
-            ok = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h) & ((qx != rx) | (qy != ry))
-            idx = np.nonzero(ok)[0]
-            idx = idx[hole[qy[idx] * w + qx[idx]]]
-            parts.append((qx[idx], qy[idx], idx))
-        qx = np.concatenate([q[0] for q in parts])
-        qy = np.concatenate([q[1] for q in parts])
-        idx = np.concatenate([q[2] for q in parts])
-        _scatter_min(out, qx, qy, None if prim is None else prim[idx], sec[idx], vals[idx], h, w, None)
+            i = np.nonzero(in_x[dx] & in_y[dy] & (other_x[dx] | other_y[dy]))[0]
+            t = t00[i] + (dy * w + dx)
+            on_hole = hole[t]
+            tq.append(t[on_hole])
+            idx.append(i[on_hole])
+        tq, idx = np.concatenate(tq), np.concatenate(idx)
+        _scatter_min(out, tq, None if prim is None else prim[idx], sec[idx], vals[idx])
     return out.reshape(h, w)
 
 
-def _scatter_min(
-    out: np.ndarray, qx: np.ndarray, qy: np.ndarray, prim: Optional[np.ndarray], sec: np.ndarray, vals: np.ndarray,
-    h: int, w: int, keep: Optional[np.ndarray], empty: Optional[np.ndarray] = None,
-) -> np.ndarray:
-    """``out[qy*w+qx] = vals`` where the lowest priority wins per target pixel: the lowest ``prim`` (if given),
-    among those the lowest ``sec`` (unique per target); only in-bounds targets (and, if given, ``keep`` entries and
-    ``empty`` target pixels).  Returns the mask of pixels written."""
-    ok = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
-    if keep is not None:
-        ok &= keep
-    t = qy[ok].astype(np.int64) * w + qx[ok].astype(np.int64)
-    s, v = sec[ok], vals[ok]
-    p = prim[ok] if prim is not None else None
-    if empty is not None:
-        e = empty[t]
-        t, s, v = t[e], s[e], v[e]
-        p = p[e] if p is not None else None
-    written = np.zeros(h * w, dtype=bool)
+def _scatter_min(out: np.ndarray, t: np.ndarray, prim: Optional[np.ndarray], sec: np.ndarray,
+                 vals: np.ndarray) -> np.ndarray:
+    """``out[t] = vals`` where the lowest priority wins per target pixel ``t`` (flat, in bounds): the lowest
+    ``prim`` (if given), among those the lowest ``sec`` (unique per target).  Returns the mask of pixels written."""
+    size = out.shape[0]
+    written = np.zeros(size, dtype=bool)
     if len(t) == 0:
         return written
-    if p is not None:
-        best_p = np.full(h * w, np.inf)
-        np.minimum.at(best_p, t, p)
-        c = p == best_p[t]
+    s, v = sec, vals
+    if prim is not None:
+        best_p = np.full(size, np.inf)
+        np.minimum.at(best_p, t, prim)
+        c = prim == best_p[t]
         t, s, v = t[c], s[c], v[c]
-    best = np.full(h * w, np.iinfo(np.int64).max, dtype=np.int64)
+    best = np.full(size, np.iinfo(np.int64).max, dtype=np.int64)
     np.minimum.at(best, t, s)
     win = s == best[t]
     out[t[win]] = v[win]

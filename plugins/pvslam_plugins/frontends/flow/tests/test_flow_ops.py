@@ -165,8 +165,9 @@ def test_zero_init_flow_does_not_depend_on_earlier_initialised_calls():
     base = cv2.GaussianBlur((rng.random((120, 160)) * 255).astype(np.uint8), (0, 0), 2.0)
     g0, g1 = base, np.roll(base, 3, axis=1)
     fe = FlowFrontend()
-    clean = FlowFrontend()._flow(FlowFrontend()._dis, g0, g1)
+    clean = FlowFrontend()._flow("edge", g0, g1)
     init = rng.normal(0, 3, (120, 160, 2)).astype(np.float32)
-    fe._pair(fe._dis_init, g1, g0, 15, 20, init, init)  # an initialised edge first
-    np.testing.assert_array_equal(fe._flow(fe._dis, g0, g1), clean)
-    np.testing.assert_array_equal(fe._flow(fe._dis_track, g0, g1), clean)
+    fe._flows(fe._pair_calls(g1, g0, init, init))  # an initialised edge first
+    fe._flows(fe._pair_calls(g1, g0, init, init, kind="track"))
+    np.testing.assert_array_equal(fe._flow("edge", g0, g1), clean)
+    np.testing.assert_array_equal(fe._flow("track", g0, g1), clean)

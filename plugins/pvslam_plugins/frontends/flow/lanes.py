@@ -1,0 +1,82 @@
+"""Independent DIS calls (and their forward-backward checks) on two threads (``flow_threads``).
+
+A new keyframe's edge flows (forward and backward of 2-4 keyframe pairs, some twice: from the reprojection and from
+zero) and a frame's two tracking flows do not depend on each other, and OpenCV releases the GIL inside
+``DISOpticalFlow.calc``, so on a machine with two cores half of them can run beside the other half.  DIS takes
+~2 ms a call at 160x120 and the driving loop makes ~6 calls per frame: ~12 ms of the pipeline thread's ~37; an
+edge's forward-backward check, photometric confidence and pooling (numpy and OpenCV, mostly outside the GIL) go
+with its pair (:meth:`DisLanes.map`).
+
+Each thread has its own DIS objects, one per *kind* of call (edge / track, with or without an initial flow): a DIS
+object that once got an initial flow keeps using it in later calls without one (see ``FlowFrontend.__init__``), so
+an object only ever serves one kind, and a call's result depends on its inputs alone - the same on either thread,
+in any order (test: results bit-equal to one thread).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+from . import flow_ops as F
+
+# kind -> whether the call carries an initial flow
+KINDS = {"edge": False, "edge_init": True, "track": False, "track_init": True}
+
+Call = tuple[str, np.ndarray, np.ndarray, Optional[np.ndarray]]  # (kind, i0, i1, init): DIS flow i0 -> i1
+
+
+class DisLanes:
+    """``run(calls)`` computes DIS flows, split between the caller's thread and ``threads - 1`` workers."""
+
+    def __init__(self, make: Callable[[str], object], threads: int = 1) -> None:
+        self._make = make  # kind -> a new DIS object for that kind of call
+        self._local = threading.local()
+        self.threads = max(1, int(threads))
+        self._pool = (ThreadPoolExecutor(self.threads - 1, thread_name_prefix="pvslam-dis")
+                      if self.threads > 1 else None)
+
+    def dis(self, kind: str):
+        """This thread's DIS object for ``kind`` (created on first use)."""
+        objs = getattr(self._local, "objs", None)
+        if objs is None:
+            objs = self._local.objs = {}
+        if kind not in objs:
+            objs[kind] = self._make(kind)
+        return objs[kind]
+
+    def _one(self, call: Call) -> tuple[np.ndarray, float]:
+        kind, i0, i1, init = call
+        if kind not in KINDS:
+            raise ValueError(f"unknown DIS call kind {kind!r}; one of {sorted(KINDS)}")
+        if (init is not None) != KINDS[kind]:
+            raise ValueError(f"DIS call of kind {kind!r} {'needs' if KINDS[kind] else 'takes no'} initial flow")
+        t = time.perf_counter()
+        return F.compute_flow(self.dis(kind), i0, i1, init), time.perf_counter() - t
+
+    def map(self, fn: Callable, items: Sequence) -> list:
+        """``[fn(item) for item in items]``, every ``threads``-th item from the first on in the caller's thread and
+        the others on the workers (``fn`` may call :meth:`flow`: each thread uses its own DIS objects)."""
+        if self._pool is None or len(items) < 2:
+            return [fn(it) for it in items]
+        k = self.threads
+        futures = {i: self._pool.submit(fn, it) for i, it in enumerate(items) if i % k}
+        mine = {i: fn(it) for i, it in enumerate(items) if i % k == 0}
+        return [mine[i] if i in mine else futures[i].result() for i in range(len(items))]
+
+    def flow(self, call: Call) -> tuple[np.ndarray, float]:
+        """One DIS call on this thread's object for its kind: the flow and the seconds it took."""
+        return self._one(call)
+
+    def run(self, calls: Sequence[Call]) -> tuple[list[np.ndarray], float]:
+        """The flows of ``calls`` in order, and the summed seconds of the calls."""
+        out = self.map(self._one, calls)
+        return [f for f, _ in out], sum(s for _, s in out)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None

@@ -1,0 +1,41 @@
+"""glibc's allocator, told to keep freed memory for reuse (Linux only).
+
+The dense BA and the VPS warp allocate per-call scratch tensors of a few MB (per-pixel Jacobians of a chunk of
+edges).  glibc serves an allocation above ``M_MMAP_THRESHOLD`` (128 kB, raised dynamically to at most 32 MB) with a
+fresh ``mmap`` and gives it back on ``free``, and trims the heap top above ``M_TRIM_THRESHOLD``; the next call then
+page-faults the same memory in again and the kernel zero-fills it.  On the default driving loop that was ~12 % of
+the process CPU (61.7 -> 49.5 ms per frame, pipeline thread 39.5 -> 32.8 ms; identical results, same peak RSS;
+bench/RESULTS.md, issue 14, session 2026-12-02).  With the thresholds at 64 MB / 256 MB the scratch stays in the
+heap between calls.  ``GLIBC_TUNABLES=glibc.malloc.mmap_threshold=...`` does the same from the shell, but only
+at process start, which a library cannot choose.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import sys
+
+M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers (malloc.h)
+M_MMAP_THRESHOLD = -3
+
+_done: bool | None = None
+
+
+def keep_freed_memory(mmap_threshold: int = 64 << 20, trim_threshold: int = 256 << 20) -> bool:
+    """Raise glibc's mmap and trim thresholds once per process; True when glibc accepted them (False elsewhere:
+    another libc, macOS, Windows - nothing changes there)."""
+    global _done
+    if _done is not None:
+        return _done
+    _done = False
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # musl has no mallopt
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    _done = bool(mallopt(M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(mallopt(M_TRIM_THRESHOLD,
+                                                                                   int(trim_threshold)))
+    return _done
