@@ -79,3 +79,19 @@ def test_unknown_plugin_exit_code(capsys):
     assert main(["config", "show", "--set", "frontend.plugin=droidd"]) == 2
     err = capsys.readouterr().err
     assert "droidd" in err and "flow" in err
+
+
+def test_one_openmp_thread_unless_the_user_chose(tmp_path):
+    """The command line sets OMP_NUM_THREADS=1 before torch loads (OpenMP teams are per thread: the reader, output
+    and flow threads' own teams spun against the pipeline), and keeps a value the user set."""
+    import os
+    import subprocess
+
+    probe = ("import os; from pvslam_core.cli import main; main(['plugins', '--json']); import torch; "
+             "print('OMP', os.environ['OMP_NUM_THREADS'], torch.get_num_threads())")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True).stdout
+    assert "OMP 1 1" in out
+    out = subprocess.run([sys.executable, "-c", probe], env={**env, "OMP_NUM_THREADS": "2"}, capture_output=True,
+                         text=True, check=True).stdout
+    assert "OMP 2 2" in out
