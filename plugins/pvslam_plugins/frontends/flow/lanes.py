@@ -14,6 +14,7 @@ in any order (test: results bit-equal to one thread).
 """
 from __future__ import annotations
 
+import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -36,8 +37,16 @@ class DisLanes:
         self._make = make  # kind -> a new DIS object for that kind of call
         self._local = threading.local()
         self.threads = max(1, int(threads))
-        self._pool = (ThreadPoolExecutor(self.threads - 1, thread_name_prefix="pvslam-dis")
-                      if self.threads > 1 else None)
+        self._pool: Optional[ThreadPoolExecutor] = None
+        self._pid = -1  # the process that owns the pool (a forked child gets the pool object, not its threads)
+
+    def _workers(self) -> Optional[ThreadPoolExecutor]:
+        if self.threads == 1:
+            return None
+        if self._pool is None or self._pid != os.getpid():
+            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="pvslam-dis")
+            self._pid = os.getpid()
+        return self._pool
 
     def dis(self, kind: str):
         """This thread's DIS object for ``kind`` (created on first use)."""
@@ -60,10 +69,11 @@ class DisLanes:
     def map(self, fn: Callable, items: Sequence) -> list:
         """``[fn(item) for item in items]``, every ``threads``-th item from the first on in the caller's thread and
         the others on the workers (``fn`` may call :meth:`flow`: each thread uses its own DIS objects)."""
-        if self._pool is None or len(items) < 2:
+        pool = self._workers() if len(items) > 1 else None
+        if pool is None:
             return [fn(it) for it in items]
         k = self.threads
-        futures = {i: self._pool.submit(fn, it) for i, it in enumerate(items) if i % k}
+        futures = {i: pool.submit(fn, it) for i, it in enumerate(items) if i % k}
         mine = {i: fn(it) for i, it in enumerate(items) if i % k == 0}
         return [mine[i] if i in mine else futures[i].result() for i in range(len(items))]
 
@@ -77,6 +87,6 @@ class DisLanes:
         return [f for f, _ in out], sum(s for _, s in out)
 
     def close(self) -> None:
-        if self._pool is not None:
+        if self._pool is not None and self._pid == os.getpid():
             self._pool.shutdown(wait=True)
-            self._pool = None
+        self._pool = None

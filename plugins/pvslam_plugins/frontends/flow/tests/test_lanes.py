@@ -97,3 +97,36 @@ def test_a_run_is_bit_equal_with_one_and_two_flow_threads(tmp_path):
         poses.append(r.poses)
     assert poses[0].shape[0] == 40
     assert np.array_equal(np.asarray(poses[0]), np.asarray(poses[1]))
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_a_forked_child_gets_its_own_workers():
+    """A child forked after the pool started inherits the pool object but not its threads: it must not wait on
+    workers that do not exist (it starts its own)."""
+    import os
+    import warnings
+
+    imgs, rng = _images()
+    calls = _calls(imgs, rng)[:6]
+    lanes = DisLanes(lambda kind: F.create_dis("ultrafast", finest_scale=0), 2)
+    ref = lanes.run(calls)[0]  # the parent's worker thread exists now
+    r, w = os.pipe()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # Python 3.12+: fork with threads running
+        pid = os.fork()
+    if pid == 0:  # the child: compute, report, leave without running the parent's cleanup
+        import signal
+
+        signal.alarm(30)  # a child waiting on the parent's (absent) workers is killed: the test fails, not hangs
+        try:
+            ok = all(np.array_equal(a, b) for a, b in zip(lanes.run(calls)[0], ref))
+            os.write(w, b"1" if ok else b"0")
+        finally:
+            os._exit(0)
+    os.close(w)
+    try:
+        _, status = os.waitpid(pid, 0)
+        assert os.read(r, 1) == b"1" and status == 0
+    finally:
+        os.close(r)
+        lanes.close()
