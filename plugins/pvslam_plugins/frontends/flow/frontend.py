@@ -182,9 +182,6 @@ class FlowFrontend(DynamicMasking, Frontend):
         k = kind + ("_init" if init_f is not None else "")
         return [(k, g0, g1, init_f), (k, g1, g0, init_b)]
 
-    def _pair_result(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, h: int, w: int):
-        """Forward/backward flow between two grays -> BA targets/confidences and FB statistics."""
-        return self._direction(g0, g1, fwd, bwd, h, w), self._direction(g1, g0, bwd, fwd, h, w), fwd
 
     def _direction(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, h: int, w: int):
         """BA target, confidence and FB error of the flow ``g0 -> g1`` (``fwd``), checked against ``bwd``."""
@@ -402,18 +399,20 @@ class FlowFrontend(DynamicMasking, Frontend):
         if self.cfg.use_reprojection_init and plist:
             inits = self._reprojection_inits(graph, plist, h, w)
         # one job per pair and initialisation (independent: on flow_threads threads, lanes.py), then the choices
-        jobs = []
+        keys, jobs = [], []  # (a, b, initialised), (gray a, gray b, (init_f, init_b) or None)
         for (a, b) in plist:
             ga, gb = self._kfs[ids[a]].gray, self._kfs[ids[b]].gray
             init = inits.get((a, b))
             if init is not None:
-                jobs.append((a, b, ga, gb, init))
+                keys.append((a, b, True))
+                jobs.append((ga, gb, init))
             if init is None or b - a >= self.cfg.init_compare_min_gap:
-                jobs.append((a, b, ga, gb, None))
+                keys.append((a, b, False))
+                jobs.append((ga, gb, None))
         results = self._lanes.map(lambda job: self._pair_job(*job, h, w), jobs)
         self.stats["dis_calls"] += 2 * len(jobs)
         self.stats["dis_s"] += sum(r[2] for r in results)
-        done = {(job[0], job[1], job[4] is not None): r[:2] for job, r in zip(jobs, results)}
+        done = {key: r[:2] for key, r in zip(keys, results)}
         for (a, b) in plist:
             sa, sb = ids[a], ids[b]
             if (a, b, True) in done:
@@ -432,12 +431,11 @@ class FlowFrontend(DynamicMasking, Frontend):
             self._edges[(sb, sa)] = _Edge(torch.from_numpy(bwd[0]), torch.from_numpy(bwd[1]))
             self.stats["edges_computed"] += 2
 
-    def _pair_job(self, a: int, b: int, ga: np.ndarray, gb: np.ndarray, init, h: int, w: int):
-        """Both flows of a pair (from ``init = (init_f, init_b)`` or zero) and both directions' BA targets and
-        confidences, on the calling thread's DIS objects: ``(fwd, bwd, dis seconds)``."""
-        (f, s0), (b_, s1) = (self._lanes.flow(c) for c in self._pair_calls(ga, gb, *(init or (None, None))))
-        fwd, bwd, _ = self._pair_result(ga, gb, f, b_, h, w)
-        return fwd, bwd, s0 + s1
+    def _pair_job(self, ga: np.ndarray, gb: np.ndarray, init, h: int, w: int):
+        """Both flows of a pair (from ``init = (init_f, init_b)`` or zero) and both directions' BA targets,
+        confidences and FB errors, on the calling thread's DIS objects: ``(fwd, bwd, dis seconds)``."""
+        (f, s0), (b, s1) = (self._lanes.flow(c) for c in self._pair_calls(ga, gb, *(init or (None, None))))
+        return self._direction(ga, gb, f, b, h, w), self._direction(gb, ga, b, f, h, w), s0 + s1
 
     def _reprojection_inits(self, graph, plist, h, w):
         """Initial flows (flow resolution, both directions) for pairs ``(a < b)`` whose predicted mean flow is

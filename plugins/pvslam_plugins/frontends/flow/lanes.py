@@ -57,7 +57,8 @@ class DisLanes:
             objs[kind] = self._make(kind)
         return objs[kind]
 
-    def _one(self, call: Call) -> tuple[np.ndarray, float]:
+    def flow(self, call: Call) -> tuple[np.ndarray, float]:
+        """One DIS call on this thread's object for its kind: the flow and the seconds it took."""
         kind, i0, i1, init = call
         if kind not in KINDS:
             raise ValueError(f"unknown DIS call kind {kind!r}; one of {sorted(KINDS)}")
@@ -77,13 +78,9 @@ class DisLanes:
         mine = {i: fn(it) for i, it in enumerate(items) if i % k == 0}
         return [mine[i] if i in mine else futures[i].result() for i in range(len(items))]
 
-    def flow(self, call: Call) -> tuple[np.ndarray, float]:
-        """One DIS call on this thread's object for its kind: the flow and the seconds it took."""
-        return self._one(call)
-
     def run(self, calls: Sequence[Call]) -> tuple[list[np.ndarray], float]:
         """The flows of ``calls`` in order, and the summed seconds of the calls."""
-        out = self.map(self._one, calls)
+        out = self.map(self.flow, calls)
         return [f for f, _ in out], sum(s for _, s in out)
 
     def close(self) -> None:
