@@ -1,9 +1,9 @@
-"""The id lookups' fast paths against the general formulas they skip: ``unique_ids`` (a bincount for small
+"""pvslam_core/id_lookup.py against the general formulas its fast paths skip: ``unique_ids`` (a bincount for small
 non-negative ids) equals ``np.unique``; ``lut`` (a table for small unique keys) equals the sorted binary search."""
 import numpy as np
 import pytest
 
-from pvslam_plugins.vps.matching import lut, unique_ids
+from pvslam_core.id_lookup import lut, unique_ids
 
 
 def ref_lut(keys, values, query, default):
