@@ -28,7 +28,7 @@ import torch
 from pvslam_core.geometry.ba import dense_ba, weighted_cost
 from pvslam_core.geometry.lie import se3_exp, se3_mul
 from pvslam_core.geometry.projective import edge_transforms, project_points
-from pvslam_core.geometry.testing import SyntheticBAProblem, make_problem, perturb
+from pvslam_core.geometry.testing import SyntheticBAProblem, drifted_loop, make_problem, perturb
 
 
 def _sync(device):
@@ -128,40 +128,6 @@ def scipy_comparison(n: int = 5, h: int = 15, w: int = 20, iters: int = 20) -> d
 NO_CHUNKING = 10**12  # max_chunk_pixels larger than any problem: one chunk, every per-pixel tensor at once
 
 
-def _drifted_circle(n: int):
-    """A circle of ``n`` keyframes (30 m radius) with 0.1 % scale drift and 0.001 rad yaw drift per keyframe, the
-    odometry chain and one loop edge (n-1 -> 0) measured from the ground truth: a closure after a lap."""
-    import math
-
-    from pvslam_core.geometry.lie import se3_inv, sim3_from_se3
-    from pvslam_core.geometry.pose_graph import odometry_measurements
-
-    gt = []
-    for k in range(n):
-        a = 2 * math.pi * k / n
-        T = se3_exp(torch.tensor([0, 0, 0, 0, -a, 0.0], dtype=torch.float64))
-        T[:3] = torch.tensor([30 * math.cos(a), 0, 30 * math.sin(a)], dtype=torch.float64)
-        gt.append(T)
-    gt = torch.stack(gt)
-    c = torch.tensor([0.999 ** k for k in range(n)], dtype=torch.float64)
-    est = [gt[0]]
-    yaw = se3_exp(torch.tensor([0, 0, 0, 0, 0.001, 0], dtype=torch.float64))
-    for k in range(n - 1):
-        rel = se3_mul(se3_inv(gt[k]), gt[k + 1])
-        rel[:3] *= c[k]
-        est.append(se3_mul(est[-1], se3_mul(rel, yaw)))
-    S = sim3_from_se3(torch.stack(est), 1.0)
-    ii, jj, Z = odometry_measurements(S)
-    Zl = sim3_from_se3(se3_mul(se3_inv(gt[n - 1]), gt[0]), c[n - 1])
-    Zl[:3] *= c[n - 1]
-    w = torch.ones(len(ii) + 1, dtype=torch.float64)
-    w[-1] = 10.0
-    fixed = torch.zeros(n, dtype=torch.bool)
-    fixed[0] = True
-    return S, torch.cat([ii, torch.tensor([n - 1])]), torch.cat([jj, torch.tensor([0])]), torch.cat([Z, Zl[None]]), \
-        fixed, w
-
-
 def pose_graph_timing(sizes=(50, 150, 450, 900), reps: int = 2) -> list[dict]:
     """CPU seconds of one ``sim3_pose_graph`` solve (25 iterations at most, the loop BA's setting) per size, with the
     closed-form ``W`` and with the matrix-exponential one (``expm([[M, I], [0, 0]])``, the previous code)."""
@@ -180,7 +146,8 @@ def pose_graph_timing(sizes=(50, 150, 450, 900), reps: int = 2) -> list[dict]:
     closed = lie._sim3_W
     rows = []
     for n in sizes:
-        prob = _drifted_circle(n)
+        # a lap of n keyframes (30 m radius), 0.1 % scale drift and 0.001 rad yaw drift per keyframe: a closure
+        prob = drifted_loop(n, radius=30, rate=0.999, yaw_drift=0.001).args()
         row = {"keyframes": n}
         for name, fn in (("closed", closed), ("expm", W_expm)):
             lie._sim3_W = fn

@@ -186,6 +186,63 @@ def scale_drifted(problem: SyntheticBAProblem, rate: float = 0.97, yaw_drift: fl
     return poses, disps
 
 
+def circle_poses(n: int, radius: float) -> torch.Tensor:
+    """``[n, 7]`` T_wc on a horizontal circle of ``radius`` m, each camera turned with the circle (one lap)."""
+    poses = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        T = se3_exp(torch.tensor([0, 0, 0, 0, -a, 0.0], dtype=torch.float64))
+        T[:3] = torch.tensor([radius * math.cos(a), 0, radius * math.sin(a)], dtype=torch.float64)
+        poses.append(T)
+    return torch.stack(poses)
+
+
+@dataclass
+class DriftedLoop:
+    """A Sim(3) pose-graph problem (the arguments of ``sim3_pose_graph``) and its truth: see :func:`drifted_loop`."""
+
+    gt: torch.Tensor  # [n, 7] true T_wc
+    est: torch.Tensor  # [n, 7] the drifted odometry chain
+    drift: torch.Tensor  # [n] scale of keyframe k's translation, rate ** k
+    S: torch.Tensor  # [n, 8] initial Sim(3) poses (est, scale 1)
+    ii: torch.Tensor
+    jj: torch.Tensor
+    Z: torch.Tensor  # [E, 8] relative Sim(3) measurements (odometry, then the loop edge n-1 -> 0)
+    fixed: torch.Tensor  # bool [n], keyframe 0
+    weight: torch.Tensor  # [E], the loop edge loop_weight
+
+    def args(self) -> tuple:
+        return self.S, self.ii, self.jj, self.Z, self.fixed, self.weight
+
+
+def drifted_loop(n: int, radius: float, rate: float, yaw_drift: float, loop_weight: float = 10.0) -> DriftedLoop:
+    """A lap of :func:`circle_poses` as monocular odometry sees it (keyframe k's relative translation scaled by
+    ``rate ** k``, a yaw drift per keyframe), the odometry chain as Sim(3) edges and one loop edge ``n-1 -> 0``
+    measured from the truth in keyframe n-1's drifted scale: a closure after a lap."""
+    from .lie import sim3_from_se3
+    from .pose_graph import odometry_measurements
+
+    gt = circle_poses(n, radius)
+    c = torch.tensor([rate ** k for k in range(n)], dtype=torch.float64)
+    yaw = se3_exp(torch.tensor([0, 0, 0, 0, yaw_drift, 0], dtype=torch.float64))
+    est = [gt[0]]
+    for k in range(n - 1):
+        rel = se3_mul(se3_inv(gt[k]), gt[k + 1])
+        rel[:3] *= c[k]
+        est.append(se3_mul(est[-1], se3_mul(rel, yaw)))
+    est = torch.stack(est)
+    S = sim3_from_se3(est, 1.0)
+    ii, jj, Z = odometry_measurements(S)
+    Zl = sim3_from_se3(se3_mul(se3_inv(gt[n - 1]), gt[0]), c[n - 1] / c[0])
+    Zl[:3] *= c[n - 1]  # measured in n-1's (drifted) scale
+    weight = torch.ones(len(ii) + 1, dtype=torch.float64)
+    weight[-1] = loop_weight
+    fixed = torch.zeros(n, dtype=torch.bool)
+    fixed[0] = True
+    return DriftedLoop(gt, est, c, S, torch.cat([ii, torch.tensor([n - 1])]), torch.cat([jj, torch.tensor([0])]),
+                       torch.cat([Z, Zl[None]]), fixed, weight)
+
+
 def umeyama_ate(est_xyz: torch.Tensor, gt_xyz: torch.Tensor, scale: bool = True) -> float:
     """RMSE of positions after the best Sim(3) (or SE(3)) alignment of ``est`` onto ``gt``."""
     x, y = est_xyz.double(), gt_xyz.double()

@@ -1,11 +1,9 @@
-import math
-
 import pytest
 import torch
 
 from pvslam_core.geometry.lie import se3_exp, se3_inv, se3_mul, se3_to_matrix, sim3_from_se3
 from pvslam_core.geometry.pose_graph import loop_relative_sim3, odometry_measurements, sim3_pose_graph
-from pvslam_core.geometry.testing import make_problem, perturb, scale_drifted, umeyama_ate
+from pvslam_core.geometry.testing import circle_poses, drifted_loop, make_problem, perturb, scale_drifted, umeyama_ate
 from pvslam_core.interfaces import BuildContext, Optimizer
 from pvslam_core.registry import get_registry
 from pvslam_core.types import EdgeObservations, LoopClosure
@@ -111,39 +109,10 @@ def test_online_finalize_zero_iters(loop_problem):
     assert rep.iterations == 0
 
 
-def _circle(N=24):
-    poses = []
-    for k in range(N):
-        a = 2 * math.pi * k / N
-        T = se3_exp(torch.tensor([0, 0, 0, 0, -a, 0.0], dtype=torch.float64))
-        T[:3] = torch.tensor([3 * math.cos(a), 0, 3 * math.sin(a)], dtype=torch.float64)
-        poses.append(T)
-    return torch.stack(poses)
-
-
 def test_sim3_pose_graph_scale_drifted_loop():
-    gt = _circle()
-    N = gt.shape[0]
-    c = torch.tensor([0.97 ** k for k in range(N)], dtype=torch.float64)
-    est = [gt[0]]
-    for k in range(N - 1):
-        rel = se3_mul(se3_inv(gt[k]), gt[k + 1])
-        rel[:3] *= c[k]
-        rel = se3_mul(rel, se3_exp(torch.tensor([0, 0, 0, 0, 0.01, 0], dtype=torch.float64)))
-        est.append(se3_mul(est[-1], rel))
-    est = torch.stack(est)
-    S = sim3_from_se3(est, 1.0)
-    ii, jj, Z = odometry_measurements(S)
-    a, b = N - 1, 0
-    Zl = sim3_from_se3(se3_mul(se3_inv(gt[a]), gt[b]), c[a] / c[b])
-    Zl[:3] *= c[a]  # measured in a's (drifted) scale
-    ii, jj = torch.cat([ii, torch.tensor([a])]), torch.cat([jj, torch.tensor([b])])
-    Z = torch.cat([Z, Zl[None]])
-    w = torch.ones(len(ii), dtype=torch.float64)
-    w[-1] = 10
-    fixed = torch.zeros(N, dtype=torch.bool)
-    fixed[0] = True
-    res = sim3_pose_graph(S, ii, jj, Z, fixed, w, iters=30)
+    lp = drifted_loop(24, radius=3, rate=0.97, yaw_drift=0.01)
+    gt, est, c, S = lp.gt, lp.est, lp.drift, lp.S
+    res = sim3_pose_graph(*lp.args(), iters=30)
     assert res.cost_after < 1e-2 * res.cost_before
     before = float((est[:, :3] - gt[:, :3]).norm(dim=-1).max())
     after = float((res.poses[:, :3] - gt[:, :3]).norm(dim=-1).max())
@@ -169,7 +138,7 @@ def test_loop_relative_sim3_measures_scale(loop_problem):
 
 
 def test_sim3_pose_graph_sparse_matches_dense():
-    gt = _circle(30)
+    gt = circle_poses(30, radius=3)
     N = gt.shape[0]
     est = se3_mul(gt, se3_exp(0.02 * torch.randn(N, 6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)))
     est[0] = gt[0]
