@@ -215,13 +215,73 @@ class FlowFrontendConfig(PluginConfig):
         0.5, ge=0.0, le=1.0,
         description="A segment becomes dynamic when more than this fraction of its pixels is dynamic.",
     )
-    things_only: bool = Field(True, description="Only thing segments (cars, people) vote; stuff keeps per-pixel masks.")
+    things_only: bool = Field(
+        True, description="Only movable thing segments (cars, people) vote, each keyframe's own (segment ids are "
+        "unique within a frame only); stuff keeps per-pixel masks.")
     vote_keeps_candidates: bool = Field(
         True,
         description="With a segmenter and dynamic_regions: also keep every raw residual candidate pixel outside the "
         "voted segments (PVO's segm_filter; segments vote over all their pixels). False: voted movable segments "
         "(voting over their judged pixels) OR the coherent regions, the same per-pixel evidence as without a "
-        "segmenter (dynamic_masking.py; worse on the moving-vehicles tune seeds, bench/RESULTS.md).",
+        "segmenter (dynamic_masking.py; worse on the moving-vehicles tune seeds: bench/RESULTS.md).",
+    )
+
+    # --- the map-independent epipolar cue (epipolar_cue.py) ----------------------------------------------------
+    epipolar_cue: bool = Field(
+        False,
+        description="When a keyframe without a segmentation is added, fit the essential matrix of its tracked flow "
+        "from the previous keyframe by RANSAC (the static majority's motion, independent of the map), and again on "
+        "its first edges (epipolar_edges); pixels off their epipolar line or moving towards the epipole (negative "
+        "depth), grouped into regions, are dynamic on every edge of those keyframes and in tracking "
+        "(epipolar_cue.py, dynamic_masking.py). Catches crossing, turning and overtaking vehicles before they drag "
+        "the map: worth turning on for streets with large moving vehicles and no segmenter; off by default because "
+        "its false positives cost accuracy on static scenes (bench/RESULTS.md, issue 13).",
+    )
+    epipolar_track: bool = Field(
+        False,
+        description="Also judge every tracked frame's flow from the last keyframe by the epipolar cue and mask its "
+        "outlier regions in the weights that place the frame (the keyframe then reuses the judgement); a fit per "
+        "frame instead of per keyframe.",
+    )
+    epipolar_with_segmenter: bool = Field(
+        False,
+        description="Also run the epipolar cue on keyframes that have a segmentation (then OR-ed with the segment "
+        "vote). Off: the cue is for runs without a segmenter (with one it cost accuracy on the default driving "
+        "loop: bench/RESULTS.md).",
+    )
+    epipolar_replaces_residual: bool = Field(
+        False,
+        description="With epipolar_cue and no segmenter, the cue alone marks the dynamic pixels of the edges (no "
+        "residual test against the current estimate, which flags the static scene as often as the movers once a "
+        "mover has dragged that estimate). Off: both OR-ed. With a segmenter the residual test always feeds the "
+        "vote.",
+    )
+    epipolar_edges: int = Field(
+        2, ge=0,
+        description="Epipolar cue: also fit and judge the new keyframe's edges to this many nearest older keyframes "
+        "when their flow is computed (longer baselines than the tracked flow); 0 = the tracked flow only.",
+    )
+    epipolar_thresh: float = Field(
+        0.5, gt=0.0, description="Epipolar cue: Sampson distance (BA px) above which a pixel is a candidate."
+    )
+    epipolar_rel: float = Field(
+        3.0, ge=0.0, description="Epipolar cue: the threshold is at least this x the inliers' median distance."
+    )
+    epipolar_back: float = Field(
+        0.5, gt=0.0,
+        description="Epipolar cue: a candidate when its parallax points towards the epipole by more than this (BA "
+        "px): a negative depth, no static point.",
+    )
+    epipolar_min_conf: float = Field(
+        0.05, ge=0.0, le=1.0,
+        description="Epipolar cue: only pixels whose flow confidence exceeds this are fitted and judged (a mover's "
+        "flow often half fails the forward-backward check yet keeps some weight in the BA: 0.5 judged too few).",
+    )
+    epipolar_ransac_px: float = Field(0.25, gt=0.0, description="Epipolar cue: RANSAC inlier threshold (BA px).")
+    epipolar_min_parallax: float = Field(
+        0.05, ge=0.0,
+        description="Epipolar cue: no mask when the inliers' median parallax is below this (BA px; a stopped "
+        "camera has no epipolar geometry).",
     )
 
     @field_validator("flow_scale")

@@ -6,7 +6,9 @@ Candidates alone are noisy (occlusion edges, a few bad flow vectors); a moving v
 candidates are grouped (:func:`group_regions`): 8-connected components of at least ``min_area`` BA pixels are kept
 and grown by ``grow`` pixels (an object's border blocks mix it with the background), isolated pixels are left to
 the robust kernel of the BA.  With a segmenter the segment vote (:func:`pvslam_core.slam.confidence.segment_vote`)
-is OR-ed with these regions: either cue marks a pixel dynamic.
+is OR-ed with these regions: either cue marks a pixel dynamic.  Without one, the map-independent epipolar cue of
+:mod:`.epipolar_cue` (``epipolar_cue``, off by default) can be OR-ed in too: the residual test judges against an
+estimate a large vehicle may already have dragged, the epipolar cue only against the pair's own flow.
 
 Per keyframe the frontend keeps one mask (:func:`keyframe_vote`: the pixels found dynamic on at least half of its
 judged edges), used where an edge has no mask of its own yet (its first observation) and for the motion filter's

@@ -1,6 +1,9 @@
 """The flow frontend's dynamic masks (PV-SLAM eq. 4 without learned weights): per edge, the observed target
 against the reprojection under the current estimate, as residual candidates grouped into coherent regions
 (:mod:`.dynamic`) and/or voted over the keyframe's thing segments; per keyframe, a vote over its edges' masks.
+With ``epipolar_cue``, each keyframe also keeps the map-independent epipolar cue (:mod:`.epipolar_cue`) of its
+tracked flow and of its first edges, OR-ed into every judgement of its edges (:meth:`DynamicMasking._cue_mask`,
+:meth:`~DynamicMasking._epipolar_cue`, :meth:`~DynamicMasking._edge_cues`).
 
 A mixin of :class:`.frontend.FlowFrontend`: it reads the frontend's ``cfg``, ``_kfs`` (keyframe state by stable
 id), ``_edges`` (edge state by ``(src_id, dst_id)``), ``_graph`` and ``_reproject``.
@@ -17,6 +20,16 @@ from pvslam_core.slam.confidence import segment_vote
 from . import dynamic as D
 
 LOG = logging.getLogger("pvslam.frontend.flow")
+
+
+def _movable_only(seg: torch.Tensor, thing_ids: list) -> torch.Tensor:
+    """``seg [N, h, w]`` with every pixel outside source ``n``'s own movable segments (``thing_ids[n]``, int64
+    ``[K_n]`` or None = none) set to 0 (void).  Per source, because ids are only unique within one frame."""
+    keep = torch.zeros_like(seg, dtype=torch.bool)
+    for n, tid in enumerate(thing_ids):  # N edges of one call (tens); one isin over h x w each
+        if tid is not None and tid.numel():
+            keep[n] = torch.isin(seg[n], tid.to(seg.device))
+    return torch.where(keep, seg, torch.zeros_like(seg))
 
 
 class DynamicMasking:
@@ -66,8 +79,12 @@ class DynamicMasking:
             seg = torch.stack([s_.seg_ba if s_.seg_ba is not None else zero for s_ in srcs]).to(dev)
             things = None
             if self.cfg.things_only:
-                tid = [s_.thing_ids for s_ in srcs if s_.thing_ids is not None and s_.thing_ids.numel()]
-                things = torch.unique(torch.cat(tid)) if tid else torch.zeros(0, dtype=torch.int64)
+                # each source's own movable ids: segment ids are per frame (a learned segmenter numbers its
+                # segments 1, 2, ... in every frame), so one frame's car id can be another frame's road id, and a
+                # union of the edges' thing ids let the near road vote as a "car" (issue 11: panoptic_fpn's
+                # static pixels masked by the vote alone were 85 % road).  Non-movable pixels become void (id 0, never
+                # votes); segment_vote then needs no lookup
+                seg = _movable_only(seg, [s_.thing_ids for s_ in srcs])
             if regions is not None and not self.cfg.vote_keeps_candidates:
                 # the segment-free evidence plus the vote: a movable thing segment is dynamic when the geometry
                 # inside it says it moves (more than vote_thresh of its judged pixels are candidates), elsewhere
@@ -79,23 +96,141 @@ class DynamicMasking:
                 dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, thing_mask=things)
                 if regions is not None:  # both cues: a segment that voted or a coherent region
                     dyn = dyn | regions.to(dyn.device)
+        elif self.cfg.epipolar_cue and self.cfg.epipolar_replaces_residual:
+            # without a segmenter the epipolar cue (OR-ed below) judges alone: the residual test against the current
+            # estimate flags the static scene as often as the movers once a mover has dragged that estimate
+            dyn = torch.zeros_like(dyn)
         elif regions is not None:
             dyn = regions.to(dyn.device)
         if self.cfg.dynamic_persist:
             dyn = dyn | self._persisted(srcs, h, w).to(dyn.device)
+        if self.cfg.epipolar_cue:  # the map-independent cue of the source keyframe (epipolar_cue.py)
+            dyn = dyn | self._persisted(srcs, h, w, "cue").to(dyn.device)
         return dyn, dyn.float().mean(dim=(1, 2)).tolist(), valid.sum(dim=(1, 2)).tolist()
 
     @staticmethod
-    def _persisted(srcs: list, h: int, w: int) -> torch.Tensor:
-        """bool ``[N, h, w]``: the mask each source keyframe inherited from its reference (moved along the tracked
-        flow when it was added, ``_Keyframe.dyn_prior``), kept for the keyframe's whole life (``dynamic_persist``):
-        a vehicle seen moving once stays masked while it is tracked, also on the edges where it happens to be
-        epipolar-consistent."""
+    def _persisted(srcs: list, h: int, w: int, attr: str = "dyn_prior") -> torch.Tensor:
+        """bool ``[N, h, w]``: a mask each source keyframe keeps for its whole life: ``dyn_prior``, the one it
+        inherited from its reference (moved along the tracked flow when it was added; ``dynamic_persist``: a vehicle
+        seen moving once stays masked while it is tracked, also on the edges where it happens to be
+        epipolar-consistent), or ``cue``, the epipolar cue's (``epipolar_cue``, :meth:`_epipolar_cue`)."""
         out = torch.zeros(len(srcs), h, w, dtype=torch.bool)
         for n, kf in enumerate(srcs):
-            if kf.dyn_prior is not None and tuple(kf.dyn_prior.shape) == (h, w):
-                out[n] = kf.dyn_prior
+            m = getattr(kf, attr, None)
+            if m is not None and tuple(m.shape) == (h, w):
+                out[n] = m
         return out
+
+    def _cue_mask(self, target, weight, frame) -> tuple[Optional[torch.Tensor], Optional[tuple]]:
+        """The epipolar cue (:mod:`.epipolar_cue`) of one tracked flow out of the last keyframe: ``(mask, motion)``,
+        the mask bool ``[h, w]`` in the keyframe's pixels (None: no judgement possible) and the fitted relative motion
+        (None: no fit).  ``target [2, h, w]`` / ``weight [h, w]``: the positions in ``frame`` of the keyframe's
+        pixels and their confidence (BA px; numpy or torch)."""
+        import time
+
+        from . import epipolar_cue as E
+
+        t0 = time.thread_time()
+        c = self.cfg
+        target, weight = torch.as_tensor(target), torch.as_tensor(weight)
+        h, w = weight.shape[-2:]
+        k = frame.intrinsics.scaled(w / frame.width, h / frame.height)  # the BA resolution's intrinsics
+        intr = (k.fx, k.fy, k.cx, k.cy)
+        # the sign of the translation follows the previous fit (the direction of travel does not flip between two
+        # keyframes); not the map's estimate, which is what a mover drags (epipolar_cue.fit_motion)
+        motion = E.fit_motion(target, weight, intr, min_conf=c.epipolar_min_conf, ransac_px=c.epipolar_ransac_px,
+                              prior=getattr(self, "_cue_t", None))
+        if motion is not None:
+            self._cue_t = motion[1]
+        mask = None
+        if motion is not None:
+            mask = E.regions(E.judge(target, weight, intr, motion, **self._judge_kw()), min_area=c.dynamic_min_area,
+                             grow=c.dynamic_grow, max_fraction=c.max_dynamic_fraction)
+        self.stats["epipolar_cue_s"] = self.stats.get("epipolar_cue_s", 0.0) + time.thread_time() - t0
+        self.stats["epipolar_cue_calls"] = self.stats.get("epipolar_cue_calls", 0) + 1
+        return mask, (None if motion is None else (motion, intr))
+
+    def _edge_cues(self, graph, keys: list) -> None:
+        """The epipolar cue on the newest keyframe's freshly computed edges to its ``epipolar_edges`` nearest older
+        keyframes (``keys``: the ``(source id, target id)`` pairs just computed): each pair's flow is fitted on its
+        own and judged in both directions, the masks OR-ed into both keyframes' ``cue`` and ``dyn``.  Longer
+        baselines than the tracked flow (often one frame, when the tracking reference was a provisional keyframe
+        removed as redundant) show more of a mover's motion across its epipolar line."""
+        import time
+
+        from . import epipolar_cue as E
+
+        c = self.cfg
+        if c.epipolar_edges <= 0 or not keys or not self._cue_on(self._last_id()):
+            return
+        t0 = time.thread_time()
+        new = self._last_id()
+        other = {b for a, b in keys if a == new} | {a for a, b in keys if b == new}
+        older = sorted((b for b in other if b in self._kfs and (b, new) in self._edges and (new, b) in self._edges),
+                       key=lambda b: -self._kfs[b].frame_index)[: c.epipolar_edges]
+        intr = tuple(float(v) for v in graph.intrinsics.reshape(-1)[:4])
+        prior = getattr(self, "_cue_t", None)
+        for b in older:
+            fwd, bwd = self._edges[(new, b)], self._edges[(b, new)]
+            # the edge runs new -> older: against the direction of travel of the tracked pair (_cue_mask)
+            motion = E.fit_motion(fwd.target, fwd.conf, intr, min_conf=c.epipolar_min_conf,
+                                  ransac_px=c.epipolar_ransac_px, prior=None if prior is None else -prior)
+            if motion is None:
+                continue
+            for key, en, mot in ((new, fwd, motion), (b, bwd, E.invert(motion))):
+                m = E.regions(E.judge(en.target, en.conf, intr, mot, **self._judge_kw()), min_area=c.dynamic_min_area,
+                              grow=c.dynamic_grow, max_fraction=c.max_dynamic_fraction)
+                if m is None or not bool(m.any()):
+                    continue
+                kf = self._kfs[key]
+                kf.cue = m if kf.cue is None else (kf.cue | m)
+                kf.dyn = m.float() if kf.dyn is None else torch.maximum(kf.dyn, m.float())
+        self.stats["epipolar_cue_s"] = self.stats.get("epipolar_cue_s", 0.0) + time.thread_time() - t0
+
+    def _judge_kw(self) -> dict:
+        c = self.cfg
+        return dict(min_conf=c.epipolar_min_conf, inlier_px=c.epipolar_ransac_px, thresh=c.epipolar_thresh,
+                    rel=c.epipolar_rel, back=c.epipolar_back, min_parallax=c.epipolar_min_parallax)
+
+    def _cue_on(self, sid: int) -> bool:
+        """Whether keyframe ``sid`` gets the epipolar cue: always without a segmenter; with one (its segments at the
+        BA resolution) only with ``epipolar_with_segmenter``."""
+        kf = self._kfs.get(sid)
+        return kf is not None and (self.cfg.epipolar_with_segmenter or kf.seg_ba is None)
+
+    def _keyframe_cue(self, pend: dict, sid: int, frame) -> None:
+        """The epipolar cue of a new keyframe ``sid`` from its tracked flow (``pend``: the frontend's pending track:
+        ``fwd`` = (target, weight) out of the reference ``last_sid``, and ``cue`` when tracking judged it already)."""
+        if not self._cue_on(sid):
+            return
+        cue = pend["cue"] if "cue" in pend else self._cue_mask(*pend["fwd"], frame)
+        self._epipolar_cue(pend["last_sid"], sid, *cue, pend["fwd"][0])
+
+    def _epipolar_cue(self, ref_sid: int, sid: int, mask: Optional[torch.Tensor], fit: Optional[tuple],
+                      target) -> None:
+        """Keep the epipolar cue of the tracked flow ``target [2, h, w]`` from the tracking reference ``ref_sid`` to
+        the new keyframe ``sid`` (:meth:`_cue_mask`: ``mask`` in ``ref_sid``'s pixels, ``fit`` = (motion, BA
+        intrinsics)) on both keyframes: ``sid`` judges its own pixels, the flow of its edge back to ``ref_sid`` under
+        the same (inverted) motion, or without that edge (the reference was a provisional keyframe, removed as
+        redundant just before ``sid`` came: about every other keyframe) takes ``mask`` moved along the flow.  Each
+        ORs its mask into its ``cue`` (kept for its life, OR-ed into every judgement of its edges) and its ``dyn``
+        (first observations and tracking).  The map is not consulted: the mask is right when a vehicle first
+        appears, before it can drag the estimate."""
+        from . import epipolar_cue as E
+
+        c = self.cfg
+        back = self._edges.get((sid, ref_sid))
+        if fit is not None and back is not None:
+            m_new = E.regions(E.judge(back.target, back.conf, fit[1], E.invert(fit[0]), **self._judge_kw()),
+                              min_area=c.dynamic_min_area, grow=c.dynamic_grow, max_fraction=c.max_dynamic_fraction)
+        else:
+            m_new = None if mask is None else D.warp_mask(mask.float(), torch.as_tensor(target), c.dynamic_grow) > 0.5
+        for key, m in ((ref_sid, mask), (sid, m_new)):
+            kf = self._kfs.get(key)
+            if kf is None or m is None or not bool(m.any()):
+                continue
+            kf.cue = m if kf.cue is None else (kf.cue | m)
+            kf.dyn = m.float() if kf.dyn is None else torch.maximum(kf.dyn, m.float())
 
     def _update_dynamic(self, graph, ii, jj, need: list[int], entries: list, target: torch.Tensor) -> None:
         """Residual of observed targets against the current reprojection -> dynamic masks for edges ``need``."""

@@ -31,7 +31,9 @@ confidence only; on its next ``dynamic_updates`` calls (after at least one BA ro
 disagrees with the reprojection under the current estimate by more than ``dynamic_thresh`` BA px (and 3x the
 edge's median residual) are dynamic, the mask is voted over (thing) segments, and the weight follows PV-SLAM
 eq. 4 with the paper convention (static -> c, dynamic -> ~ c e^-eta; see :mod:`pvslam_core.slam.confidence`).  This
-also rejects outlier flow on static scenes.
+also rejects outlier flow on static scenes.  With ``epipolar_cue`` (off by default), a keyframe without a
+segmentation also gets the map-independent epipolar cue of its tracked flow and first edges (:mod:`.epipolar_cue`),
+kept for its life.
 
 Independent DIS calls (a frame's two tracking flows, a new keyframe's edge pairs with their forward-backward checks)
 run on ``flow_threads`` threads (:mod:`.lanes`; OpenCV releases the GIL), with results bit-equal to one thread.
@@ -74,6 +76,7 @@ class _Keyframe:
     dyn: Optional[torch.Tensor] = None  # float32 [h, w] geometric dynamic mask (dynamic.py), 1 = moving
     dyn_judged: bool = False  # dyn comes from this keyframe's own edges (else: moved from its reference's)
     dyn_prior: Optional[torch.Tensor] = None  # bool [h, w] the mask moved from its reference (dynamic_persist)
+    cue: Optional[torch.Tensor] = None  # bool [h, w] the epipolar cue's mask (epipolar_cue, dynamic_masking.py)
 
 
 @dataclass
@@ -252,10 +255,13 @@ class FlowFrontend(DynamicMasking, Frontend):
         mean_flow = float(np.sqrt((tf[0] - xs) ** 2 + (tf[1] - ys) ** 2).mean())
         target = torch.from_numpy(tf)
         weight = torch.from_numpy(np.stack([wf, wf], 0))
+        cue = self._cue_mask(tf, wf, frame) if self.cfg.dynamic_masking and self.cfg.epipolar_track else None
         if self.cfg.dynamic_masking and self.cfg.dynamic_track:
             # the reference keyframe's moving regions (dynamic.py) through eq. 4, as on its edges: the mapper's
             # motion-only BA places this frame from these weights
             dyn = self._keyframe_dynamic(last_sid)
+            if cue is not None and cue[0] is not None:  # and this flow's own epipolar outliers (dynamic_masking.py)
+                dyn = cue[0].float() if dyn is None else torch.maximum(dyn, cue[0].float())
             if dyn is not None and tuple(dyn.shape) == (h, w) and bool((dyn > 0).any()):
                 m = dyn > 0
                 weight[:, m] = observed_flow_weight(weight[:, m], dyn[m].expand(2, -1),
@@ -268,7 +274,8 @@ class FlowFrontend(DynamicMasking, Frontend):
         coverage = 1.0 - fail_frac
         is_kf = mean_flow > self.cfg.keyframe_thresh or coverage < self.cfg.keyframe_min_coverage
         self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": last_sid,
-                         "fwd": (tf, wf), "flows": (fwd, bwd), "ba_shape": (h, w)}
+                         "fwd": (tf, wf), "flows": (fwd, bwd), "ba_shape": (h, w),
+                         **({} if cue is None else {"cue": cue})}
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
 
@@ -315,6 +322,8 @@ class FlowFrontend(DynamicMasking, Frontend):
                 self._kfs[sid].dyn = D.warp_mask(ref, torch.from_numpy(pend["fwd"][0]), self.cfg.dynamic_grow)
                 if self.cfg.dynamic_persist:
                     self._kfs[sid].dyn_prior = (self._kfs[sid].dyn > 0).cpu()
+        if self.cfg.epipolar_cue and self.cfg.dynamic_masking and pend is not None and "fwd" in pend:
+            self._keyframe_cue(pend, sid, frame)  # the map-independent cue of the tracked flow (dynamic_masking.py)
         self._pending = None
 
     # -------------------------------------------------------------------------------- graph listener --
@@ -356,6 +365,8 @@ class FlowFrontend(DynamicMasking, Frontend):
                 missing.append(e)
         if missing:
             self._compute_edges(graph, ids, [ii_l[e] for e in missing], [jj_l[e] for e in missing], h, w)
+            if self.cfg.epipolar_cue and self.cfg.dynamic_masking:  # the new edges' own epipolar cue
+                self._edge_cues(graph, [keys[e] for e in missing])  # (dynamic_masking.py)
         entries = [self._edges[key] for key in keys]
         E = len(entries)
         if E == 0:
