@@ -63,3 +63,14 @@ def patch_segmentation(x0: int, y0: int, ph: int, pw: int, car_id: int = 26001, 
     ids[y0:y0 + ph, x0:x0 + pw] = car_id
     segs = [Segment(id=bg_id, category_id=11, isthing=False), Segment(id=car_id, category_id=26, isthing=True)]
     return PanopticSegmentation(ids=ids, segments=segs)
+
+
+class TwoKeyframeGraph:
+    """The attributes the frontend's ``_dynamic_masks`` reads: two keyframes of ``h x w`` BA pixels with different
+    poses (the second 1 m along z), unit inverse depth, intrinsics ``(10, 10, w / 2, h / 2)``."""
+
+    def __init__(self, h: int, w: int):
+        self.poses = torch.tensor([[0, 0, 0, 0, 0, 0, 1.0], [0, 0, 1.0, 0, 0, 0, 1.0]], dtype=torch.float64)
+        self.disps = torch.ones(2, h, w, dtype=torch.float64)
+        self.intrinsics = torch.tensor([10.0, 10.0, w / 2, h / 2], dtype=torch.float64)
+        self.ids = torch.tensor([0, 1])

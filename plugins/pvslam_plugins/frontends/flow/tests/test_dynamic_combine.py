@@ -12,19 +12,10 @@ from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend, _Keyframe
 
 import numpy as np
+import _flow_scenes as S
 
 H, W = 12, 16
 PARKED, MOVING, LEAVING, ROAD = 5, 6, 7, 1
-
-
-class _Graph:
-    """The attributes ``_dynamic_masks`` reads: two keyframes with different poses."""
-
-    def __init__(self):
-        self.poses = torch.tensor([[0, 0, 0, 0, 0, 0, 1.0], [0, 0, 1.0, 0, 0, 0, 1.0]], dtype=torch.float64)
-        self.disps = torch.ones(2, H, W, dtype=torch.float64)
-        self.intrinsics = torch.tensor([10.0, 10.0, W / 2, H / 2], dtype=torch.float64)
-        self.ids = torch.tensor([0, 1])
 
 
 def _scene():
@@ -81,7 +72,7 @@ def _reference(seg, res, valid, vote_thresh=0.5, keep_candidates=False):
 
 def test_movable_segment_is_masked_only_when_its_geometry_moves():
     fe, target, seg, res, valid = _frontend(vote_keeps_candidates=False)
-    dyn, frac, nvalid = fe._dynamic_masks(_Graph(), torch.tensor([0]), torch.tensor([1]), target)
+    dyn, frac, nvalid = fe._dynamic_masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)
     dyn = dyn[0].cpu()
     assert torch.equal(dyn, _reference(seg, res, valid))
     assert bool(dyn[seg == MOVING].all())  # 15 / 25 candidates: the whole car
@@ -95,7 +86,7 @@ def test_movable_segment_is_masked_only_when_its_geometry_moves():
 def test_keeping_the_candidates_is_pvos_segm_filter():
     assert FlowFrontendConfig().vote_keeps_candidates  # the default (chosen on the moving-vehicles tune seeds)
     fe, target, seg, res, valid = _frontend()
-    dyn = fe._dynamic_masks(_Graph(), torch.tensor([0]), torch.tensor([1]), target)[0][0].cpu()
+    dyn = fe._dynamic_masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)[0][0].cpu()
     # the old rule: every raw candidate, segments voted over all their pixels (the leaving car: 3 / 24, no vote)
     cand = (res > 1.0) & valid
     expected = D.group_regions(cand[None], 4, 1)[0] | cand | (seg == MOVING)
@@ -105,7 +96,7 @@ def test_keeping_the_candidates_is_pvos_segm_filter():
 
 def test_a_lower_vote_threshold_takes_a_partly_flagged_car():
     fe, target, seg, res, valid = _frontend(vote_thresh=0.05, vote_keeps_candidates=False)
-    dyn = fe._dynamic_masks(_Graph(), torch.tensor([0]), torch.tensor([1]), target)[0][0].cpu()
+    dyn = fe._dynamic_masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)[0][0].cpu()
     assert torch.equal(dyn, _reference(seg, res, valid, vote_thresh=0.05))
     assert bool(dyn[seg == PARKED].all())  # 2 / 20 = 0.1 > 0.05
 

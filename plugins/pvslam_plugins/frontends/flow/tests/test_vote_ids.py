@@ -10,16 +10,9 @@ import torch
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
 from pvslam_plugins.frontends.flow.dynamic_masking import _movable_only
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend, _Keyframe
+import _flow_scenes as S
 
 H, W = 10, 12
-
-
-class _Graph:
-    def __init__(self):
-        self.poses = torch.tensor([[0, 0, 0, 0, 0, 0, 1.0], [0, 0, 1.0, 0, 0, 0, 1.0]], dtype=torch.float64)
-        self.disps = torch.ones(2, H, W, dtype=torch.float64)
-        self.intrinsics = torch.tensor([10.0, 10.0, W / 2, H / 2], dtype=torch.float64)
-        self.ids = torch.tensor([0, 1])
 
 
 def _scene():
@@ -68,7 +61,7 @@ def _reference(seg, things, res, thresh=0.5):
 
 def test_each_source_votes_with_its_own_movable_ids():
     fe, target, (seg0, seg1), res = _frontend()
-    dyn = fe._dynamic_masks(_Graph(), torch.tensor([0, 1]), torch.tensor([1, 0]), target)[0].cpu()
+    dyn = fe._dynamic_masks(S.TwoKeyframeGraph(H, W), torch.tensor([0, 1]), torch.tensor([1, 0]), target)[0].cpu()
     assert torch.equal(dyn[0], _reference(seg0, [1], res))
     assert torch.equal(dyn[1], _reference(seg1, [1, 2, 3, 4, 5], res))
     road = seg0 == 4
