@@ -143,3 +143,24 @@ def test_segment_vote_batch_matches_brute_force():
             if float((dyn[e][m] > 0.5).sum()) / float(m.sum()) > 0.3137:
                 ref[e][m] = True
     assert torch.equal(out, ref) and bool(out.any()) and not bool(out.all())
+
+
+def test_per_id_map_things_against_brute_force():
+    """``batch_things``: each id map votes with its own movable ids (ids are unique only within one frame), checked
+    per pixel against a brute-force vote; pooling the ids into one ``thing_mask`` lets another map's ids vote."""
+    g = torch.Generator().manual_seed(5)
+    seg = torch.randint(0, 7, (3, 6, 8), generator=g)
+    dyn = torch.rand(3, 6, 8, generator=g) > 0.55
+    things = [torch.tensor([1, 3]), None, torch.tensor([6, 2, 0])]
+    out = segment_vote(dyn, seg, thresh=0.4, batch_things=things)
+    ref = dyn.clone()
+    for n, t in enumerate(things):
+        for sid in (set(t.tolist()) if t is not None else set()) - {0}:  # void never votes
+            m = seg[n] == sid
+            if int(m.sum()) and float(dyn[n][m].sum()) / float(m.sum()) > 0.4:
+                ref[n][m] = True
+    assert torch.equal(out, ref) and not torch.equal(out, dyn)
+    pooled = segment_vote(dyn, seg, thresh=0.4, thing_mask=torch.tensor([1, 2, 3, 6]))
+    assert not torch.equal(pooled, out)  # the pooled ids vote segments their own map does not call movable
+    with pytest.raises(ValueError, match="batch_things has 2 entries for 3 id maps"):
+        segment_vote(dyn, seg, batch_things=things[:2])

@@ -124,6 +124,7 @@ def segment_vote(
     pixel_thresh: float = 0.5,
     valid: Optional[torch.Tensor] = None,
     keep_pixels: bool = True,
+    batch_things: Optional[Sequence[Optional[torch.Tensor]]] = None,
 ) -> torch.Tensor:
     """Mark a whole panoptic segment dynamic when more than ``thresh`` of its pixels are dynamic.
 
@@ -142,6 +143,12 @@ def segment_vote(
             against); a segment without valid pixels never votes.  ``None``: every pixel counts.
         keep_pixels: True (PVO's segm_filter): the result is the per-pixel mask OR the voted segments; False: only
             the voted segments (for callers that bring their own per-pixel evidence, e.g. grouped regions).
+        batch_things: per batch element (the flattened leading dims of ``dynamic_prob``, e.g. each edge's source
+            keyframe), the int ids allowed to vote in that element's id map (None or empty: none votes).  Segment
+            ids are unique only within one frame (a learned segmenter numbers its segments 1, 2, ... in every
+            frame), so the movable ids of several keyframes must not be pooled into one ``thing_mask``: one
+            keyframe's car id is another's road id, and a road flagged by flow errors then voted dynamic whole
+            (issue 11).  Combines with ``thing_mask`` (both must allow a segment).
 
     Returns:
         bool ``[..., h, w]``: the per-pixel mask OR the voted segments (pixels of segments that did not vote keep
@@ -179,5 +186,13 @@ def segment_vote(
     if thing_mask is not None:
         eligible = eligible & _thing_lookup(uniq, thing_mask)
     seg_dyn = (frac > thresh).reshape(batch, k) & (counts > 0).reshape(batch, k) & eligible[None, :]
+    if batch_things is not None:
+        if len(batch_things) != batch:
+            raise ValueError(f"batch_things has {len(batch_things)} entries for {batch} id maps")
+        allowed = torch.zeros(batch, k, dtype=torch.bool, device=dyn.device)
+        for b, ids in enumerate(batch_things):  # batch = edges of one call (tens); one isin over K ids each
+            if ids is not None and ids.numel():
+                allowed[b] = torch.isin(uniq, ids.to(device=uniq.device, dtype=torch.int64).reshape(-1))
+        seg_dyn = seg_dyn & allowed
     voted = seg_dyn.reshape(-1)[key].reshape(batch, h * w)
     return ((flat_dyn | voted) if keep_pixels else voted).reshape(dyn.shape)

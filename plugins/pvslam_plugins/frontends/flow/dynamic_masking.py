@@ -11,6 +11,7 @@ id), ``_edges`` (edge state by ``(src_id, dst_id)``), ``_graph`` and ``_reprojec
 from __future__ import annotations
 
 import logging
+import time
 from typing import Optional
 
 import torch
@@ -18,18 +19,9 @@ import torch
 from pvslam_core.slam.confidence import segment_vote
 
 from . import dynamic as D
+from . import epipolar_cue as E
 
 LOG = logging.getLogger("pvslam.frontend.flow")
-
-
-def _movable_only(seg: torch.Tensor, thing_ids: list) -> torch.Tensor:
-    """``seg [N, h, w]`` with every pixel outside source ``n``'s own movable segments (``thing_ids[n]``, int64
-    ``[K_n]`` or None = none) set to 0 (void).  Per source, because ids are only unique within one frame."""
-    keep = torch.zeros_like(seg, dtype=torch.bool)
-    for n, tid in enumerate(thing_ids):  # N edges of one call (tens); one isin over h x w each
-        if tid is not None and tid.numel():
-            keep[n] = torch.isin(seg[n], tid.to(seg.device))
-    return torch.where(keep, seg, torch.zeros_like(seg))
 
 
 class DynamicMasking:
@@ -77,23 +69,17 @@ class DynamicMasking:
         if any(s_.seg_ba is not None for s_ in srcs):
             zero = torch.zeros(h, w, dtype=torch.int64)
             seg = torch.stack([s_.seg_ba if s_.seg_ba is not None else zero for s_ in srcs]).to(dev)
-            things = None
-            if self.cfg.things_only:
-                # each source's own movable ids: segment ids are per frame (a learned segmenter numbers its
-                # segments 1, 2, ... in every frame), so one frame's car id can be another frame's road id, and a
-                # union of the edges' thing ids let the near road vote as a "car" (issue 11: panoptic_fpn's
-                # static pixels masked by the vote alone were 85 % road).  Non-movable pixels become void (id 0, never
-                # votes); segment_vote then needs no lookup
-                seg = _movable_only(seg, [s_.thing_ids for s_ in srcs])
+            # each source votes with its own movable ids (ids are unique only within one frame: segment_vote)
+            things = [s_.thing_ids for s_ in srcs] if self.cfg.things_only else None
             if regions is not None and not self.cfg.vote_keeps_candidates:
                 # the segment-free evidence plus the vote: a movable thing segment is dynamic when the geometry
                 # inside it says it moves (more than vote_thresh of its judged pixels are candidates), elsewhere
                 # the coherent regions, exactly as without a segmenter.  Not the default: on the moving-vehicles
                 # tune seeds it did worse than also keeping the raw candidates (config.py, vote_keeps_candidates)
-                dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, thing_mask=things, valid=valid,
+                dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, batch_things=things, valid=valid,
                                    keep_pixels=False) | regions.to(dyn.device)
             else:
-                dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, thing_mask=things)
+                dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, batch_things=things)
                 if regions is not None:  # both cues: a segment that voted or a coherent region
                     dyn = dyn | regions.to(dyn.device)
         elif self.cfg.epipolar_cue and self.cfg.epipolar_replaces_residual:
@@ -126,10 +112,6 @@ class DynamicMasking:
         the mask bool ``[h, w]`` in the keyframe's pixels (None: no judgement possible) and the fitted relative motion
         (None: no fit).  ``target [2, h, w]`` / ``weight [h, w]``: the positions in ``frame`` of the keyframe's
         pixels and their confidence (BA px; numpy or torch)."""
-        import time
-
-        from . import epipolar_cue as E
-
         t0 = time.thread_time()
         c = self.cfg
         target, weight = torch.as_tensor(target), torch.as_tensor(weight)
@@ -139,13 +121,11 @@ class DynamicMasking:
         # the sign of the translation follows the previous fit (the direction of travel does not flip between two
         # keyframes); not the map's estimate, which is what a mover drags (epipolar_cue.fit_motion)
         motion = E.fit_motion(target, weight, intr, min_conf=c.epipolar_min_conf, ransac_px=c.epipolar_ransac_px,
-                              prior=getattr(self, "_cue_t", None))
-        if motion is not None:
-            self._cue_t = motion[1]
+                              prior=self._cue_t)
         mask = None
         if motion is not None:
-            mask = E.regions(E.judge(target, weight, intr, motion, **self._judge_kw()), min_area=c.dynamic_min_area,
-                             grow=c.dynamic_grow, max_fraction=c.max_dynamic_fraction)
+            self._cue_t = motion[1]
+            mask = self._judged_regions(target, weight, intr, motion)
         self.stats["epipolar_cue_s"] = self.stats.get("epipolar_cue_s", 0.0) + time.thread_time() - t0
         self.stats["epipolar_cue_calls"] = self.stats.get("epipolar_cue_calls", 0) + 1
         return mask, (None if motion is None else (motion, intr))
@@ -156,10 +136,6 @@ class DynamicMasking:
         own and judged in both directions, the masks OR-ed into both keyframes' ``cue`` and ``dyn``.  Longer
         baselines than the tracked flow (often one frame, when the tracking reference was a provisional keyframe
         removed as redundant) show more of a mover's motion across its epipolar line."""
-        import time
-
-        from . import epipolar_cue as E
-
         c = self.cfg
         if c.epipolar_edges <= 0 or not keys or not self._cue_on(self._last_id()):
             return
@@ -169,7 +145,7 @@ class DynamicMasking:
         older = sorted((b for b in other if b in self._kfs and (b, new) in self._edges and (new, b) in self._edges),
                        key=lambda b: -self._kfs[b].frame_index)[: c.epipolar_edges]
         intr = tuple(float(v) for v in graph.intrinsics.reshape(-1)[:4])
-        prior = getattr(self, "_cue_t", None)
+        prior = self._cue_t
         for b in older:
             fwd, bwd = self._edges[(new, b)], self._edges[(b, new)]
             # the edge runs new -> older: against the direction of travel of the tracked pair (_cue_mask)
@@ -178,19 +154,27 @@ class DynamicMasking:
             if motion is None:
                 continue
             for key, en, mot in ((new, fwd, motion), (b, bwd, E.invert(motion))):
-                m = E.regions(E.judge(en.target, en.conf, intr, mot, **self._judge_kw()), min_area=c.dynamic_min_area,
-                              grow=c.dynamic_grow, max_fraction=c.max_dynamic_fraction)
-                if m is None or not bool(m.any()):
-                    continue
-                kf = self._kfs[key]
-                kf.cue = m if kf.cue is None else (kf.cue | m)
-                kf.dyn = m.float() if kf.dyn is None else torch.maximum(kf.dyn, m.float())
+                self._keep_cue(self._kfs[key], self._judged_regions(en.target, en.conf, intr, mot))
         self.stats["epipolar_cue_s"] = self.stats.get("epipolar_cue_s", 0.0) + time.thread_time() - t0
 
-    def _judge_kw(self) -> dict:
+    def _judged_regions(self, target, conf, intr, motion) -> Optional[torch.Tensor]:
+        """The epipolar cue's mask bool ``[h, w]`` of one flow ``target [2, h, w]`` (confidence ``conf [h, w]``)
+        under ``motion`` (:func:`.epipolar_cue.judge`, grouped by :func:`.epipolar_cue.regions` with the residual
+        cue's region settings); None when the pair cannot be judged."""
         c = self.cfg
-        return dict(min_conf=c.epipolar_min_conf, inlier_px=c.epipolar_ransac_px, thresh=c.epipolar_thresh,
-                    rel=c.epipolar_rel, back=c.epipolar_back, min_parallax=c.epipolar_min_parallax)
+        cand = E.judge(target, conf, intr, motion, min_conf=c.epipolar_min_conf, inlier_px=c.epipolar_ransac_px,
+                       thresh=c.epipolar_thresh, rel=c.epipolar_rel, back=c.epipolar_back,
+                       min_parallax=c.epipolar_min_parallax)
+        return E.regions(cand, min_area=c.dynamic_min_area, grow=c.dynamic_grow, max_fraction=c.max_dynamic_fraction)
+
+    @staticmethod
+    def _keep_cue(kf, m: Optional[torch.Tensor]) -> None:
+        """OR a cue mask ``m`` bool ``[h, w]`` into keyframe ``kf``'s lifelong ``cue`` and its ``dyn`` (nothing for no
+        keyframe, no mask or an empty one)."""
+        if kf is None or m is None or not bool(m.any()):
+            return
+        kf.cue = m if kf.cue is None else (kf.cue | m)
+        kf.dyn = m.float() if kf.dyn is None else torch.maximum(kf.dyn, m.float())
 
     def _cue_on(self, sid: int) -> bool:
         """Whether keyframe ``sid`` gets the epipolar cue: always without a segmenter; with one (its segments at the
@@ -216,21 +200,14 @@ class DynamicMasking:
         ORs its mask into its ``cue`` (kept for its life, OR-ed into every judgement of its edges) and its ``dyn``
         (first observations and tracking).  The map is not consulted: the mask is right when a vehicle first
         appears, before it can drag the estimate."""
-        from . import epipolar_cue as E
-
         c = self.cfg
         back = self._edges.get((sid, ref_sid))
         if fit is not None and back is not None:
-            m_new = E.regions(E.judge(back.target, back.conf, fit[1], E.invert(fit[0]), **self._judge_kw()),
-                              min_area=c.dynamic_min_area, grow=c.dynamic_grow, max_fraction=c.max_dynamic_fraction)
+            m_new = self._judged_regions(back.target, back.conf, fit[1], E.invert(fit[0]))
         else:
             m_new = None if mask is None else D.warp_mask(mask.float(), torch.as_tensor(target), c.dynamic_grow) > 0.5
         for key, m in ((ref_sid, mask), (sid, m_new)):
-            kf = self._kfs.get(key)
-            if kf is None or m is None or not bool(m.any()):
-                continue
-            kf.cue = m if kf.cue is None else (kf.cue | m)
-            kf.dyn = m.float() if kf.dyn is None else torch.maximum(kf.dyn, m.float())
+            self._keep_cue(self._kfs.get(key), m)
 
     def _update_dynamic(self, graph, ii, jj, need: list[int], entries: list, target: torch.Tensor) -> None:
         """Residual of observed targets against the current reprojection -> dynamic masks for edges ``need``."""

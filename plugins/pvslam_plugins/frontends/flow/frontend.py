@@ -124,6 +124,7 @@ class FlowFrontend(DynamicMasking, Frontend):
         self._kfs: dict[int, _Keyframe] = {}  # stable keyframe id -> keyframe (insertion order = time order)
         self._edges: dict[tuple[int, int], _Edge] = {}  # (source id, target id) -> cached edge
         self._pending: Optional[dict] = None  # the last tracked frame's gray and flow to the last keyframe
+        self._cue_t: Optional[torch.Tensor] = None  # the epipolar cue's last translation direction (its sign prior)
         self._graph = None  # last graph seen in observe (for initial_depth)
         self.stats = {"track_calls": 0, "track_s": 0.0, "dis_calls": 0, "dis_s": 0.0, "edges_computed": 0,
                       "reprojection_init_used": 0, "track_recoveries": 0, "track_recovered": 0}

@@ -11,7 +11,7 @@ decides (``convention``) which of the two readings of eq. 4 is applied.
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Sequence
 
 import torch
 
@@ -48,7 +48,7 @@ def pvo_dynamic(
     raw_mask: torch.Tensor,
     thresh: float = 0.5,
     seg: Optional[torch.Tensor] = None,
-    thing_ids: Optional[torch.Tensor] = None,
+    thing_ids: Optional[Sequence[Optional[torch.Tensor]]] = None,
     vote_thresh: float = 0.8,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """PVO's binarised mask with its segment filter, in pvslam's convention.
@@ -57,7 +57,8 @@ def pvo_dynamic(
         raw_mask: ``(E, h, w, 2)`` static logits (PVO's ``raw_mask``, accumulated ``+= delta_m`` per update).
         thresh: a channel is static when ``sigmoid(raw_mask) >= thresh`` (PVO ``dy_thresh``).
         seg: optional ``(E, h, w)`` panoptic ids of each edge's source keyframe at this resolution.
-        thing_ids: segments allowed to vote (None: every non-void segment, as PVO's segm_filter).
+        thing_ids: per edge, the segments of its source keyframe allowed to vote (None: every non-void segment, as
+            PVO's segm_filter).
         vote_thresh: a segment whose fraction of dynamic pixels (either channel) exceeds this becomes dynamic in
             both channels (PVO: 0.8).
 
@@ -71,7 +72,7 @@ def pvo_dynamic(
     prob = 1.0 - static_p.min(dim=-1).values
     if seg is not None:
         either = dyn_c.any(dim=-1)
-        voted = segment_vote(either, seg, thresh=vote_thresh, thing_mask=thing_ids)
+        voted = segment_vote(either, seg, thresh=vote_thresh, batch_things=thing_ids)
         dyn_c = dyn_c | voted[..., None]
         prob = torch.where(voted, torch.ones_like(prob), prob)
     return dyn_c.float(), prob
@@ -90,7 +91,7 @@ def residual_dynamic(
     rel_thresh: float,
     max_fraction: float,
     seg: Optional[torch.Tensor] = None,
-    thing_ids: Optional[torch.Tensor] = None,
+    thing_ids: Optional[Sequence[Optional[torch.Tensor]]] = None,
     vote_thresh: float = 0.5,
 ) -> torch.Tensor:
     """DROID-variant dynamic mask ``(E, h, w)`` float from ``|target - reprojection|`` ``residual (E, h, w)``.
@@ -106,7 +107,7 @@ def residual_dynamic(
         thr = torch.maximum(thr, torch.nan_to_num(med, nan=0.0) * rel_thresh)
     dyn = (residual > thr[:, None, None]) & valid
     if seg is not None:
-        dyn = segment_vote(dyn, seg, thresh=vote_thresh, thing_mask=thing_ids)
+        dyn = segment_vote(dyn, seg, thresh=vote_thresh, batch_things=thing_ids)
     frac = dyn.float().mean(dim=(1, 2))
     enough = valid.sum(dim=(1, 2)) >= 8
     keep = (frac <= max_fraction) & enough

@@ -489,17 +489,14 @@ class RaftGruFrontend(Frontend):
                     kf.upmask = out.agg_features[0, u]
 
     def _sources_seg(self, srcs: list[KeyframeState], h: int, w: int):
-        """``(E, h, w)`` panoptic ids of the edges' source keyframes (zeros = void where a source has none) and the
-        thing ids allowed to vote (None: every segment)."""
+        """``(E, h, w)`` panoptic ids of the edges' source keyframes (zeros = void where a source has none) and, per
+        source, the thing ids allowed to vote (None: every segment; per source because ids are unique only within
+        one frame: ``segment_vote``'s ``batch_things``)."""
         if all(s.seg is None for s in srcs):
             return None, None
         zero = torch.zeros(h, w, dtype=torch.int64, device=self.device)
         seg = torch.stack([s.seg if s.seg is not None else zero for s in srcs])
-        if not self.cfg.things_only:
-            return seg, None
-        th = [s.things for s in srcs if s.things is not None and s.things.numel()]
-        things = torch.unique(torch.cat(th)) if th else torch.zeros(0, dtype=torch.int64, device=self.device)
-        return seg, things
+        return seg, ([s.things for s in srcs] if self.cfg.things_only else None)
 
 
 def make_frontend(config: RaftGruConfig, context) -> RaftGruFrontend:

@@ -8,7 +8,6 @@ import numpy as np
 import torch
 
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
-from pvslam_plugins.frontends.flow.dynamic_masking import _movable_only
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend, _Keyframe
 import _flow_scenes as S
 
@@ -68,16 +67,3 @@ def test_each_source_votes_with_its_own_movable_ids():
     assert not bool(dyn[0][road].all())  # keyframe 1's car id 4 does not make keyframe 0's road movable
     assert int(dyn[0][road].sum()) == int((res[road] > 1).sum())  # only its own candidates
     assert bool(dyn[0][seg0 == 1].all())  # the car (6 / 9) is voted whole
-
-
-def test_movable_only_against_brute_force():
-    g = torch.Generator().manual_seed(5)
-    seg = torch.randint(0, 7, (3, 6, 8), generator=g)
-    things = [torch.tensor([1, 3]), None, torch.tensor([6, 2, 0])]
-    out = _movable_only(seg, things)
-    for n, t in enumerate(things):
-        ids = set(t.tolist()) if t is not None else set()
-        for y in range(6):
-            for x in range(8):
-                v = int(seg[n, y, x])
-                assert int(out[n, y, x]) == (v if v in ids else 0)
