@@ -239,9 +239,10 @@ class FlowFrontendConfig(PluginConfig):
     )
     epipolar_track: bool = Field(
         False,
-        description="Also judge every tracked frame's flow from the last keyframe by the epipolar cue and mask its "
-        "outlier regions in the weights that place the frame (the keyframe then reuses the judgement); a fit per "
-        "frame instead of per keyframe.",
+        description="With epipolar_cue, also judge every tracked frame's flow from the last keyframe by the epipolar "
+        "cue and mask its outlier regions in the weights that place the frame (the keyframe then reuses the "
+        "judgement); a fit per frame instead of per keyframe. Like the keyframe cue, not on segmented keyframes "
+        "unless epipolar_with_segmenter.",
     )
     epipolar_with_segmenter: bool = Field(
         False,

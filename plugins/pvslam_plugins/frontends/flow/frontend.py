@@ -256,7 +256,9 @@ class FlowFrontend(DynamicMasking, Frontend):
         mean_flow = float(np.sqrt((tf[0] - xs) ** 2 + (tf[1] - ys) ** 2).mean())
         target = torch.from_numpy(tf)
         weight = torch.from_numpy(np.stack([wf, wf], 0))
-        cue = self._cue_mask(tf, wf, frame) if self.cfg.dynamic_masking and self.cfg.epipolar_track else None
+        # per-frame epipolar cue: with the keyframe cue only, and on the keyframes it runs on (_cue_on)
+        cue = self._cue_mask(tf, wf, frame) if (self.cfg.dynamic_masking and self.cfg.epipolar_cue
+                                                 and self.cfg.epipolar_track and self._cue_on(last_sid)) else None
         if self.cfg.dynamic_masking and self.cfg.dynamic_track:
             # the reference keyframe's moving regions (dynamic.py) through eq. 4, as on its edges: the mapper's
             # motion-only BA places this frame from these weights

@@ -15,6 +15,15 @@ class ClassicalLoopConfig(VerificationConfig):
         "(unrelated photos score about 0-0.35; the self-similar synthetic city 0.6 median, 0.79 at the 90th "
         "percentile; revisits within 3 m 0.85-1.0). Only candidates above it are verified",
     )
+    adaptive_neighbours: int = Field(
+        2, ge=0,
+        description="adaptive threshold (ORB-SLAM's rule): when the new keyframe's lowest similarity to its this "
+        "many predecessors is below `threshold`, candidates need only that (0: the fixed threshold). A hand-held "
+        "revisit of the start scored 0.61-0.67 (bench/RESULTS.md, issue 13)",
+    )
+    adaptive_floor: float = Field(
+        0.5, ge=-1.0, le=1.0, description="the adaptive threshold never goes below this similarity"
+    )
     exclude_recent: int = Field(
         20, ge=0,
         description="temporal exclusion: only keyframes more than this many keyframes older than the new one qualify",

@@ -149,6 +149,19 @@ class ClassicalLoopDetector(LoopDetector):
         self._times[r : n - 1] = self._times[r + 1 : n]
 
     # --- steps -------------------------------------------------------------------------------------------------
+    def _threshold(self, r: int) -> float:
+        """The retrieval threshold of row ``r``: ``threshold``, or with ``adaptive_neighbours`` the lowest similarity
+        of the keyframe to its that many predecessors when lower (but not below ``adaptive_floor``).  ORB-SLAM's rule
+        (a loop candidate must look at least as similar as the keyframe's own neighbours do): a fixed threshold
+        suits one camera and scene, and a hand-held camera's revisit of the same spot (roll, a few cm off) scores
+        0.6-0.7 with this descriptor, like its neighbours 5 frames apart, below the 0.75 that the self-similar
+        city needs (bench/RESULTS.md, issue 13).  Geometric verification still decides."""
+        c = self.config
+        if c.adaptive_neighbours <= 0 or r == 0:
+            return c.threshold
+        nb = self._desc[max(0, r - c.adaptive_neighbours): r] @ self._desc[r]
+        return min(c.threshold, max(c.adaptive_floor, float(nb.min())))  # only ever lowers `threshold`
+
     def _retrieve(self, r: int) -> list[tuple[int, float]]:
         """Best older rows outside the temporal exclusion window with similarity >= threshold: (row, score)."""
         c = self.config
@@ -158,7 +171,7 @@ class ClassicalLoopDetector(LoopDetector):
         d = self._desc[r]
         sims = self._desc[: last + 1] @ d
         times = self._times[: last + 1]
-        ok = (sims >= c.threshold) & (self._times[r] - times >= c.min_time_gap)
+        ok = (sims >= self._threshold(r)) & (self._times[r] - times >= c.min_time_gap)
         idx = np.nonzero(ok)[0]
         if len(idx) == 0:
             return []

@@ -261,3 +261,29 @@ def test_keyframes_with_a_segmentation_skip_the_cue_unless_asked():
     assert out[(False, False)] is not None and bool(out[(False, False)].any())  # no segmenter: the cue
     assert out[(True, False)] is None  # a segmenter: its vote, no cue (the default)
     assert torch.equal(out[(True, True)], out[(False, False)])  # epipolar_with_segmenter: both
+
+
+def test_per_frame_cue_in_tracking_follows_the_keyframe_cue_gate():
+    """epipolar_track judges tracked frames only with the keyframe cue on and on keyframes the cue runs on (not
+    segmented ones unless epipolar_with_segmenter), as the keyframe cue itself."""
+    import _flow_scenes as S
+    from test_dynamic import _scene as _street
+
+    imgs, _, _ = _street()
+    calls = {}
+    for name, cfg, seg in (("track", dict(epipolar_cue=True, epipolar_track=True), False),
+                           ("no cue", dict(epipolar_track=True), False),
+                           ("segmented", dict(epipolar_cue=True, epipolar_track=True), True),
+                           ("segmented, asked", dict(epipolar_cue=True, epipolar_track=True,
+                                                     epipolar_with_segmenter=True), True)):
+        fe = FlowFrontend(FlowFrontendConfig(preset="medium", **cfg))
+        fe.add_keyframe(0, S.frame(imgs[0], 0), None)
+        if seg:  # what _cue_on looks at: the keyframe has a segmentation
+            fe._kfs[0].seg_ba = torch.zeros(1, 1, dtype=torch.int64)
+        seen = []
+        orig = fe._cue_mask
+        fe._cue_mask = lambda *a, _o=orig, _s=seen: _s.append(1) or _o(*a)
+        fe.track(S.frame(imgs[1], 1), None)
+        calls[name] = len(seen)
+    assert calls == {"track": 1, "no cue": 0, "segmented": 0, "segmented, asked": 1}
+

@@ -214,3 +214,32 @@ def test_registered_and_fast():
         step(det, k, frame(img, k))
     per_call = (time.perf_counter() - t) / len(imgs)
     assert per_call < 0.05, per_call
+
+
+def test_adaptive_threshold_follows_the_neighbours_similarity():
+    """adaptive_neighbours (ORB-SLAM's rule): a candidate scoring below the fixed threshold is retrieved when the
+    new keyframe's own predecessors look no more alike; never below adaptive_floor."""
+    e = np.eye(6, dtype=np.float32)
+
+    def unit(c, k):  # cosine c to e0, the rest along axis k
+        return c * e[0] + np.sqrt(1 - c * c) * e[k]
+
+    # keyframes: place A (0.62 to the query), another place (0.30), two predecessors (0.60, 0.65), the query
+    vecs = [unit(0.62, 1), unit(0.30, 2), unit(0.60, 3), unit(0.65, 4), e[0]]
+
+    class Preset(ClassicalLoopDetector):
+        def descriptor(self, image):
+            return vecs[self._n]
+
+    def retrieved(**kw):
+        det = Preset(cfg(exclude_recent=2, verify=False, **kw))  # the predecessors are no candidates
+        for k in range(5):
+            det._n = k
+            det.add_keyframe(k, frame(view("astronaut"), k))
+        return [(c.j, round(c.score, 2)) for c in det.query(4)]
+
+    assert retrieved(adaptive_neighbours=0) == []  # the fixed threshold (0.75)
+    assert retrieved() == [(0, 0.62)]  # the default, 2 neighbours: threshold min(0.75, 0.60, 0.65) = 0.60
+    assert retrieved(adaptive_neighbours=1) == []  # the last predecessor alone: 0.65
+    assert retrieved(adaptive_floor=0.7) == []
+    assert retrieved(threshold=0.2, adaptive_floor=0.7) == [(0, 0.62), (1, 0.3)]  # it never raises `threshold`
