@@ -18,8 +18,8 @@ class ClassicalLoopConfig(VerificationConfig):
     adaptive_neighbours: int = Field(
         2, ge=0,
         description="adaptive threshold (ORB-SLAM's rule): when the new keyframe's lowest similarity to its this "
-        "many predecessors is below `threshold`, candidates need only that (0: the fixed threshold). A hand-held "
-        "revisit of the start scored 0.61-0.67 (bench/RESULTS.md, issue 13)",
+        "many predecessors is below `threshold`, candidates need only that (0: the fixed threshold; why: "
+        "bench/RESULTS.md, issue 13)",
     )
     adaptive_floor: float = Field(
         0.5, ge=-1.0, le=1.0, description="the adaptive threshold never goes below this similarity"
