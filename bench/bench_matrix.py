@@ -63,7 +63,7 @@ def seed_set_of(seed: int) -> str:
 
 
 def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool, colmap: bool,
-         jobs: int, overrides: tuple[str, ...] = ()) -> list[dict]:
+         jobs: int, overrides: tuple[str, ...] = (), size: tuple[int, int] = (320, 240)) -> list[dict]:
     """One job per (synthetic scenario, seed) and one per KITTI excerpt, longest first (parallel efficiency)."""
     default_len = {"driving_city": 550, "driving_loop": 488, "handheld_fast": 360, "indoor_handheld": 330}
     cells = []
@@ -71,7 +71,7 @@ def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool
         for seed in ([0] if sc.startswith("kitti_") else seeds):
             cells.append({"scenario": sc, "seed": None if sc.startswith("kitti_") else seed, "frames": frames,
                           "out": str(out), "labels": labels, "colmap": colmap,
-                          "colmap_threads": 1 if jobs > 1 else -1, "overrides": list(overrides),
+                          "colmap_threads": 1 if jobs > 1 else -1, "overrides": list(overrides), "size": list(size),
                           "set": "shared" if sc.startswith("kitti_") else seed_set_of(seed)})
     return sorted(cells, key=lambda c: -(min(frames or 10 ** 9, default_len.get(c["scenario"], 300))))
 
@@ -277,6 +277,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, help="seeds instead of the set's (the output says which set "
                     "each belongs to)")
     ap.add_argument("--frames", type=int, help="first N frames of every sequence (a shorter, cheaper matrix)")
+    ap.add_argument("--size", default="320x240", metavar="WxH",
+                    help="image size of the synthetic sequences (another camera; default 320x240)")
     ap.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every pvslam run (repeatable, TOML value syntax, as `pvslam run "
@@ -330,7 +332,14 @@ def main(argv=None) -> int:
 
         load_config(None, overrides=args.override)  # a typo fails here, not in every cell
         print(f"overrides for every pvslam run: {' '.join(args.override)}")
-    cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs, tuple(args.override))
+    try:
+        size = tuple(int(v) for v in args.size.lower().split("x"))
+        assert len(size) == 2 and min(size) >= 16
+    except (ValueError, AssertionError):
+        ap.error(f"--size must be WIDTHxHEIGHT (each >= 16), got {args.size!r}")
+    if size != (320, 240):
+        print(f"synthetic image size {size[0]}x{size[1]}")
+    cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs, tuple(args.override), size)
     t0 = time.perf_counter()
     rows = []
     if args.jobs > 1:
@@ -354,7 +363,7 @@ def main(argv=None) -> int:
         Path(args.json).write_text(json.dumps({
             "set": label, "seeds": seeds, "seed_sets": SEED_SETS, "argv": sys.argv[1:] if argv is None else argv,
             "commit": commit(), "host": platform.node(), "cpus": os.cpu_count(), "jobs": args.jobs,
-            "frames": args.frames, "wall_s": wall, "rows": rows, "summary": summ, "targets": tg}, indent=1,
+            "frames": args.frames, "size": list(size), "wall_s": wall, "rows": rows, "summary": summ, "targets": tg}, indent=1,
             default=str))
         print(f"results written to {args.json}")
     return 0

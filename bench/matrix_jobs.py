@@ -35,11 +35,11 @@ KITTI = Path(os.environ.get("PVSLAM_KITTI", ROOT.parent / "shared" / "data" / "k
 
 
 # ------------------------------------------------------------------------------------------------ sequences
-def synthetic_sequence(scenario: str, seed: int, frames: Optional[int]) -> Path:
-    """The cached synthetic folder (generated on first use, 320x240)."""
+def synthetic_sequence(scenario: str, seed: int, frames: Optional[int], size: tuple[int, int] = (320, 240)) -> Path:
+    """The cached synthetic folder (generated on first use; ``size`` = (width, height), 320x240 by default)."""
     from pvslam_plugins.datasets.synthetic.generator import ensure_cached
 
-    return ensure_cached(scenario, num_frames=frames, seed=seed, progress=False)
+    return ensure_cached(scenario, num_frames=frames, seed=seed, width=size[0], height=size[1], progress=False)
 
 
 def kitti_as_tum(seq: str, out: Path) -> Path:
@@ -191,7 +191,7 @@ def run_cell(job: dict) -> dict:
             seq_dir = kitti_as_tum(scenario[6:], out / "kitti")
             fps = 10.0
         else:
-            seq_dir = synthetic_sequence(scenario, seed, frames)
+            seq_dir = synthetic_sequence(scenario, seed, frames, tuple(job.get("size") or (320, 240)))
             import json
 
             fps = float(json.loads((seq_dir / "meta.json").read_text())["fps"])

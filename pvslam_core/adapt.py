@@ -9,8 +9,19 @@ False) the segmenter is replaced, instead of failing at frame 0:
   callable that is true when the plugin runs with its default config (e.g. its weights are on disk);
 * else by none: segmentation and VPS are off, and so is panoptic evaluation (it needs labels too).
 
-A segmenter the user chose that needs no labels is never touched.  Each change is one line on the
-``pvslam.notice`` logger, which the command line prints on the console (and log.txt keeps).
+A segmenter the user chose that needs no labels is never touched.
+
+The BA resolution (``graph.ba_downsample``, default 1/8) follows small images: every threshold the frame graph
+and the frontend express in BA pixels (keyframe flow, redundancy, proximity edges, mask regions) was chosen on a
+grid of about 40x30 cells, i.e. as a share of the field of view; on a 160x120 camera 1/8 leaves 20x15 cells, and
+there the hand-held room never initialised and the driving loop reached 9.4 % instead of 0.4 % (bench/RESULTS.md,
+issue 13).  Unless the user set ``graph.ba_downsample`` or the frontend registered a fixed one (the registration
+extra ``ba_downsample``: a network's feature stride), it is halved while the grid would have fewer than
+``graph.ba_min_rows`` rows (a power-of-two divisor of the old factor, so the reader's crop stays valid).  Larger
+images keep 1/8 (a finer grid costs time and was not needed there).
+
+Each change is one line on the ``pvslam.notice`` logger, which the command line prints on the console (and
+log.txt keeps).
 """
 from __future__ import annotations
 
@@ -39,8 +50,35 @@ def _ready_segmenters(registry, exclude: str) -> list[str]:
 
 
 def fit_to_sequence(resolved: ResolvedConfig, info: SequenceInfo, registry) -> tuple[ResolvedConfig, list[str]]:
-    """``resolved`` with the components the data cannot feed replaced (a new object), and one note per change;
-    ``(resolved, [])`` unchanged when nothing needs to change."""
+    """``resolved`` with the components the data cannot feed replaced and the BA resolution fitted to the image
+    size (a new object), and one note per change; ``(resolved, [])`` unchanged when nothing needs to change."""
+    resolved, notes = _fit_segmenter(resolved, info, registry)
+    resolved, more = _fit_ba_resolution(resolved, info, registry)
+    return resolved, notes + more
+
+
+def _fit_ba_resolution(resolved: ResolvedConfig, info: SequenceInfo, registry) -> tuple[ResolvedConfig, list[str]]:
+    g = resolved.pipeline.graph
+    if "ba_downsample" in g.model_fields_set or g.ba_min_rows <= 0:
+        return resolved, []
+    fe = resolved.pipeline.frontend
+    if fe.enabled and registry.get("frontend", fe.plugin).extras.get("ba_downsample") is not None:
+        return resolved, []  # the frontend works at one fixed resolution (a network's feature stride)
+    h, ds = int(info.intrinsics.height), g.ba_downsample
+    new = ds
+    while new % 2 == 0 and h / new < g.ba_min_rows:
+        new //= 2
+    if new == ds:
+        return resolved, []
+    pcfg = resolved.pipeline.model_copy(deep=True)
+    pcfg.graph.ba_downsample = new
+    note = (f"graph.ba_downsample: {new} (at 1/{ds} the {int(info.intrinsics.width)}x{h} images give a BA grid of "
+            f"{h // ds} rows, fewer than graph.ba_min_rows = {g.ba_min_rows}; set graph.ba_downsample to keep 1/{ds})")
+    NOTICE.warning(note)
+    return ResolvedConfig(pcfg, dict(resolved.models), resolved.source), [note]
+
+
+def _fit_segmenter(resolved: ResolvedConfig, info: SequenceInfo, registry) -> tuple[ResolvedConfig, list[str]]:
     seg = resolved.pipeline.segmenter
     if not seg.enabled or info.has_gt_panoptic:
         return resolved, []

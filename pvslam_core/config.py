@@ -102,6 +102,10 @@ class GraphSection(PluginConfig):
     """Keyframe and edge policy of the frame graph (DROID-SLAM style; anchors 1.5)."""
 
     ba_downsample: int = Field(8, ge=1, description="BA resolution = image size / ba_downsample")
+    ba_min_rows: int = Field(
+        30, ge=0, description="unless graph.ba_downsample is set explicitly, it is halved (8 -> 4 -> 2 -> 1) while the "
+        "BA grid would have fewer rows than this: small images keep a BA grid of about the size every threshold in "
+        "BA pixels was chosen at (30 rows: 240-row images at 1/8); 0 = never (pvslam_core/adapt.py)")
     warmup: int = Field(5, ge=2, description="keyframes collected before the map is initialised")
     warmup_seconds: float = Field(
         0.65, ge=0, description="...or fewer (at least 3) once they span this many seconds of video (0: off). A slow "

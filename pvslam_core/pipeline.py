@@ -114,6 +114,7 @@ class Pipeline:
         # e.g. no labels segmenter on data without labels; self.cfg is what runs (and what config.json records)
         self.cfg, self.notes = fit_to_sequence(self.cfg, self.info, self.registry)
         self.pcfg = self.cfg.pipeline
+        ctx.ba_downsample = self.pcfg.graph.ba_downsample  # fitted to the image size (adapt.py)
         self.segmenter = self._build("segmenter", ctx)
         self.frontend = self._build("frontend", ctx)
         self.loop_detector = self._build("loop", ctx)

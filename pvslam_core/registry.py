@@ -57,7 +57,8 @@ class HookSpecs:
     """One hook per interface; each receives ``register(name, factory, config_model, description="", **extras)``.
 
     ``extras`` are optional named capabilities the core may look up, e.g. a dataset plugin's
-    ``generate(name, out_dir, **kw) -> Path`` and ``scenarios`` (used by ``pvslam synth``).
+    ``generate(name, out_dir, **kw) -> Path`` and ``scenarios`` (used by ``pvslam synth``), a segmenter's
+    ``needs_gt_panoptic`` / ``auto_ready`` and a frontend's fixed ``ba_downsample`` (:mod:`pvslam_core.adapt`).
     """
 
     @hookspec

@@ -182,7 +182,7 @@ class _Segmenters:
 
 def test_fit_to_sequence(monkeypatch):
     reg = build_registry(extra_modules=(fakes, _Segmenters()))
-    k = Intrinsics(40, 40, 31.5, 23.5, 64, 48)
+    k = Intrinsics(200, 200, 159.5, 119.5, 320, 240)  # large enough to keep the default BA resolution
     plain, labelled = SequenceInfo("mine", 10, k), SequenceInfo("syn", 10, k, has_gt_panoptic=True)
     cfg = load_config(overrides=["segmenter.plugin=oracle", "vps.plugin=pass", "dataset.plugin=fake"], registry=reg)
     assert fit_to_sequence(cfg, labelled, reg) == (cfg, [])  # labels present: unchanged
@@ -245,3 +245,41 @@ def test_a_video_that_claims_too_few_frames_is_read_to_its_end(data, tmp_path, m
     assert res.poses.shape == (N, 7)
     assert "sequence video_clip: 10 frames" in caplog.text  # the claim: the progress bar's total
     assert f"the container claims 10 frames, {N} were decoded" in caplog.text
+
+
+def test_ba_resolution_follows_small_images():
+    """graph.ba_downsample is halved for small images (a BA grid of at least graph.ba_min_rows rows) unless the user
+    set it, graph.ba_min_rows is 0, or the frontend registered a fixed one (raft_gru: its feature stride)."""
+    reg = build_registry(extra_modules=(fakes,))
+
+    def fitted(w, h, *ov):
+        cfg = load_config(overrides=["dataset.plugin=fake", *ov], registry=reg)
+        info = SequenceInfo("cam", 10, Intrinsics(w, w, (w - 1) / 2, (h - 1) / 2, w, h), has_gt_panoptic=True)
+        before = cfg.pipeline.graph.ba_downsample
+        out, notes = fit_to_sequence(cfg, info, reg)
+        assert cfg.pipeline.graph.ba_downsample == before  # the input is not modified
+        return out.pipeline.graph.ba_downsample, notes
+
+    assert fitted(320, 240) == (8, []) and fitted(1241, 376) == (8, [])  # 30 / 47 rows at 1/8
+    ds, notes = fitted(160, 120)
+    assert ds == 4 and len(notes) == 1 and "15 rows" in notes[0] and "graph.ba_downsample" in notes[0]
+    assert fitted(64, 48)[0] == 1 and fitted(320, 176)[0] == 4  # 6 -> 48 rows; 22 -> 44 rows
+    assert fitted(160, 120, "graph.ba_downsample=8") == (8, [])  # the user's choice stands
+    assert fitted(160, 120, "graph.ba_min_rows=0") == (8, [])
+    assert fitted(160, 120, "graph.ba_downsample=6")[0] == 6  # set explicitly: never touched
+    assert fitted(160, 120, "frontend.plugin=raft_gru") == (8, [])  # a network's fixed stride
+
+
+def test_the_pipeline_builds_its_frontend_at_the_fitted_resolution(tmp_path):
+    """Without graph.ba_downsample the fake 64x48 scene runs at 1/1 (48 rows): the frontend is built with the fitted
+    factor (its targets would not match the graph's grid otherwise), config.json records it, the log says why."""
+    import json
+
+    p = tmp_path / "pipeline.toml"
+    text = fakes.FAKE_PIPELINE.format(output_dir=(tmp_path / "runs").as_posix())
+    p.write_text(text.replace("ba_downsample = 4\n", ""))
+    res = run_config(p, registry=build_registry(extra_modules=(fakes,)))
+    assert res.poses.shape == (12, 7) and bool(res.poses.isfinite().all())
+    run = Path(res.run_dir)
+    assert json.loads((run / "config.json").read_text())["graph"]["ba_downsample"] == 1
+    assert "graph.ba_downsample: 1 (at 1/8 the 64x48 images give a BA grid of 6 rows" in (run / "log.txt").read_text()

@@ -73,6 +73,7 @@ def register_frontends(register):
         RaftGruConfig,
         description="DROID-SLAM / PVO learned frontend: RAFT encoders, correlation pyramid, ConvGRU update with "
         "per-edge state, update -> dense BA rounds, learned damping, PVO dynamic mask (eq. 4/6)",
+        ba_downsample=8,  # the network's feature stride: the BA resolution is not fitted to small images
         trainer=Trainer(TrainConfig, run, description="DROID's losses (pose after BA, induced flow, residual; "
                         "PVO's mask loss) through a differentiable dense BA on built-in synthetic clips"),
     )

@@ -16,10 +16,11 @@ class ClassicalLoopConfig(VerificationConfig):
         "percentile; revisits within 3 m 0.85-1.0). Only candidates above it are verified",
     )
     adaptive_neighbours: int = Field(
-        2, ge=0,
+        0, ge=0,
         description="adaptive threshold (ORB-SLAM's rule): when the new keyframe's lowest similarity to its this "
-        "many predecessors is below `threshold`, candidates need only that (0: the fixed threshold; why: "
-        "bench/RESULTS.md, issue 13)",
+        "many predecessors is below `threshold`, candidates need only that (0: the fixed threshold). Closes "
+        "hand-held revisits that the fixed threshold misses, but also admits far-away loops on drives; opt-in "
+        "(bench/RESULTS.md, issue 13)",
     )
     adaptive_floor: float = Field(
         0.5, ge=-1.0, le=1.0, description="the adaptive threshold never goes below this similarity"

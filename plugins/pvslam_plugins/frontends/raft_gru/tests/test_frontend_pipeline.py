@@ -76,7 +76,7 @@ class AuditPlugin:
     @hookimpl
     def register_frontends(register):
         register("raft_gru_audit", lambda c, ctx: AuditedFrontend(c, device=ctx.device, ba_downsample=ctx.ba_downsample),
-                 RaftGruConfig, description="test-only")
+                 RaftGruConfig, description="test-only", ba_downsample=8)  # raft_gru's fixed stride, as registered
 
 
 @pytest.fixture(scope="module")

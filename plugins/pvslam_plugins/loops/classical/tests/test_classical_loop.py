@@ -238,8 +238,9 @@ def test_adaptive_threshold_follows_the_neighbours_similarity():
             det.add_keyframe(k, frame(view("astronaut"), k))
         return [(c.j, round(c.score, 2)) for c in det.query(4)]
 
-    assert retrieved(adaptive_neighbours=0) == []  # the fixed threshold (0.75)
-    assert retrieved() == [(0, 0.62)]  # the default, 2 neighbours: threshold min(0.75, 0.60, 0.65) = 0.60
+    assert retrieved() == []  # the default: the fixed threshold (0.75)
+    assert retrieved(adaptive_neighbours=2) == [(0, 0.62)]  # threshold min(0.75, 0.60, 0.65) = 0.60
     assert retrieved(adaptive_neighbours=1) == []  # the last predecessor alone: 0.65
-    assert retrieved(adaptive_floor=0.7) == []
-    assert retrieved(threshold=0.2, adaptive_floor=0.7) == [(0, 0.62), (1, 0.3)]  # it never raises `threshold`
+    assert retrieved(adaptive_neighbours=2, adaptive_floor=0.7) == []
+    # it never raises a lower `threshold`
+    assert retrieved(adaptive_neighbours=2, threshold=0.2, adaptive_floor=0.7) == [(0, 0.62), (1, 0.3)]
