@@ -45,6 +45,9 @@ class Verification:
     matches: int  # tentative matches after the ratio / cross check
     inliers: int  # essential-matrix RANSAC inliers
     message: str = ""
+    # the inliers' spread in the first view over that in the second (RMS distance from their centroid, normalised
+    # coordinates): < 1 when the first view sees the matched structure from farther away (a smaller image of it)
+    spread: float = 1.0
 
     @property
     def ratio(self) -> float:
@@ -145,7 +148,9 @@ def verify(
     # no cheirality (recoverPose) filter: it is ill-conditioned for the near-zero baselines of good revisits
     inl = int(mask.sum())
     ok = inl >= min_inliers and inl >= min_inlier_ratio * n
-    return Verification(ok, n, inl, f"{inl}/{n} inliers")
+    m = mask.reshape(-1) > 0
+    s1, s2 = (float(np.sqrt(((p[m] - p[m].mean(0)) ** 2).sum(1).mean())) if inl else 0.0 for p in (p1, p2))
+    return Verification(ok, n, inl, f"{inl}/{n} inliers", spread=s1 / s2 if s2 > 0 else 1.0)
 
 
 # ------------------------------------------------------------------------------------------------ config --

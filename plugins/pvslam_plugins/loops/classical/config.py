@@ -16,14 +16,19 @@ class ClassicalLoopConfig(VerificationConfig):
         "percentile; revisits within 3 m 0.85-1.0). Only candidates above it are verified",
     )
     adaptive_neighbours: int = Field(
-        0, ge=0,
+        2, ge=0,
         description="adaptive threshold (ORB-SLAM's rule): when the new keyframe's lowest similarity to its this "
-        "many predecessors is below `threshold`, candidates need only that (0: the fixed threshold). Closes "
-        "hand-held revisits that the fixed threshold misses, but also admits far-away loops on drives; opt-in "
-        "(bench/RESULTS.md, issue 13)",
+        "many predecessors is below `threshold`, candidates need only that (0: the fixed threshold); such "
+        "candidates must also pass adaptive_min_spread (bench/RESULTS.md, issue 13)",
     )
     adaptive_floor: float = Field(
         0.5, ge=-1.0, le=1.0, description="the adaptive threshold never goes below this similarity"
+    )
+    adaptive_min_spread: float = Field(
+        0.9, ge=0.0,
+        description="a candidate below `threshold` (retrieved through the adaptive threshold) passes verification "
+        "only when the new keyframe sees the matched structure about as large as the old one (inlier spread new / "
+        "old at least this): a revisit of the same spot, not a view of it from far away",
     )
     exclude_recent: int = Field(
         20, ge=0,

@@ -238,9 +238,40 @@ def test_adaptive_threshold_follows_the_neighbours_similarity():
             det.add_keyframe(k, frame(view("astronaut"), k))
         return [(c.j, round(c.score, 2)) for c in det.query(4)]
 
-    assert retrieved() == []  # the default: the fixed threshold (0.75)
-    assert retrieved(adaptive_neighbours=2) == [(0, 0.62)]  # threshold min(0.75, 0.60, 0.65) = 0.60
+    assert retrieved(adaptive_neighbours=0) == []  # the fixed threshold (0.75)
+    assert retrieved() == [(0, 0.62)]  # the default, 2 neighbours: threshold min(0.75, 0.60, 0.65) = 0.60
     assert retrieved(adaptive_neighbours=1) == []  # the last predecessor alone: 0.65
-    assert retrieved(adaptive_neighbours=2, adaptive_floor=0.7) == []
-    # it never raises a lower `threshold`
-    assert retrieved(adaptive_neighbours=2, threshold=0.2, adaptive_floor=0.7) == [(0, 0.62), (1, 0.3)]
+    assert retrieved(adaptive_floor=0.7) == []
+    assert retrieved(threshold=0.2, adaptive_floor=0.7) == [(0, 0.62), (1, 0.3)]  # it never raises a lower threshold
+
+
+def test_adaptive_candidates_must_be_a_revisit_not_a_distant_view(monkeypatch):
+    """A candidate retrieved only through the adaptive threshold passes verification only when the new view sees
+    the matched structure about as large as the old one (adaptive_min_spread); above `threshold` the spread is not
+    asked."""
+    from pvslam_plugins.loops.verification import Verification
+
+    for score_above, spread, expect in ((False, 0.8, False), (False, 0.95, True), (True, 0.8, True)):
+        det = ClassicalLoopDetector(cfg(exclude_recent=0, threshold=0.5 if score_above else 0.999))
+        for k, name in enumerate(("astronaut", "coffee")):
+            det.add_keyframe(k, frame(view(name), k))
+        det.add_keyframe(2, frame(view("astronaut", dx=4), 2))
+        monkeypatch.setattr(det, "_threshold", lambda r: 0.5)  # the adaptive threshold, whatever the neighbours
+        monkeypatch.setattr(det.verifier, "verify", lambda i, j, s=spread: Verification(True, 200, 150, "", s))
+        got = [c for c in det.query(2) if c.j == 0]
+        assert len(got) == 1 and got[0].verified is expect, (score_above, spread)
+
+
+def test_verification_reports_how_large_the_new_view_sees_the_match():
+    """Verification.spread: the inliers' spread in the first view over that in the second, ~1 for a revisit from the
+    same spot, ~0.7 when the first view is the same place 0.7x as large (seen from farther away)."""
+    near = view("astronaut")
+    small = cv2.resize(near, None, fx=0.7, fy=0.7, interpolation=cv2.INTER_AREA)
+    far = np.full_like(near, 128)
+    y0, x0 = (H - small.shape[0]) // 2, (W - small.shape[1]) // 2
+    far[y0:y0 + small.shape[0], x0:x0 + small.shape[1]] = small  # zoomed out about the image centre
+    fa, fb, fs = (extract(gray(v), K, 1000) for v in (far, near, view("astronaut", dx=6, dy=-4)))
+    res = verify(fa, fb)
+    assert res.accepted and abs(res.spread - 0.7) < 0.07, res
+    shifted = verify(fs, fb)
+    assert shifted.accepted and abs(shifted.spread - 1.0) < 0.05, shifted
