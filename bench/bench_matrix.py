@@ -32,6 +32,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -332,11 +333,10 @@ def main(argv=None) -> int:
 
         load_config(None, overrides=args.override)  # a typo fails here, not in every cell
         print(f"overrides for every pvslam run: {' '.join(args.override)}")
-    try:
-        size = tuple(int(v) for v in args.size.lower().split("x"))
-        assert len(size) == 2 and min(size) >= 16
-    except (ValueError, AssertionError):
+    wh = re.fullmatch(r"(\d+)x(\d+)", args.size.lower())
+    if wh is None or min(int(wh[1]), int(wh[2])) < 16:
         ap.error(f"--size must be WIDTHxHEIGHT (each >= 16), got {args.size!r}")
+    size = (int(wh[1]), int(wh[2]))
     if size != (320, 240):
         print(f"synthetic image size {size[0]}x{size[1]}")
     cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs, tuple(args.override), size)

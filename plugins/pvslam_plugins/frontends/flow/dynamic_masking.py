@@ -177,10 +177,13 @@ class DynamicMasking:
         kf.dyn = m.float() if kf.dyn is None else torch.maximum(kf.dyn, m.float())
 
     def _cue_on(self, sid: int) -> bool:
-        """Whether keyframe ``sid`` gets the epipolar cue: always without a segmenter; with one (its segments at the
-        BA resolution) only with ``epipolar_with_segmenter``."""
+        """Whether keyframe ``sid`` gets the epipolar cue (the one gate of every cue call: the keyframe's, its edges',
+        tracking's): with ``dynamic_masking`` and ``epipolar_cue``, always without a segmenter; with one (its
+        segments at the BA resolution) only with ``epipolar_with_segmenter``."""
+        c = self.cfg
         kf = self._kfs.get(sid)
-        return kf is not None and (self.cfg.epipolar_with_segmenter or kf.seg_ba is None)
+        return (c.dynamic_masking and c.epipolar_cue and kf is not None
+                and (c.epipolar_with_segmenter or kf.seg_ba is None))
 
     def _keyframe_cue(self, pend: dict, sid: int, frame) -> None:
         """The epipolar cue of a new keyframe ``sid`` from its tracked flow (``pend``: the frontend's pending track:

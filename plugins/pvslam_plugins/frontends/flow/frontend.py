@@ -257,8 +257,7 @@ class FlowFrontend(DynamicMasking, Frontend):
         target = torch.from_numpy(tf)
         weight = torch.from_numpy(np.stack([wf, wf], 0))
         # per-frame epipolar cue: with the keyframe cue only, and on the keyframes it runs on (_cue_on)
-        cue = self._cue_mask(tf, wf, frame) if (self.cfg.dynamic_masking and self.cfg.epipolar_cue
-                                                 and self.cfg.epipolar_track and self._cue_on(last_sid)) else None
+        cue = self._cue_mask(tf, wf, frame) if self.cfg.epipolar_track and self._cue_on(last_sid) else None
         if self.cfg.dynamic_masking and self.cfg.dynamic_track:
             # the reference keyframe's moving regions (dynamic.py) through eq. 4, as on its edges: the mapper's
             # motion-only BA places this frame from these weights
@@ -325,8 +324,8 @@ class FlowFrontend(DynamicMasking, Frontend):
                 self._kfs[sid].dyn = D.warp_mask(ref, torch.from_numpy(pend["fwd"][0]), self.cfg.dynamic_grow)
                 if self.cfg.dynamic_persist:
                     self._kfs[sid].dyn_prior = (self._kfs[sid].dyn > 0).cpu()
-        if self.cfg.epipolar_cue and self.cfg.dynamic_masking and pend is not None and "fwd" in pend:
-            self._keyframe_cue(pend, sid, frame)  # the map-independent cue of the tracked flow (dynamic_masking.py)
+        if pend is not None and "fwd" in pend:  # the map-independent cue of the tracked flow (dynamic_masking.py)
+            self._keyframe_cue(pend, sid, frame)
         self._pending = None
 
     # -------------------------------------------------------------------------------- graph listener --
@@ -368,8 +367,7 @@ class FlowFrontend(DynamicMasking, Frontend):
                 missing.append(e)
         if missing:
             self._compute_edges(graph, ids, [ii_l[e] for e in missing], [jj_l[e] for e in missing], h, w)
-            if self.cfg.epipolar_cue and self.cfg.dynamic_masking:  # the new edges' own epipolar cue
-                self._edge_cues(graph, [keys[e] for e in missing])  # (dynamic_masking.py)
+            self._edge_cues(graph, [keys[e] for e in missing])  # the new edges' own epipolar cue (dynamic_masking.py)
         entries = [self._edges[key] for key in keys]
         E = len(entries)
         if E == 0:
