@@ -150,6 +150,10 @@ class GraphSection(PluginConfig):
         256, ge=8, description="cap on active edges: beyond it the oldest edges not touching the newest keyframe "
         "retire (their last observations stay for the final BA). Edges also retire when they no longer touch the "
         "last `active_window` keyframes, which normally keeps far fewer active")
+    retired_margin: Optional[int] = Field(
+        None, ge=0, description="window BAs also use the last observations of retired edges whose both ends are at "
+        "most this many keyframes before the active window, as frozen constraints (DROID-SLAM's inactive edges, "
+        "t0 - 3; 3 there); None: only active edges. Helps a fast forward drive's scale, costs others (bench/RESULTS.md)")
     max_edge_age: int = Field(
         25, ge=1, description="an edge retires after taking part in this many optimisation rounds (DROID-SLAM's "
         "frontend max_age)")

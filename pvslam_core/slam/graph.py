@@ -309,6 +309,20 @@ class FrameGraph:
         idx = self.indices_of(keys)
         return idx[:, 0], idx[:, 1]
 
+    def retired_edges_from(self, lo: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(ii, jj)`` graph indices of the retired edges (with a stored observation) whose both ends are
+        keyframes ``>= lo`` (indices follow the ids' order)."""
+        z = torch.zeros(0, dtype=torch.int64, device=self.device)
+        lo = max(0, int(lo))
+        if not self._retired or lo >= self.n:
+            return z, z.clone()
+        id_lo = self._ids_cpu[lo]
+        keys = [key for key in self._retired if key[0] >= id_lo and key[1] >= id_lo]
+        if not keys:
+            return z, z.clone()
+        idx = self.indices_of(torch.tensor(keys, dtype=torch.int64, device=self.device))
+        return idx[:, 0], idx[:, 1]
+
     def is_retired(self, ii, jj) -> torch.Tensor:
         """bool ``[len(ii)]``: whether each ``ii -> jj`` has a stored retired observation."""
         ii = torch.as_tensor(ii, dtype=torch.int64).reshape(-1).tolist()

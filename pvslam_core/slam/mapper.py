@@ -125,7 +125,7 @@ class Mapper(GraphListener):
             if ii.numel() == 0:
                 return
             t0 = thread_time()
-            obs = self._observe(ii, jj)
+            obs = self._with_frozen(self._observe(ii, jj), k)
             t1 = thread_time()
             report = self.optimizer.step(self.graph, obs)
             self.cpu["edges"] += t1 - t0
@@ -133,6 +133,25 @@ class Mapper(GraphListener):
             self.graph.age_edges(ii, jj)
             if report.rejected:
                 LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
+
+    def _with_frozen(self, obs: EdgeObservations, k: int) -> EdgeObservations:
+        """``obs`` plus the stored last observations of retired edges whose both ends lie at or after
+        ``graph.retired_margin`` keyframes before the active window (DROID-SLAM's frontend keeps such inactive
+        edges, both ends >= t0 - 3, as frozen constraints).  Why: the keyframes just behind the window have fixed
+        poses but free depths, and without these edges nothing ties those depths to the fixed poses, so the
+        window's scale and the depths it is anchored to can drift together.  Off by default: on the synthetic
+        highway it holds the scale (forward_low_parallax tune seeds 2.0-19.0 -> 2.5-3.9 % of the path with a
+        margin of 8), on the moving_vehicles street it pulls the scale down as steadily (0.3 -> 0.6-0.9 %, with
+        oracle masks too); bench/RESULTS.md, "retired edges as frozen constraints"."""
+        margin = self.cfg.retired_margin
+        if margin is None:
+            return obs
+        g = self.graph
+        ri, rj = g.retired_edges_from(max(self.fragment_start, k - self.cfg.active_window + 1 - margin))
+        if ri.numel() == 0:
+            return obs
+        frozen = g.retired_observations(ri, rj)
+        return _concat([obs, frozen], torch.arange(obs.ii.numel() + ri.numel()))
 
     def _reference(self, track: Optional[TrackResult]) -> dict:
         """The newest keyframe as this frame's tracking reference (captured before this frame changes the map)."""

@@ -1,5 +1,6 @@
 """The mapper (Algorithm 1's per-frame driver) with the framework's exact fake plugins: per-frame results,
 initialisation, online BA accuracy, loop handling, keyframe removal, and the motion cue for the VPS head."""
+import pytest
 import torch
 
 import fakes
@@ -181,3 +182,44 @@ def test_provisional_keyframe_that_is_not_redundant_becomes_ordinary():
     for k in range(1, last + 1):  # every settled keyframe has edges
         assert bool(((g.ii == k) | (g.jj == k)).any()), k
     assert det.added == g.ids.tolist()
+
+
+class _RecordingOptimizer(_CountingOptimizer):
+    """Also records, per window BA, the edges it was given and the graph's active edges at that moment."""
+
+    def __init__(self, inner):
+        super().__init__(inner)
+        self.calls = []
+
+    def step(self, graph, obs):
+        active = set(zip(graph.ii.tolist(), graph.jj.tolist()))
+        self.calls.append((graph.n, list(zip(obs.ii.tolist(), obs.jj.tolist())), active))
+        return super().step(graph, obs)
+
+
+@pytest.mark.parametrize("margin", [None, 0, 2])
+def test_window_ba_adds_retired_edges_near_the_window_as_frozen_constraints(margin):
+    """DROID-SLAM's inactive edges: retired edges whose both ends are at most ``retired_margin`` keyframes before
+    the active window join each window BA with their stored observation; older ones never do."""
+    window = 3
+    m, ds, _ = build(frames=30, active_window=window, neighbours=2, retired_margin=margin)
+    m.optimizer = _RecordingOptimizer(m.optimizer)
+    for f in ds:
+        m.process(f, None)
+    frozen_seen = 0
+    for n, edges, active in m.optimizer.calls:
+        k = n - 1
+        frozen = [e for e in edges if e not in active]
+        if margin is None:
+            assert not frozen
+            continue
+        lo = k - window + 1 - margin
+        assert all(min(e) >= lo for e in frozen), (k, frozen)
+        frozen_seen += len(frozen)
+    if margin == 2:
+        assert frozen_seen > 0
+    m.finalize()
+    ts, poses = m.trajectory()
+    gt = torch.stack([f.gt_pose for f in ds])
+    ate = umeyama_ate(poses[:, :3], gt[:, :3])
+    assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate  # exact stored targets keep exact poses
