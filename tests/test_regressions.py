@@ -95,6 +95,40 @@ def test_bound_catches_broken_drive(tmp_path, drive140, broken):
     assert not ate < DRIVE_BOUND, ate
 
 
+def _exposure_gain(i: int) -> float:
+    """A camera's auto-exposure on the drive: a 1.5x ramp over frames 30-60 (a tunnel exit), held, then a sudden
+    step to 0.7x at frame 90 and back at frame 120."""
+    if i < 30:
+        return 1.0
+    if i < 60:
+        return 1.0 + 0.5 * (i - 30) / 30
+    return 1.5 if i < 90 else (0.7 if i < 120 else 1.0)
+
+
+# measured (seed 0, 140 frames, images reader, no labels): 0.21 % with these exposure changes, 0.15 % without
+# (drive_good, synthetic reader: 0.18 %); 0.62 % when the photometric confidence removed a brightness offset only
+# (before flow_ops.fit_exposure), so the bound 2 x drive_good + 0.1 = 0.46 % catches that
+def test_drive_with_exposure_changes_within_bound(tmp_path, drive140, drive_good):
+    """Real cameras change exposure: DIS normalises each patch's mean and the photometric confidence removes a
+    fitted global gain and offset, so gain ramps and steps must not break tracking or the scale."""
+    import cv2
+
+    rgb = tmp_path / "rgb"
+    rgb.mkdir()
+    names = sorted(p.name for p in (drive140 / "rgb").iterdir())
+    for i, name in enumerate(names):
+        img = cv2.imread(str(drive140 / "rgb" / name)).astype(np.float32) * _exposure_gain(i)
+        cv2.imwrite(str(rgb / name), np.clip(img, 0, 255).astype(np.uint8))
+    fps = json.loads((drive140 / "meta.json").read_text()).get("fps", 12.0)
+    res = _run(tmp_path / "runs", rgb, 'dataset.plugin="images"', f'dataset.calib="{(drive140 / "calib.txt").as_posix()}"',
+               f"dataset.fps={fps}", f'dataset.groundtruth="{(drive140 / "groundtruth.txt").as_posix()}"', *NO_SEG)
+    t = res.metrics["timing"]
+    assert t["tracking_failures"] == 0 and t["reinitialisations"] == 0
+    assert res.poses.shape[0] == DRIVE_FRAMES and np.isfinite(res.poses.numpy()).all()
+    ate = _ate(res)
+    assert ate < DRIVE_BOUND and ate < 2.0 * _ate(drive_good) + 0.1, (ate, _ate(drive_good))
+
+
 # ------------------------------------------------------------------------------------------ loop closure --
 # driving_block (229 frames, 152 m): ground-truth revisits (within 3 m) are frames 204-228 against frames 0-24.
 # "Loop gap": for every ground-truth loop pair (i, j), after the Sim(3) alignment of the whole trajectory,

@@ -91,9 +91,9 @@ class FlowFrontendConfig(PluginConfig):
     photo_sigma: float = Field(
         4.0, ge=0.0,
         description="Photometric confidence scale (gray levels): the confidence is multiplied by "
-        "exp(-r^2 / (2 sigma^2)), r = local mean |I1(x + f) - I0(x)| after removing the global brightness offset. "
-        "Catches flows that are consistently wrong in both directions (low texture, strong perspective shear). "
-        "0 disables.",
+        "exp(-r^2 / (2 sigma^2)), r = local mean |I1(x + f) - I0(x)| after removing the global exposure "
+        "change (gain and offset, fitted robustly on unsaturated pixels: flow_ops.fit_exposure). Catches flows "
+        "that are consistently wrong in both directions (low texture, strong perspective shear). 0 disables.",
     )
     weighted_pooling: bool = Field(
         True,

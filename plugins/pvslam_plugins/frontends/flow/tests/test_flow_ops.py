@@ -152,6 +152,25 @@ def test_photometric_confidence_flags_wrong_flow_and_ignores_brightness_offset()
     assert right[inner].mean() > 0.8 and wrong[inner].mean() < 0.4, (right[inner].mean(), wrong[inner].mean())
     brighter = np.clip(g1.astype(np.int16) + 25, 0, 255).astype(np.uint8)
     assert F.photometric_confidence(g0, brighter, gt, 4.0)[inner].mean() > 0.75
+    # an exposure step (gain) is removed as well; a wrong flow under it is still flagged
+    for gain in (0.5, 1.5):  # at 1.5 a third of the image saturates: those pixels lost their texture
+        scaled = np.clip(g1.astype(np.float32) * gain + 3, 0, 255).astype(np.uint8)
+        unsat = (g0.astype(np.float32) * gain + 3 < 250)[inner]
+        assert F.photometric_confidence(g0, scaled, gt, 4.0)[inner][unsat].mean() > 0.75, gain
+        wrong_g = F.photometric_confidence(g0, scaled, gt * 0.0 + np.float32([1.0, -3.0]), 4.0)
+        assert wrong_g[inner].mean() < 0.4, gain
+
+
+def test_fit_exposure_recovers_gain_and_offset_despite_outliers():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 200, 4000).astype(np.float32)
+    y = 0.7 * x + 12 + rng.normal(0, 1.0, x.shape).astype(np.float32)
+    y[:800] = rng.uniform(0, 255, 800)  # 20 % wrong matches (occlusions)
+    gain, offset = F.fit_exposure(x, y)
+    assert abs(gain - 0.7) < 0.02 and abs(offset - 12) < 1.5, (gain, offset)
+    assert F.fit_exposure(x, x + 5)[0] == pytest.approx(1.0, abs=1e-3)
+    flat = np.full(100, 80, np.float32)  # no contrast: offset only
+    assert F.fit_exposure(flat, flat * 1.5) == (1.0, pytest.approx(40.0))
 
 
 def test_zero_init_flow_does_not_depend_on_earlier_initialised_calls():
