@@ -246,17 +246,17 @@ def photometric_confidence(g0: np.ndarray, g1: np.ndarray, flow: np.ndarray, sig
     return cv2.exp(cv2.multiply(r, r, scale=-1.0 / (2.0 * sigma * sigma)))
 
 
-def fit_exposure(g0: np.ndarray, g1: np.ndarray, max_gain: float = 4.0,
-                 min_gain_gain: float = 0.75) -> tuple[float, float]:
+def fit_exposure(g0: np.ndarray, g1: np.ndarray, max_gain: float = 4.0, min_gain_gain: float = 0.75,
+                 min_corr: float = 0.6) -> tuple[float, float]:
     """Robust ``(gain, offset)`` with ``g1 ~ gain * g0 + offset`` over matched pixel samples (float32 arrays of one
     shape).  The median difference (gain 1) is the answer unless a gain explains the samples markedly better:
     least squares on the samples within 3 MADs of the offset model, then once more within 3 MADs of that fit
     (occlusions and wrong matches are the outliers), kept only when it brings the residuals' MAD below
-    ``min_gain_gain`` x the offset model's.  Why the gate: an auto-exposure step scales the brightness (with the
-    offset alone, every textured pixel of a pair across a 1.5x step looked like a wrong match: the 140-frame drive
-    of tests/test_regressions.py went 0.15 -> 0.62 % ATE), but where the exposure is constant a fitted gain only
-    follows the scene's content (a bright bus entering the view), and on the synthetic tune cells that changed
-    the confidence enough to cost moving_vehicles/7 0.96 -> 20.5 %."""
+    ``min_gain_gain`` x the offset model's and the samples' correlation is at least ``min_corr``.  Why: an
+    auto-exposure step scales the brightness (with the offset alone, every textured pixel of a pair across a 1.5x
+    step looked like a wrong match: the 140-frame drive of tests/test_regressions.py went 0.15 -> 0.62 % ATE); why
+    the gates: where the exposure is constant a fitted gain only follows the scene's content or a wrong flow, and
+    without them the synthetic tune cells lost accuracy (moving_vehicles/7 0.96 -> 20.5 %)."""
     x, y = g0.reshape(-1).astype(np.float64), g1.reshape(-1).astype(np.float64)
     if x.size == 0:
         return 1.0, 0.0
@@ -275,7 +275,12 @@ def fit_exposure(g0: np.ndarray, g1: np.ndarray, max_gain: float = 4.0,
             return 1.0, offset
         gain, off = float(g), float(o)
     mad1 = float(np.median(np.abs(y - (gain * x + off))))
-    return (gain, off) if mad1 < min_gain_gain * mad0 else (1.0, offset)
+    if not mad1 < min_gain_gain * mad0:
+        return 1.0, offset
+    # a wrong flow pairs unrelated pixels, and a least-squares gain fitted to them shrinks towards 0 (0.36-0.44 with
+    # correlation 0.48-0.49 on the synthetic drive); matched pixels under an exposure change follow a line (0.72+)
+    corr = float(np.corrcoef(x, y)[0, 1])
+    return (gain, off) if corr >= min_corr else (1.0, offset)
 
 
 def texture_confidence(gray: np.ndarray, tau: float, block: int = 5) -> np.ndarray:

@@ -169,6 +169,9 @@ def test_fit_exposure_recovers_gain_and_offset_despite_outliers():
     gain, offset = F.fit_exposure(x, y)
     assert abs(gain - 0.7) < 0.02 and abs(offset - 12) < 1.5, (gain, offset)
     assert F.fit_exposure(x, x + 5)[0] == pytest.approx(1.0, abs=1e-3)
+    # a wrong flow pairs unrelated pixels: a shrunken gain that would explain them is refused (correlation 0.51)
+    loose = (0.4 * x + 60 + rng.normal(0, 40, x.shape)).astype(np.float32)
+    assert F.fit_exposure(x, loose)[0] == 1.0 and F.fit_exposure(x, loose, min_corr=0.0)[0] < 0.5
     flat = np.full(100, 80, np.float32)  # no contrast: offset only
     assert F.fit_exposure(flat, flat * 1.5) == (1.0, pytest.approx(40.0))
 
