@@ -6,6 +6,9 @@ notes, shared/reference/anchors.md section 1.5).
   BA resolution, under the current estimate) is below ``proximity_thresh``, greedily by distance with index NMS;
 * loop edges ``(i, j-1), (i, j), (i, j+1)`` for a detected loop ``i <-> j`` (the paper adds the two outer ones).
 
+* frozen: retired edges just behind the active window, whose stored observations join the window BA
+  (``retired_margin``, off by default);
+
 * retirement: edges that no longer touch the last ``active_window`` keyframes (the window BAs would never use
   them again), edges older than ``max_edge_age`` optimisation rounds, and beyond ``max_active_edges`` the oldest.
 
@@ -70,6 +73,22 @@ def active_edges(graph: FrameGraph, k: int, window: int) -> tuple[torch.Tensor, 
     lo = k - window + 1
     mask = (graph.ii >= lo) | (graph.jj >= lo)
     return graph.ii[mask], graph.jj[mask]
+
+
+def frozen_edges(graph: FrameGraph, k: int, cfg: GraphSection, first: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Retired edges (with a stored observation) whose both ends lie at most ``cfg.retired_margin`` keyframes
+    before the active window ending at ``k`` (and not before ``first``, the fragment start); empty when
+    ``retired_margin`` is None.  The window BA uses their last observations as frozen constraints, as DROID-SLAM's
+    frontend keeps its inactive edges with both ends >= t0 - 3.  Why: the keyframes just behind the window have
+    fixed poses but free depths, and without these edges nothing ties those depths to the fixed poses, so the
+    window's scale and the depths it is anchored to can drift together.  Off by default: on the synthetic highway
+    it holds the scale (forward_low_parallax tune seeds 2.0-19.0 -> 2.5-3.9 % of the path with a margin of 8), on
+    the moving_vehicles street it pulls the scale down as steadily (0.3 -> 0.6-0.9 %, with oracle masks too);
+    bench/RESULTS.md, "DROID-SLAM's inactive edges as frozen constraints"."""
+    if cfg.retired_margin is None:
+        empty = torch.zeros(0, dtype=torch.int64, device=graph.device)
+        return empty, empty.clone()
+    return graph.retired_edges_from(max(first, k - cfg.active_window + 1 - cfg.retired_margin))
 
 
 def retirement_mask(graph: FrameGraph, k: int, cfg: GraphSection) -> torch.Tensor:

@@ -38,7 +38,7 @@ from ..geometry.lie import se3_interpolate, se3_inv, se3_mul
 from ..geometry.projective import edge_transforms, frame_distance, project_points
 from ..interfaces import GraphListener
 from ..types import EdgeObservations, Frame, FrameResult, LoopClosure, PanopticSegmentation, SequenceInfo, TrackResult
-from .edges import active_edges, loop_edges, neighbour_edges, proximity_edges, retirement_mask
+from .edges import active_edges, frozen_edges, loop_edges, neighbour_edges, proximity_edges, retirement_mask
 from .frame_poses import FrameEntry, FramePoses
 from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph, _grid
 from .bootstrap import Bootstrap
@@ -135,22 +135,11 @@ class Mapper(GraphListener):
                 LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
 
     def _with_frozen(self, obs: EdgeObservations, k: int) -> EdgeObservations:
-        """``obs`` plus the stored last observations of retired edges whose both ends lie at or after
-        ``graph.retired_margin`` keyframes before the active window (DROID-SLAM's frontend keeps such inactive
-        edges, both ends >= t0 - 3, as frozen constraints).  Why: the keyframes just behind the window have fixed
-        poses but free depths, and without these edges nothing ties those depths to the fixed poses, so the
-        window's scale and the depths it is anchored to can drift together.  Off by default: on the synthetic
-        highway it holds the scale (forward_low_parallax tune seeds 2.0-19.0 -> 2.5-3.9 % of the path with a
-        margin of 8), on the moving_vehicles street it pulls the scale down as steadily (0.3 -> 0.6-0.9 %, with
-        oracle masks too); bench/RESULTS.md, "retired edges as frozen constraints"."""
-        margin = self.cfg.retired_margin
-        if margin is None:
-            return obs
-        g = self.graph
-        ri, rj = g.retired_edges_from(max(self.fragment_start, k - self.cfg.active_window + 1 - margin))
+        """``obs`` plus the stored observations of the retired edges :func:`.edges.frozen_edges` selects."""
+        ri, rj = frozen_edges(self.graph, k, self.cfg, first=self.fragment_start)
         if ri.numel() == 0:
             return obs
-        frozen = g.retired_observations(ri, rj)
+        frozen = self.graph.retired_observations(ri, rj)
         return _concat([obs, frozen], torch.arange(obs.ii.numel() + ri.numel()))
 
     def _reference(self, track: Optional[TrackResult]) -> dict:
