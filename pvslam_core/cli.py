@@ -18,7 +18,8 @@ def _add_config_args(p: argparse.ArgumentParser, required: bool = False) -> None
     p.add_argument("--config", "-c", required=required, metavar="FILE",
                    help="pipeline TOML (or an ablation TOML with [[variant]] tables, or a run's config.json)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
-                   help="override one config value, e.g. --set loop.plugin=none (repeatable; TOML value syntax)")
+                   help="override one config value, e.g. --set loop.plugin=none (repeatable; TOML value syntax, "
+                   "null for an optional key's None)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -308,7 +308,11 @@ def read_toml(path: str | Path) -> dict[str, Any]:
 
 
 def parse_value(text: str) -> Any:
-    """A ``--set`` value: TOML syntax when it parses (numbers, booleans, arrays, quoted strings), else a string."""
+    """A ``--set`` value: TOML syntax when it parses (numbers, booleans, arrays, quoted strings), else a string;
+    ``null`` is None (TOML has no null, and an optional key set in a config file must be unsettable; ``none`` stays
+    a string: it is a plugin name)."""
+    if text.strip() == "null":
+        return None
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:

@@ -88,6 +88,19 @@ def test_set_overrides_parse_toml_values():
     assert cfg.models["loop"] is None
 
 
+def test_null_unsets_an_optional_key(tmp_path):
+    """An optional key set in a config file can be set back to None from the command line; ``none`` stays the
+    plugin name, and null on a required key is an error naming it."""
+    cfg_file = tmp_path / "c.toml"
+    cfg_file.write_text("[graph]\nretired_margin = 3\n")
+    assert load_config(cfg_file).pipeline.graph.retired_margin == 3
+    assert load_config(cfg_file, overrides=["graph.retired_margin=null"]).pipeline.graph.retired_margin is None
+    assert parse_value("none") == "none" and parse_value("null") is None
+    with pytest.raises(ConfigError) as err:
+        load_config(overrides=["graph.warmup=null"])
+    assert "graph.warmup" in str(err.value)
+
+
 def test_override_typo_is_reported():
     with pytest.raises(ConfigError) as err:
         load_config(overrides=["graph.warmpu=7"])
