@@ -88,7 +88,7 @@ def frozen_edges(graph: FrameGraph, k: int, cfg: GraphSection, first: int = 0) -
     if cfg.retired_margin is None:
         empty = torch.zeros(0, dtype=torch.int64, device=graph.device)
         return empty, empty.clone()
-    return graph.retired_edges_from(max(first, k - cfg.active_window + 1 - cfg.retired_margin))
+    return graph.retired_edges(max(first, k - cfg.active_window + 1 - cfg.retired_margin))
 
 
 def retirement_mask(graph: FrameGraph, k: int, cfg: GraphSection) -> torch.Tensor:

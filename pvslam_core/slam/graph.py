@@ -300,18 +300,9 @@ class FrameGraph:
             listener.on_edges_retired(src, dst)
         return int(len(sel))
 
-    def retired_edges(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(ii, jj)`` graph indices of the retired edges that have a stored observation."""
-        if not self._retired:
-            z = torch.zeros(0, dtype=torch.int64, device=self.device)
-            return z, z.clone()
-        keys = torch.tensor(list(self._retired), dtype=torch.int64, device=self.device)  # [R, 2] ids
-        idx = self.indices_of(keys)
-        return idx[:, 0], idx[:, 1]
-
-    def retired_edges_from(self, lo: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(ii, jj)`` graph indices of the retired edges (with a stored observation) whose both ends are
-        keyframes ``>= lo`` (indices follow the ids' order)."""
+    def retired_edges(self, lo: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(ii, jj)`` graph indices of the retired edges that have a stored observation, those whose both ends are
+        keyframes ``>= lo`` (indices follow the ids' order; 0: all of them)."""
         z = torch.zeros(0, dtype=torch.int64, device=self.device)
         lo = max(0, int(lo))
         if not self._retired or lo >= self.n:
@@ -320,7 +311,7 @@ class FrameGraph:
         keys = [key for key in self._retired if key[0] >= id_lo and key[1] >= id_lo]
         if not keys:
             return z, z.clone()
-        idx = self.indices_of(torch.tensor(keys, dtype=torch.int64, device=self.device))
+        idx = self.indices_of(torch.tensor(keys, dtype=torch.int64, device=self.device))  # [R, 2] ids -> indices
         return idx[:, 0], idx[:, 1]
 
     def is_retired(self, ii, jj) -> torch.Tensor:

@@ -83,17 +83,17 @@ def test_retire_keeps_last_observation_and_reactivates():
     assert g.retired_bytes() == 2 * 2 * 3 * 4 * 2  # offsets and weights in float16
 
 
-def test_retired_edges_from_selects_both_ends_at_or_after_a_keyframe():
+def test_retired_edges_from_a_keyframe_on_selects_both_ends_at_or_after_it():
     g = make(6)
     g.add_edges(torch.tensor([0, 1, 2, 4, 3]), torch.tensor([3, 2, 4, 5, 5]))
     g.record_observations(obs_for(g, [0, 1, 2, 4], [3, 2, 4, 5], 0.5))  # (3 -> 5) never observed: dropped
     g.retire_edges(torch.ones(5, dtype=torch.bool))
-    pairs = lambda lo: sorted(zip(*[t.tolist() for t in g.retired_edges_from(lo)]))
+    pairs = lambda lo: sorted(zip(*[t.tolist() for t in g.retired_edges(lo)]))
     assert pairs(0) == [(0, 3), (1, 2), (2, 4), (4, 5)]
     assert pairs(1) == [(1, 2), (2, 4), (4, 5)]  # (0 -> 3) has an end before keyframe 1
     assert pairs(2) == [(2, 4), (4, 5)]
     assert pairs(5) == [] and pairs(9) == []
     g.remove_keyframe(1)  # indices shift; the selection follows ids
     assert pairs(1) == [(1, 3), (3, 4)]
-    ii, jj = g.retired_edges_from(1)
+    ii, jj = g.retired_edges(1)
     assert g.retired_observations(ii, jj).target.shape == (2, 2, 3, 4)

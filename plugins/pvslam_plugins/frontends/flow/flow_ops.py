@@ -233,15 +233,15 @@ def photometric_confidence(g0: np.ndarray, g1: np.ndarray, flow: np.ndarray, sig
     _, _, xy = _grids(h, w)
     pos = cv2.add(xy, flow)
     warped = cv2.remap(g1, pos, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    g0f = g0.astype(np.float32)
-    diff = cv2.subtract(warped.astype(np.float32), g0f)
+    g0f, g1w = g0.astype(np.float32), warped.astype(np.float32)
+    diff = cv2.subtract(g1w, g0f)
     offset = float(np.median(diff[::4, ::4]))
-    s0, s1 = g0f[::4, ::4], warped[::4, ::4].astype(np.float32)
+    s0, s1 = g0f[::4, ::4], g1w[::4, ::4]
     unclipped = (s0 > 1) & (s0 < 254) & (s1 > 1) & (s1 < 254)  # a saturated pixel is no sample of the gain
     gain, off = fit_exposure(s0[unclipped], s1[unclipped])
     if gain != 1.0:
         offset = off
-        diff = cv2.subtract(warped.astype(np.float32), cv2.multiply(g0f, gain))
+        diff = cv2.subtract(g1w, cv2.multiply(g0f, gain))
     r = cv2.blur(np.abs(diff - offset), (window, window))
     return cv2.exp(cv2.multiply(r, r, scale=-1.0 / (2.0 * sigma * sigma)))
 
