@@ -40,6 +40,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from pvslam_core.geometry.two_view import find_essential
+
 from .common import load_sequence, pose_from_Rt_cw
 
 __all__ = ["VOConfig", "TextbookVO", "run_textbook_vo"]
@@ -216,6 +218,8 @@ class TextbookVO:
                                           self.K, None, rvec, tvec)
         R, _ = cv2.Rodrigues(rvec)
         T = np.concatenate([R, tvec.reshape(3, 1)], axis=1)
+        if not np.isfinite(T).all() or float(np.abs(tvec).max()) > 1e6:  # the LM refinement diverged: lost
+            return None, None
         mask = np.zeros(len(obj), bool)
         mask[inl] = True
         return T, mask
@@ -223,7 +227,7 @@ class TextbookVO:
     def _essential(self, x1: np.ndarray, x2: np.ndarray):
         if len(x1) < 8:
             return None
-        E, mask = cv2.findEssentialMat(x1, x2, self.K, cv2.RANSAC, 0.999, self.cfg.ransac_px)
+        E, mask = find_essential(x1, x2, self.K, self.cfg.ransac_px)  # OpenCV 5.1 raises on degenerate data
         if E is None or E.shape != (3, 3):
             return None
         n, R, t, mask2 = cv2.recoverPose(E, x1, x2, self.K, mask=mask.copy())

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ..geometry.lie import se3_from_matrix
+from ..geometry.two_view import find_essential
 
 LOG = logging.getLogger("pvslam.init")
 
@@ -84,8 +85,8 @@ def two_view_init_why(
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
     if float(np.median(np.linalg.norm(p1g - p0g, axis=1))) < 1e-3:
         return None, "no motion between the views"
-    E, mask = cv2.findEssentialMat(p0g, p1g, K, method=cv2.RANSAC, prob=0.999, threshold=ransac_px)
-    if E is None or E.shape[0] < 3:
+    E, mask = find_essential(p0g, p1g, K, ransac_px)
+    if E is None:
         return None, "no essential matrix found"
     E = E[:3]
     H, _ = cv2.findHomography(p0g, p1g, cv2.RANSAC, 2.0 * ransac_px)

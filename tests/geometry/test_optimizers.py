@@ -208,3 +208,38 @@ def test_pose_graph_corrects_only_since_the_previous_loop():
     # a loop whose old side is newer than the previous correction starts the chain at its old keyframe
     rep = make("online_ba", loop_iters=0).loop(g, pr.obs(), [_loop(15, 4)])
     assert "over keyframes 4..15" in rep.message or "skipped" in rep.message, rep.message
+
+
+def _rotated_translation(Z, deg):
+    """``Z`` with its translation turned by ``deg`` about the camera's y axis (the measurement's pose is off)."""
+    c, s = torch.cos(torch.deg2rad(torch.tensor(float(deg), dtype=torch.float64))), torch.sin(
+        torch.deg2rad(torch.tensor(float(deg), dtype=torch.float64)))
+    R = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
+    out = Z.clone()
+    out[:3] = R @ Z[:3].double()
+    return out
+
+
+def test_loop_measurement_checked_against_the_epipolar_direction(loop_problem, monkeypatch):
+    """A loop measurement whose translation disagrees with the loop edge's own essential matrix stays out of the
+    pose graph; the true one agrees to a fraction of a degree."""
+    from pvslam_plugins.optimizers.dense_ba import optimizer as O
+
+    pr = loop_problem
+    n = pr.poses.shape[0]
+    e = int(torch.nonzero((pr.ii == 0) & (pr.jj == n - 1))[0])
+    T_true = se3_mul(se3_inv(pr.poses[0]), pr.poses[n - 1])  # camera n-1 -> camera 0
+    Z = sim3_from_se3(T_true, torch.tensor(1.0, dtype=torch.float64))
+    off = O.DenseBAOptimizer._direction_error(Z, pr.target[e], pr.weight[e], pr.intr)
+    assert off is not None and off < 0.5, off
+    off30 = O.DenseBAOptimizer._direction_error(_rotated_translation(Z, 30.0), pr.target[e], pr.weight[e], pr.intr)
+    assert abs(off30 - 30.0) < 1.0, off30
+    # a drifted map whose loop measurement comes out 30 deg off: no pose graph (with the check off: the pose graph)
+    measure = O.loop_relative_sim3
+    monkeypatch.setattr(O, "loop_relative_sim3",
+                        lambda *a, **k: (lambda Zs, s, u: (_rotated_translation(Zs, 30.0), s, u))(*measure(*a, **k)))
+    drifted = scale_drifted(pr, rate=0.96, yaw_drift=0.01)
+    rep = make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
+    assert "sim3 pgo skipped (1 off the epipolar direction)" in rep.message, rep.message
+    rep = make("online_ba", pgo_max_direction_deg=None).loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
+    assert "sim3 pgo:" in rep.message, rep.message

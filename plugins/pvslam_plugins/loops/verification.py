@@ -23,6 +23,7 @@ import torch
 from pydantic import Field
 
 from pvslam_core.config_base import PluginConfig
+from pvslam_core.geometry.two_view import find_essential
 from pvslam_core.types import Intrinsics
 
 ImageLike = Union[torch.Tensor, np.ndarray]
@@ -140,7 +141,7 @@ def verify(
     thr = threshold_px / (0.5 * (a.focal + b.focal))
     if seed is not None:
         cv2.setRNGSeed(int(seed))
-    E, mask = cv2.findEssentialMat(p1, p2, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=thr)
+    E, mask = find_essential(p1, p2, np.eye(3), thr)
     if E is None or mask is None:
         return Verification(False, n, 0, "essential matrix RANSAC failed")
     if E.shape[0] > 3:  # several solutions: keep the first

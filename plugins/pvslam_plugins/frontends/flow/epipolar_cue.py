@@ -33,6 +33,8 @@ import cv2
 import numpy as np
 import torch
 
+from pvslam_core.geometry.two_view import find_essential
+
 from .dynamic import group_regions
 
 Motion = tuple[torch.Tensor, torch.Tensor]  # (R [3, 3], t [3] unit) float64, X_1 = R X_0 + t
@@ -96,8 +98,8 @@ def fit_motion(target: torch.Tensor, weight: torch.Tensor, intr: tuple[float, fl
     # an even subsample keeps RANSAC's cost bounded on larger BA grids (deterministic: no random choice here)
     sel = torch.arange(0, n, max(1, -(-n // max_points)))
     a, b, K = p0[sel].numpy(), p1[sel].numpy(), _K(intr)
-    E, inl = cv2.findEssentialMat(a, b, K, method=cv2.RANSAC, prob=0.999, threshold=float(ransac_px))
-    if E is None or E.shape[0] < 3 or inl is None or float((inl > 0).mean()) < min_inliers:
+    E, inl = find_essential(a, b, K, ransac_px)
+    if E is None or float((inl > 0).mean()) < min_inliers:
         return None
     # E[:3]: RANSAC's best of stacked solutions.  Of its four decompositions, the rotation is the smaller one (the
     # other differs by a half turn about the baseline: never two keyframes of one video).  The translation's sign

@@ -45,6 +45,14 @@ class BAConfigBase(PluginConfig):
                                  "the loop BA (on repeated laps the drift is corrected at the first revisit)")
     pgo_loop_weight: float = Field(10.0, gt=0, description="information weight of loop edges relative to "
                                    "odometry edges in the pose graph")
+    pgo_max_direction_deg: Optional[float] = Field(
+        15.0, gt=0, le=90,
+        description="leave a loop edge out of the pose graph when its measurement (motion-only BA of the new "
+        "keyframe against the old one's depth) puts the translation more than this many degrees off the direction "
+        "of the edge's own essential matrix (no depth involved); None: no check. A revisit seen from some metres "
+        "behind has a magnified near scene whose flow is underestimated, and the depth-based pose then lands short "
+        "of it (bench/RESULTS.md, issue 13, session 2026-12-02 e)",
+    )
     pgo_min_pixels: int = Field(30, ge=1, description="minimum confidently matched pixels to trust a loop edge's "
                                 "Sim(3) measurement (else the loop is left to the BA alone)")
     final_iters: int = Field(4, ge=0, description="Gauss-Newton iterations per round of the global BA in finalize()")
