@@ -5,6 +5,8 @@
   distance.
 * :mod:`.ba` - dense bundle adjustment (Schur complement over per-pixel inverse depths) and motion-only BA.
 * :mod:`.pose_graph` - Sim(3) pose-graph optimisation and loop-edge Sim(3) measurement.
+* :mod:`.two_view` - OpenCV's essential-matrix RANSAC with one behaviour on every OpenCV version, and the
+  depth-free translation direction of a flow (checks loop measurements).
 * :mod:`.testing` - exact synthetic BA problems for tests and benchmarks.
 
 Poses crossing these modules' public functions are camera-to-world ``T_wc [..., 7]`` (see :mod:`pvslam_core.types`).
