@@ -14,7 +14,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-__all__ = ["find_essential", "translation_direction"]
+__all__ = ["find_essential", "essential_motion", "translation_direction"]
 
 
 def find_essential(p0: np.ndarray, p1: np.ndarray, K: np.ndarray, threshold: float,
@@ -32,6 +32,14 @@ def find_essential(p0: np.ndarray, p1: np.ndarray, K: np.ndarray, threshold: flo
     return E, mask
 
 
+def essential_motion(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R [3, 3], t [3])`` of ``X_1 = R X_0 + t`` from an essential matrix (the first ``3 x 3`` of OpenCV's stack:
+    RANSAC's best): of its decompositions the smaller rotation -- the other is a half turn about the baseline, never
+    the motion between two frames of one video -- and the unit translation, sign undecided (the caller's choice)."""
+    R1, R2, t = cv2.decomposeEssentialMat(E[:3])
+    return (R1 if np.trace(R1) >= np.trace(R2) else R2), t.reshape(3)
+
+
 def translation_direction(p0: np.ndarray, p1: np.ndarray, K: np.ndarray, threshold: float,
                           min_parallax: float = 1.0, rotation: Optional[np.ndarray] = None,
                           max_rotation_deg: float = 3.0) -> Optional[np.ndarray]:
@@ -44,8 +52,7 @@ def translation_direction(p0: np.ndarray, p1: np.ndarray, K: np.ndarray, thresho
     E, mask = find_essential(p0, p1, K, threshold)
     if E is None:
         return None
-    R1, R2, t = cv2.decomposeEssentialMat(E[:3])
-    R = R1 if np.trace(R1) >= np.trace(R2) else R2  # the smaller rotation: the other is a half turn away
+    R, t = essential_motion(E)
     if rotation is not None:
         cos = (np.trace(R @ np.asarray(rotation, float).T) - 1.0) / 2.0
         if np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) > max_rotation_deg:
@@ -57,4 +64,4 @@ def translation_direction(p0: np.ndarray, p1: np.ndarray, K: np.ndarray, thresho
     rot_only = (rays[:, :2] / rays[:, 2:3]) * np.diag(K)[:2] + K[:2, 2]
     if float(np.median(np.linalg.norm(p1[inl] - rot_only, axis=1))) < min_parallax:
         return None
-    return t.reshape(3) / max(float(np.linalg.norm(t)), 1e-12)
+    return t / max(float(np.linalg.norm(t)), 1e-12)

@@ -29,11 +29,10 @@ from __future__ import annotations
 
 from typing import Optional
 
-import cv2
 import numpy as np
 import torch
 
-from pvslam_core.geometry.two_view import find_essential
+from pvslam_core.geometry.two_view import essential_motion, find_essential
 
 from .dynamic import group_regions
 
@@ -108,9 +107,7 @@ def fit_motion(target: torch.Tensor, weight: torch.Tensor, intr: tuple[float, fl
     # Not cheirality counts alone (cv2.recoverPose): on the busy street a bus receding ahead is as epipolar-
     # consistent as the static scene and, with the static scene far, outvotes it -- the backward motion won, and
     # every static point then looked like it was behind the camera.
-    R1, R2, t = cv2.decomposeEssentialMat(E[:3])
-    R = torch.from_numpy(R1 if np.trace(R1) >= np.trace(R2) else R2).double()
-    t = torch.from_numpy(t.reshape(3)).double()
+    R, t = (torch.from_numpy(np.ascontiguousarray(m)).double() for m in essential_motion(E))
     if prior is not None and float(prior.norm()) > 0 and abs(float(t @ prior)) > 0.5 * float(prior.norm()):
         flip = float(t @ prior) < 0
     else:  # the parallax of most inliers (above 0.05 BA px of noise) must point away from the epipole

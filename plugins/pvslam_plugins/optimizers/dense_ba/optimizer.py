@@ -164,8 +164,9 @@ class DenseBAOptimizer(Optimizer):
                                                   obs.target[e].to(dev), obs.weight[e].to(dev))
                 if used < c.pgo_min_pixels or not bool(torch.isfinite(Zab).all()) or not (0.05 < s < 20.0):
                     continue
-                off = self._direction_error(Zab, obs.target[e], obs.weight[e], intr)
-                if c.pgo_max_direction_deg is not None and off is not None and off > c.pgo_max_direction_deg:
+                off = None if c.pgo_max_direction_deg is None else \
+                    self._direction_error(Zab, obs.target[e], obs.weight[e], intr)
+                if off is not None and off > c.pgo_max_direction_deg:
                     log.info("loop %d <-> %d: measurement left out of the pose graph (translation %.1f deg off the "
                              "edge's epipolar direction)", a_new, b_old, off)
                     rejected += 1
