@@ -84,9 +84,18 @@ class FlowFrontendConfig(PluginConfig):
     )
     texture_tau: float = Field(
         0.0, ge=0.0,
-        description="Texture term of the confidence: lam / (lam + texture_tau) with lam the Shi-Tomasi minimum "
-        "eigenvalue of the 5x5 structure tensor (gray levels^2); down-weights the aperture-problem flow of "
-        "textureless regions such as the sky. 0 = off.",
+        description="Texture term of the confidence: lam / (lam + tau) with lam the Shi-Tomasi minimum eigenvalue of "
+        "the 5x5 structure tensor (OpenCV's scale: ~1e-4 on fine asphalt at the flow resolution, 1e-3 on facades). "
+        "Weak texture (the near road, sky, bare walls) gives a flow that DIS gets consistently wrong in both "
+        "directions; the forward-backward and photometric checks cannot see it. 0 = off (the default); 1e-3 "
+        "with texture_quantile 0.75 is the measured opt-in for streets with large vehicles and no segmenter "
+        "(bench/RESULTS.md).",
+    )
+    texture_quantile: Optional[float] = Field(
+        0.75, gt=0.0, lt=1.0,
+        description="With texture_tau: tau is at most this quantile of the image's own lam, so an image whose "
+        "texture is weak everywhere (a bare room) keeps relative weights instead of all falling below the "
+        "confidence thresholds downstream (None: tau as given).",
     )
     photo_sigma: float = Field(
         4.0, ge=0.0,

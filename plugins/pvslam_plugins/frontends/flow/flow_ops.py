@@ -283,12 +283,41 @@ def fit_exposure(g0: np.ndarray, g1: np.ndarray, max_gain: float = 4.0, min_gain
     return (gain, off) if corr >= min_corr else (1.0, offset)
 
 
-def texture_confidence(gray: np.ndarray, tau: float, block: int = 5) -> np.ndarray:
+def texture_confidence(gray: np.ndarray, tau: float, block: int = 5, quantile: Optional[float] = None) -> np.ndarray:
     """``lam / (lam + tau)`` with ``lam`` the smaller eigenvalue of the local structure tensor (Shi-Tomasi),
     float32 ``[H, W]`` in [0, 1).  Flow in textureless regions (sky, flat walls) is an aperture-problem guess:
     DIS answers ~zero flow there consistently in both directions, which the forward-backward check cannot
     catch, and such pixels would otherwise dominate the BA (they are most of the confident pixels outdoors).
+
+    With ``quantile``, ``tau`` is at most that quantile of the image's own ``lam``: an image whose texture is weak
+    everywhere (a bare room) keeps its better-textured pixels at useful weights instead of scaling every weight
+    down below the confidence thresholds downstream.
     """
     lam = cv2.cornerMinEigenVal(gray, blockSize=block, ksize=3)
     lam = np.maximum(lam, 0.0)  # OpenCV normalises by the kernel size and 255: ~1e-4 on textured regions
+    if quantile is not None:
+        tau = min(tau, max(float(np.quantile(lam, quantile)), 1e-12))
     return (lam / (lam + tau)).astype(np.float32)
+
+
+class TextureTerm:
+    """:func:`texture_confidence` of source images, computed once per image object: a keyframe's gray is the source
+    of its tracking flows and of every edge out of it.  Bounded (``size`` images, about the active keyframes; older
+    ones are rarely sources again).  Thread-safe enough for the frontend's flow lanes: a race computes twice."""
+
+    def __init__(self, tau: float, quantile: Optional[float] = None, size: int = 32):
+        self.tau, self.quantile, self.size = float(tau), quantile, int(size)
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # id(gray) -> (gray, term)
+
+    def __call__(self, gray: np.ndarray) -> np.ndarray:
+        hit = self._cache.get(id(gray))
+        if hit is not None and hit[0] is gray:
+            return hit[1]
+        term = texture_confidence(gray, self.tau, quantile=self.quantile)
+        if len(self._cache) >= self.size:
+            self._cache.clear()
+        self._cache[id(gray)] = (gray, term)
+        return term
+
+    def nbytes(self) -> int:
+        return sum(g.nbytes + t.nbytes for g, t in list(self._cache.values()))

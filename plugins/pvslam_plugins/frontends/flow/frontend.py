@@ -8,7 +8,9 @@ dynamic mask, keyed by the graph's **stable keyframe ids**; the graph tells when
 the active edges.
 
 Confidence of a pixel = ``exp(-fb^2 / 2 sigma^2)`` (forward-backward consistency, 0 where ``x + f(x)`` leaves
-the image) x ``exp(-r^2 / 2 sigma_p^2)`` (local photometric residual), pooled over each BA block.
+the image) x ``exp(-r^2 / 2 sigma_p^2)`` (local photometric residual) x ``lam / (lam + tau)`` (texture of the source
+image, Shi-Tomasi: DIS's flow on weak texture such as the near road at speed is consistently wrong in both directions
+and photometrically plausible, so only the texture itself tells), pooled over each BA block.
 
 Long-baseline edges: when the graph's current estimate predicts a mean flow above ``init_min_flow``, DIS starts
 from that prediction (older keyframe reprojected into the newer; the reverse by inverting that field), which
@@ -126,6 +128,7 @@ class FlowFrontend(DynamicMasking, Frontend):
         self._pending: Optional[dict] = None  # the last tracked frame's gray and flow to the last keyframe
         self._cue_t: Optional[torch.Tensor] = None  # the epipolar cue's last translation direction (its sign prior)
         self._graph = None  # last graph seen in observe (for initial_depth)
+        self._texture = F.TextureTerm(self.cfg.texture_tau, self.cfg.texture_quantile)  # per source image
         self.stats = {"track_calls": 0, "track_s": 0.0, "dis_calls": 0, "dis_s": 0.0, "edges_computed": 0,
                       "reprojection_init_used": 0, "track_recoveries": 0, "track_recovered": 0}
 
@@ -148,6 +151,7 @@ class FlowFrontend(DynamicMasking, Frontend):
             n += kf.gray.nbytes
             if kf.seg_ba is not None:
                 n += kf.seg_ba.numel() * kf.seg_ba.element_size()
+        n += self._texture.nbytes()
         for e in self._edges.values():
             n += (e.target.numel() + e.conf.numel() + (e.dynamic.numel() if e.dynamic is not None else 0)) * 4
         return n
@@ -193,7 +197,7 @@ class FlowFrontend(DynamicMasking, Frontend):
         if self.cfg.photo_sigma > 0:
             conf = conf * F.photometric_confidence(g0, g1, fwd, self.cfg.photo_sigma)
         if self.cfg.texture_tau > 0:
-            conf = conf * F.texture_confidence(g0, self.cfg.texture_tau)
+            conf = conf * self._texture(g0)
         t, wgt = F.pool_to_ba(fwd, conf, h, w, self.cfg.weighted_pooling)
         return t, wgt, fb
 

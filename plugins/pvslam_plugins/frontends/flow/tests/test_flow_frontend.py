@@ -371,3 +371,32 @@ def test_tracking_starts_from_the_previous_frames_motion():
     for t in range(1, 3):
         slow.track(S.frame(S.shifted(big, 2.0 * t), t), None)  # 0.25 BA px a frame
     assert calls == [False, False]
+
+
+def test_texture_term_lowers_flat_regions_once_per_source_image(monkeypatch):
+    """With ``texture_tau`` the flow confidence of a flat region drops (its flow is an aperture-problem guess) and the
+    texture term of a keyframe's image is computed once, however many flows start from it."""
+    import cv2
+
+    from pvslam_plugins.frontends.flow import flow_ops
+
+    rng = np.random.default_rng(0)
+    img = np.full((S.H, S.W), 128, np.uint8)
+    img[:, :S.W // 2] = cv2.GaussianBlur((rng.random((S.H, S.W // 2)) * 255).astype(np.uint8), (0, 0), 2.0)
+    rgb = np.repeat(img[..., None], 3, -1)
+    frames = [S.frame(np.roll(rgb, k, axis=1), k) for k in range(4)]
+    calls = []
+    real = flow_ops.texture_confidence
+    monkeypatch.setattr(flow_ops, "texture_confidence", lambda *a, **k: calls.append(1) or real(*a, **k))
+    weights = {}
+    for tau in (0.0, 3e-4):
+        fe = FlowFrontend(FlowFrontendConfig(texture_tau=tau, texture_quantile=0.75))
+        fe.add_keyframe(0, frames[0], None)
+        calls.clear()
+        for f in frames[1:]:
+            r = fe.track(f, None)
+        weights[tau] = r.weight[0].numpy()
+        assert len(calls) == (1 if tau > 0 else 0)  # three tracked frames, one source image
+    tex, flat = (slice(2, -2), slice(2, 16)), (slice(2, -2), slice(24, 36))  # BA px (40 x 30 grid)
+    assert weights[3e-4][flat].mean() < 0.1 * weights[0.0][flat].mean()
+    assert weights[3e-4][tex].mean() > 0.5 * weights[0.0][tex].mean()

@@ -193,3 +193,27 @@ def test_zero_init_flow_does_not_depend_on_earlier_initialised_calls():
     fe._flows(fe._pair_calls(g1, g0, init, init, kind="track"))
     np.testing.assert_array_equal(fe._flow("edge", g0, g1), clean)
     np.testing.assert_array_equal(fe._flow("track", g0, g1), clean)
+
+
+def _half_textured():
+    """120 x 160 gray: fine random texture on the left half, flat on the right."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    img = np.full((120, 160), 128, np.uint8)
+    img[:, :80] = cv2.GaussianBlur((rng.random((120, 80)) * 255).astype(np.uint8), (0, 0), 1.0)
+    return img
+
+
+def test_texture_confidence_weights_texture_and_adapts_to_a_bare_image():
+    img = _half_textured()
+    tex, flat = (slice(10, -10), slice(10, 70)), (slice(10, -10), slice(90, -10))
+    c = F.texture_confidence(img, 3e-4)
+    assert c[tex].mean() > 0.8 and c[flat].max() < 0.05
+    # the same pattern at 1/20 of the contrast (a bare room): a fixed tau scales every weight towards zero, the
+    # image's own quantile keeps its better-textured pixels useful and the flat ones still at zero
+    faint = (128 + (img.astype(np.float32) - 128) * 0.05).round().astype(np.uint8)
+    fixed, rel = F.texture_confidence(faint, 3e-4), F.texture_confidence(faint, 3e-4, quantile=0.75)
+    assert fixed[tex].mean() < 0.05 and rel[tex].mean() > 0.4 and rel[flat].max() < 0.05
+    # where the image's texture is strong the quantile does not bind: the same weights as the fixed tau
+    np.testing.assert_array_equal(F.texture_confidence(img, 3e-4, quantile=0.9), c)
