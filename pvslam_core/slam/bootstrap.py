@@ -69,7 +69,8 @@ class Bootstrap:
             obs = mapper._observe(torch.tensor([a]), torch.tensor([m]))
             mapper._release_pairs(torch.tensor([a]), torch.tensor([m]))  # not an edge: not observed again
             init, why = two_view_init_why(obs.target[0], obs.weight[0], g.intrinsics,
-                                          min_parallax_deg=self.cfg.init_min_parallax_deg)
+                                          min_parallax_deg=self.cfg.init_min_parallax_deg,
+                                          relative_weight=self.cfg.init_relative_confidence)
             if init is not None:
                 pair = (a, m)
                 break

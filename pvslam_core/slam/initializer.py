@@ -53,9 +53,11 @@ def two_view_init(
     min_inliers: int = 60,
     min_parallax_deg: float = 1.0,
     ransac_px: float = 0.3,
+    relative_weight: bool = False,
 ) -> Optional[TwoViewInit]:
     """The two-view initialisation of a keyframe pair, or None (see :func:`two_view_init_why`)."""
-    return two_view_init_why(target, weight, intr, min_inliers, min_parallax_deg, ransac_px)[0]
+    return two_view_init_why(target, weight, intr, min_inliers, min_parallax_deg, ransac_px,
+                             relative_weight=relative_weight)[0]
 
 
 def two_view_init_why(
@@ -67,17 +69,26 @@ def two_view_init_why(
     ransac_px: float = 0.3,
     refine: bool = True,
     front_frac: float = 0.65,
+    relative_weight: bool = False,
 ) -> tuple[Optional[TwoViewInit], str]:
     """``(init or None, reason)``: the reason says why the pair was declined ("" on success).  ``refine=False``
     skips the Sampson refinement (hypotheses: RANSAC's essential matrix and the homography's decompositions only);
-    ``front_frac``: see the module docstring."""
+    ``front_frac``: see the module docstring.  A correspondence is confident above a weight of 0.5 or, with
+    ``relative_weight``, above half of the pair's 90th-percentile weight (at most 0.5)."""
     import cv2
 
     h, w = target.shape[-2:]
     ys, xs = np.mgrid[0:h, 0:w]
     p0 = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)  # [P, 2]
     p1 = target.detach().cpu().double().numpy().reshape(2, -1).T  # [P, 2]
-    good = (weight.detach().cpu().numpy().reshape(2, -1).min(0) > 0.5) & np.isfinite(p1).all(1)
+    w_min = weight.detach().cpu().numpy().reshape(2, -1).min(0)  # [P]
+    thresh = 0.5
+    if relative_weight:
+        # "confident": above half of the pair's own high weights (90th percentile), at most 0.5.  A frontend whose
+        # confidences carry a texture term (flow frontend, texture_tau) keeps most weights of a textured street
+        # below 0.5, and the map then waited 3-9 s for enough pixels above 0.5 (bench/RESULTS.md, 12-02 f)
+        thresh = min(0.5, 0.5 * float(np.quantile(w_min, 0.9)))
+    good = (w_min > thresh) & np.isfinite(p1).all(1)
     if good.sum() < min_inliers:
         return None, f"{int(good.sum())} confident correspondences < {min_inliers} (the views do not overlap)"
     p0g, p1g = p0[good], p1[good]

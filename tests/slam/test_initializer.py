@@ -35,3 +35,20 @@ def test_declines_without_parallax():
     target, weight = _pair(pr, 0, 1)
     assert two_view_init(target, weight, pr.intr, min_parallax_deg=0.5) is None
     assert two_view_init(target, torch.zeros_like(weight), pr.intr) is None  # nothing confident
+
+
+def test_confidence_is_relative_to_the_pairs_own_weights():
+    """With ``relative_weight``, weights all scaled below 0.5 (a frontend whose confidences carry a texture term)
+    initialise as the unscaled ones do; only pixels well below the pair's own high weights are not confident."""
+    pr = make_problem(n=6, h=60, w=80, seed=1, step=0.25)
+    target, weight = _pair(pr, 0, 5)
+    ref = two_view_init(target, weight, pr.intr, min_parallax_deg=0.5)
+    assert two_view_init(target, weight * 0.3, pr.intr, min_parallax_deg=0.5) is None  # the absolute 0.5
+    low = two_view_init(target, weight * 0.3, pr.intr, min_parallax_deg=0.5, relative_weight=True)
+    assert ref is not None and low is not None and low.inliers == ref.inliers
+    torch.testing.assert_close(low.pose_wc, ref.pose_wc)
+    # where a third of the pixels are strong, the faint rest (a twentieth of their weight) is not confident
+    mixed = weight * 0.05
+    mixed[:, :20] = weight[:, :20]  # the top 20 of 60 rows
+    part = two_view_init(target, mixed, pr.intr, min_parallax_deg=0.5, relative_weight=True)
+    assert part is not None and part.inliers <= int((weight[0, :20] > 0).sum()) < ref.inliers
