@@ -142,7 +142,7 @@ def verify(
     if seed is not None:
         cv2.setRNGSeed(int(seed))
     E, mask = find_essential(p1, p2, np.eye(3), thr)
-    if E is None or mask is None:
+    if E is None:  # (find_essential returns no mask without a matrix)
         return Verification(False, n, 0, "essential matrix RANSAC failed")
     if E.shape[0] > 3:  # several solutions: keep the first
         E = E[:3]
