@@ -6,9 +6,12 @@ must NOT hold), so a change that switches a piece off without anyone noticing fa
 * dense BA off (``optimizer.iters = 0``, no final / loop BA) and robust kernels off (least squares in the BA and
   the motion-only BA) on a 140-frame loop-free stretch of the driving loop;
 * loop closure off on ``driving_block`` (the driving loop around a small block: a revisit after ~190 frames);
-* dynamic masking off on a street with moving vehicles (oracle labels, so only the masking differs).
+* dynamic masking off on a street with moving vehicles (oracle labels, so only the masking differs; the flow
+  frontend's texture term off, since it protects that street on its own);
+* DIS's patch-mean normalisation off on the drive with auto-exposure changes.
 
-Runs are bit-reproducible on one machine (one torch thread), so each figure in a test is one run; the bounds sit
+Runs are bit-reproducible on one machine (one torch thread), so each figure in a test is one run (but one draw of a
+chaotic figure: the exposure test takes a median over three brightness levels); the bounds sit
 between the good and broken values measured over dataset seeds 0, 1, 2 (figures in the comments, measured on
 2026-12-01 at ef4e534 with the uncommitted work of issues 13/14/17 in the tree: ``run_config`` with each test's
 overrides on ``generate(scenario, num_frames=..., seed=s)``).  The tests run seed 0.
@@ -105,28 +108,64 @@ def _exposure_gain(i: int) -> float:
     return 1.5 if i < 90 else (0.7 if i < 120 else 1.0)
 
 
-# measured (seed 0, 140 frames, images reader, no labels): 0.21 % with these exposure changes, 0.15 % without
-# (drive_good, synthetic reader: 0.18 %); 0.62 % when the photometric confidence removed a brightness offset only
-# (before flow_ops.fit_exposure), so the bound 2 x drive_good + 0.1 = 0.46 % catches that
-def test_drive_with_exposure_changes_within_bound(tmp_path, drive140, drive_good):
-    """Real cameras change exposure: DIS normalises each patch's mean and the photometric confidence removes a
-    fitted global gain and offset, so gain ramps and steps must not break tracking or the scale."""
+def _exposure_run(out: Path, drive: Path, brightness: float, exposure: bool):
+    """The drive through the ``images`` reader (no labels), every image scaled by ``brightness`` and, with
+    ``exposure``, by :func:`_exposure_gain` (clipped to 8 bits, as a camera would)."""
     import cv2
 
-    rgb = tmp_path / "rgb"
-    rgb.mkdir()
-    names = sorted(p.name for p in (drive140 / "rgb").iterdir())
-    for i, name in enumerate(names):
-        img = cv2.imread(str(drive140 / "rgb" / name)).astype(np.float32) * _exposure_gain(i)
+    rgb = out / "rgb"
+    rgb.mkdir(parents=True)
+    for i, name in enumerate(sorted(p.name for p in (drive / "rgb").iterdir())):
+        gain = brightness * (_exposure_gain(i) if exposure else 1.0)
+        img = cv2.imread(str(drive / "rgb" / name)).astype(np.float32) * gain
         cv2.imwrite(str(rgb / name), np.clip(img, 0, 255).astype(np.uint8))
-    fps = json.loads((drive140 / "meta.json").read_text()).get("fps", 12.0)
-    res = _run(tmp_path / "runs", rgb, 'dataset.plugin="images"', f'dataset.calib="{(drive140 / "calib.txt").as_posix()}"',
-               f"dataset.fps={fps}", f'dataset.groundtruth="{(drive140 / "groundtruth.txt").as_posix()}"', *NO_SEG)
-    t = res.metrics["timing"]
-    assert t["tracking_failures"] == 0 and t["reinitialisations"] == 0
+    fps = json.loads((drive / "meta.json").read_text()).get("fps", 12.0)
+    res = _run(out / "runs", rgb, 'dataset.plugin="images"', f'dataset.calib="{(drive / "calib.txt").as_posix()}"',
+               f"dataset.fps={fps}", f'dataset.groundtruth="{(drive / "groundtruth.txt").as_posix()}"', *NO_SEG)
     assert res.poses.shape[0] == DRIVE_FRAMES and np.isfinite(res.poses.numpy()).all()
-    ate = _ate(res)
-    assert ate < DRIVE_BOUND and ate < 2.0 * _ate(drive_good) + 0.1, (ate, _ate(drive_good))
+    return res
+
+
+# One run of this drive is one draw of a chaotic figure: the same frames 10 % brighter or darker move the ATE by up
+# to 4x (texture term off, no exposure changes, dataset seeds 0 / 1 / 2 at brightness 0.9 / 1.0 / 1.1: 0.14-0.68 %),
+# so the test bounds the median over three brightness levels.  Measured (seed 0; images reader, no labels; session
+# 2026-12-02 g, texture term on): with the exposure changes 0.37 / 0.88 / 0.19 % (median 0.37), without 0.29 / 0.22 /
+# 0.30 % (median 0.29); the bound is 2 x 0.29 + 0.1 = 0.68 %.  With DIS's patch-mean normalisation off (what lets a
+# flow survive a gain change) tracking fails at the 0.7x step (97-99 % of the pixels fail the forward-backward check)
+# and the map re-initialises: 1.67 / 1.80 / 1.78 %; without exposure changes 0.24 / 0.27 / 0.23 %.  (An earlier
+# single draw saw 0.62 % with the photometric confidence's gain fit off, flow_ops.fit_exposure; over nine seed x
+# brightness draws, texture term off, the fit makes no measurable difference here: 0.33 % mean with it, 0.32 %
+# without; fit_exposure has its own unit test.)
+BRIGHTNESS = (0.9, 1.0, 1.1)
+EXPOSURE_BOUND = 0.68  # on the median over BRIGHTNESS
+
+
+def test_drive_with_exposure_changes_within_bound(tmp_path, drive140):
+    """Real cameras change exposure: DIS normalises each patch's mean and the photometric confidence removes a
+    fitted global gain and offset, so gain ramps and steps must not break tracking or the scale."""
+    runs = [_exposure_run(tmp_path / f"expo{b}", drive140, b, True) for b in BRIGHTNESS]
+    for res in runs:
+        t = res.metrics["timing"]
+        assert t["tracking_failures"] == 0 and t["reinitialisations"] == 0
+    expo = [_ate(res) for res in runs]
+    assert max(expo) < DRIVE_BOUND and np.median(expo) < EXPOSURE_BOUND, expo
+
+
+def test_exposure_bound_catches_a_flow_without_mean_normalisation(tmp_path, drive140, monkeypatch):
+    """Test of the test above: DIS without its patch-mean normalisation loses track at the exposure step and the scale
+    across the ramp, and fails that test (one draw is enough: 1.67-1.80 % at each brightness)."""
+    from pvslam_plugins.frontends.flow import flow_ops
+
+    create = flow_ops.create_dis
+
+    def no_mean_normalisation(*args, **kwargs):
+        dis = create(*args, **kwargs)
+        dis.setUseMeanNormalization(False)
+        return dis
+
+    monkeypatch.setattr(flow_ops, "create_dis", no_mean_normalisation)
+    res = _exposure_run(tmp_path, drive140, 1.0, True)
+    assert res.metrics["timing"]["tracking_failures"] > 0 and not _ate(res) < EXPOSURE_BOUND, _ate(res)
 
 
 # ------------------------------------------------------------------------------------------ loop closure --
@@ -234,13 +273,17 @@ def test_loop_test_catches_loop_closure_off(block_off):
 # --------------------------------------------------------------------------------------- dynamic masking --
 MV_FRAMES = 120  # busy_street: buses and cars up to a third of the image crossing and driving alongside
 # ATE, % of the path, oracle labels (the masking is the frontend's eq. 4 on the labelled things), 120 frames, seeds
-# 0 / 1 / 2 (measured by helper H1, session 2026-12-02, with graph.proximity_max_flow):
+# 0 / 1 / 2 (measured by helper H1, session 2026-12-02, with graph.proximity_max_flow; texture term off):
 #   busy_street      masking on 7.70 / 1.27 / 3.49   off 19.64 / 2.66 / 9.55
 #   moving_vehicles  masking on 0.81 / 0.25 / 0.25   off  0.62 / 0.35 / 1.08
 # moving_vehicles was this test's street until its scale drift (long proximity edges over the near road) was
 # fixed: since then masking barely matters there, so the test runs the seed-0 busy street, where it does; the
-# bound is 1.6x above its default and 1.6x below its masking-off run.
+# bound is 1.6x above its default and 1.6x below its masking-off run.  Since the flow frontend's texture term became
+# the default (session 2026-12-02 g) it protects the busy street on its own: masking on 1.46 / 0.98 / 7.16, off
+# 2.86 / 0.99 / 4.00 (moving_vehicles on 0.62 / 0.24 / 0.18, off 0.51 / 0.22 / 0.25), so the test of the test
+# switches the texture term off to see the masking alone (it must hold with masking on, and fail with it off).
 MV_BOUND = 12.0
+TEXTURE_OFF = ["frontend.texture_tau=0"]
 
 
 @pytest.fixture(scope="module")
@@ -248,16 +291,15 @@ def street():
     return _seq("busy_street", MV_FRAMES)
 
 
-@pytest.mark.parametrize("broken", [[], MASK_OFF], ids=["default", "mask_off"])
-def test_dynamic_masking_bound(tmp_path, street, broken):
-    """The bound on the default configuration, and its test of the test with the dynamic masking off."""
-    res = _run(tmp_path, street, "segmenter.plugin=labels", "vps.plugin=none", *broken)  # oracle labels
+@pytest.mark.parametrize("variant, holds", [([], True), (TEXTURE_OFF, True), ([*TEXTURE_OFF, *MASK_OFF], False)],
+                         ids=["default", "texture_off", "texture_and_mask_off"])
+def test_dynamic_masking_bound(tmp_path, street, variant, holds):
+    """The bound on the default configuration, on the masking alone (texture term off), and its test of the test with
+    the dynamic masking off too."""
+    res = _run(tmp_path, street, "segmenter.plugin=labels", "vps.plugin=none", *variant)  # oracle labels
     assert res.poses.shape[0] == MV_FRAMES and np.isfinite(res.poses.numpy()).all()
     ate = _ate(res)
-    if broken:
-        assert not ate < MV_BOUND, ate
-    else:
-        assert ate < MV_BOUND, ate
+    assert (ate < MV_BOUND) == holds, ate
 
 
 # ------------------------------------------------------------------------------- no ground truth leaks in --

@@ -83,13 +83,13 @@ class FlowFrontendConfig(PluginConfig):
         description="Forward-backward consistency scale (full-res px): confidence c = exp(-fb^2 / (2 sigma^2)).",
     )
     texture_tau: float = Field(
-        0.0, ge=0.0,
+        1e-3, ge=0.0,
         description="Texture term of the confidence: lam / (lam + tau) with lam the Shi-Tomasi minimum eigenvalue of "
         "the 5x5 structure tensor (OpenCV's scale: ~1e-4 on fine asphalt at the flow resolution, 1e-3 on facades). "
-        "Weak texture (the near road, sky, bare walls) gives a flow that DIS gets consistently wrong in both "
-        "directions; the forward-backward and photometric checks cannot see it. 0 = off (the default: lam "
-        "follows the exposure, which cost accuracy under exposure changes); 1e-3 with texture_quantile 0.75 is "
-        "the measured opt-in for streets with large vehicles and no segmenter (bench/RESULTS.md).",
+        "Weak texture (the near road, sky, bare walls, the flanks of buses) gives a flow that DIS gets "
+        "consistently wrong in both directions; the forward-backward and photometric checks cannot see it. "
+        "0 = off (lam follows the exposure: under auto-exposure ramps the term costs some accuracy, "
+        "bench/RESULTS.md).",
     )
     texture_quantile: Optional[float] = Field(
         0.75, gt=0.0, lt=1.0,
