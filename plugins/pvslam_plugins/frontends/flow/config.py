@@ -129,6 +129,12 @@ class FlowFrontendConfig(PluginConfig):
         "the flows are computed again from the homography of LK-tracked corners (recover.py: a fast turn moves "
         "the image beyond DIS's coarsest level) and the better of the two is kept; 1.0: never.",
     )
+    track_predict_recover: bool = Field(
+        True,
+        description="When the corners' homography does not recover a failing track, DIS also starts from the image "
+        "motion predicted at constant rate (each tracked frame's flow summarised by a homography and chained; "
+        "recover.MotionPredictor): a fast turn over a scene with few corners.",
+    )
     min_texture_std: float = Field(
         2.0, ge=0.0,
         description="Tracking failure when the grayscale intensity std of a frame is below this (black/blank frame).",

@@ -26,7 +26,9 @@ the forward-backward check (sudden jump).  A repeated frame is not a failure (ze
 than ``track_recover_fail_fraction`` of the pixels fail, DIS runs again from the homography of LK-tracked corners
 (:mod:`.recover`: a fast turn moves the image beyond DIS's coarsest level) and the more consistent flow is kept;
 on the synthetic head camera (``handheld_fast``, tune seeds 1-2) this took 8-15 lost frames and 2-3 map
-re-initialisations per sequence to none.
+re-initialisations per sequence to none.  When the corners give no homography or one that leaves too many failures
+(a fast turn over a bare wall), DIS also starts from the motion predicted at constant rate
+(``track_predict_recover``, :class:`.recover.MotionPredictor`).
 
 Rounds per new keyframe (``rounds``, default 1).  On an edge's first ``observe`` the weight is the
 confidence only; on its next ``dynamic_updates`` calls (after at least one BA round) pixels whose observed target
@@ -61,7 +63,7 @@ from pvslam_core.slam.graph import median_disp_map
 
 from . import dynamic as D
 from .dynamic_masking import DynamicMasking
-from .recover import homography_flow
+from .recover import MotionPredictor, homography_flow
 from . import flow_ops as F
 from .lanes import DisLanes
 from .config import FlowFrontendConfig
@@ -122,6 +124,7 @@ class FlowFrontend(DynamicMasking, Frontend):
                                                          finest_scale=settings[kind.split("_")[0]][1], **dis_kw),
                                threads=self.cfg.flow_threads)
         self._last_track: Optional[tuple] = None  # (reference frame index, frame index, fwd, bwd) of the last track
+        self._predictor = MotionPredictor()  # per-frame homographies for tracking recovery (recover.py)
         self._reproject_fn = reproject_fn
         self._kfs: dict[int, _Keyframe] = {}  # stable keyframe id -> keyframe (insertion order = time order)
         self._edges: dict[tuple[int, int], _Edge] = {}  # (source id, target id) -> cached edge
@@ -246,9 +249,17 @@ class FlowFrontend(DynamicMasking, Frontend):
         fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
         fail_frac = float(np.mean(~(fb_f <= fail_px)))  # inf (left the image) counts as failed
         if fail_frac > self.cfg.track_recover_fail_fraction:
-            # a fast turn: start DIS again from the homography of LK-tracked corners (recover.py), keep the better
-            hf = homography_flow(last.gray, gray)
-            if hf is not None:
+            # a fast turn: start DIS again from the homography of LK-tracked corners (recover.py), and if that does
+            # not bring the failures under the threshold, from the motion predicted at constant rate; keep the best
+            starts = [lambda: homography_flow(last.gray, gray)]
+            if self.cfg.track_predict_recover:
+                starts.append(lambda: self._predictor.flows(last.frame_index, frame.index, *gray.shape))
+            for start in starts:
+                if fail_frac <= self.cfg.track_recover_fail_fraction:
+                    break
+                hf = start()
+                if hf is None:
+                    continue
                 fwd2, bwd2 = self._flows(self._pair_calls(last.gray, gray, hf[0], hf[1], kind="track"))
                 tf2, wf2, fb2 = self._direction(last.gray, gray, fwd2, bwd2, h, w)
                 frac2 = float(np.mean(~(fb2 <= fail_px)))
@@ -277,6 +288,8 @@ class FlowFrontend(DynamicMasking, Frontend):
                                message=f"flow inconsistent: {fail_frac:.0%} of pixels fail the forward-backward "
                                        f"check (> {self.cfg.max_fb_fail_fraction:.0%}); sudden jump or cut?")
         self._last_track = (last.frame_index, frame.index, fwd, bwd)
+        if self.cfg.track_predict_recover:
+            self._predictor.observe(last.frame_index, frame.index, fwd, fb_f <= fail_px)
         coverage = 1.0 - fail_frac
         is_kf = mean_flow > self.cfg.keyframe_thresh or coverage < self.cfg.keyframe_min_coverage
         self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": last_sid,

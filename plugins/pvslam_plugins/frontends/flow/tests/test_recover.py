@@ -67,3 +67,68 @@ def test_fast_turn_recovered_and_cut_still_fails():
     fe.add_keyframe(0, S.frame(S.base(big), 0), None)
     r = fe.track(S.frame(S.base(S.texture("coffee")), 1), None)
     assert r.failed and "forward-backward" in r.message
+
+
+def _rotation_h(angle_deg: float) -> np.ndarray:
+    """The homography of a camera panning by ``angle_deg`` about its y axis (plus a little roll), 160x120 px."""
+    K = np.array([[144.0, 0, 79.5], [0, 144.0, 59.5], [0, 0, 1]])
+    a = np.deg2rad(angle_deg)
+    R = cv2.Rodrigues(np.array([0.0, a, 0.1 * a]))[0]
+    return K @ R @ np.linalg.inv(K)
+
+
+def test_motion_predictor_extrapolates_a_constant_rate_turn_across_keyframes_and_gaps():
+    """Frames 1-3 of a camera turning 5 deg per frame, each tracked against the previous one (every frame a keyframe,
+    as in a fast turn): the prediction for frame 4 against keyframe 3 is one more step, for frame 5 (frame 4 lost) two;
+    a reference that was never tracked has no prediction."""
+    from pvslam_plugins.frontends.flow.recover import MotionPredictor, _induced
+
+    h, w = 120, 160
+    step = _rotation_h(5.0)
+    pred = MotionPredictor()
+    assert pred.predict(0, 1) is None  # nothing observed yet
+    ok = np.ones((h, w), bool)
+    for k in range(1, 4):
+        pred.observe(k - 1, k, _induced(step, h, w), ok)
+    for frame, steps in ((4, 1), (5, 2)):
+        H = pred.predict(3, frame)
+        exact = _induced(np.linalg.matrix_power(step, steps), h, w)
+        assert H is not None and np.abs(_induced(H, h, w) - exact).max() < 0.05
+    # against an older reference the prediction spans the frames in between
+    H = pred.predict(1, 4)
+    assert np.abs(_induced(H, h, w) - _induced(np.linalg.matrix_power(step, 3), h, w)).max() < 0.05
+    assert pred.predict(99, 100) is None
+    fwd, bwd = pred.flows(3, 4, h, w)
+    assert np.abs(fwd - _induced(step, h, w)).max() < 0.05 and np.abs(bwd + fwd).mean() < 0.5
+
+
+def test_fast_pan_without_corners_tracks_from_the_predicted_motion(monkeypatch):
+    """A pan of 64 px per frame (32 flow px: beyond DIS from zero): the first frames recover from the corners'
+    homography; once the corners give none (a bare wall), the motion predicted at constant rate starts DIS and the
+    frame tracks with its true targets; without the prediction most of its pixels fail."""
+    import pvslam_plugins.frontends.flow.frontend as frontend_module
+
+    big = S.texture("astronaut", size=(S.H + 2 * S.PAD + 200, S.W + 2 * S.PAD + 400))
+    dx, dy = -64.0, -16.0
+    results = {}
+    for predict in (True, False):
+        monkeypatch.setattr(frontend_module, "homography_flow", homography_flow)
+        fe = FlowFrontend(FlowFrontendConfig(track_predict_recover=predict, texture_tau=0.0))
+        fe.add_keyframe(0, S.frame(S.shifted(big, 0, 0), 0), None)
+        for k in range(1, 4):
+            if k == 3:  # no corners from here on
+                monkeypatch.setattr(frontend_module, "homography_flow", lambda *a, **kw: None)
+            f = S.frame(S.shifted(big, k * dx, k * dy), k)
+            r = fe.track(f, None)
+            if k < 3:
+                assert not r.failed and r.is_keyframe
+                fe.add_keyframe(k, f, None)
+        results[predict] = r
+    r = results[True]
+    u = r.target[0] - torch.arange(r.target.shape[-1], dtype=torch.float32)
+    v = r.target[1] - torch.arange(r.target.shape[-2], dtype=torch.float32)[:, None]
+    ok = r.weight[0] > 0.5
+    assert not r.failed and float(ok.float().mean()) > 0.5, r.message
+    assert float((u[ok] - dx / 8).abs().median()) < 0.1 and float((v[ok] - dy / 8).abs().median()) < 0.1
+    off = results[False]
+    assert off.failed or float((off.weight[0] > 0.5).float().mean()) < 0.3
