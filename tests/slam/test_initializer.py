@@ -52,3 +52,14 @@ def test_confidence_is_relative_to_the_pairs_own_weights():
     mixed[:, :20] = weight[:, :20]  # the top 20 of 60 rows
     part = two_view_init(target, mixed, pr.intr, min_parallax_deg=0.5, relative_weight=True)
     assert part is not None and part.inliers <= int((weight[0, :20] > 0).sum()) < ref.inliers
+
+
+def test_relative_confidence_has_a_floor():
+    """Where the flow failed almost everywhere (the pair's 90th-percentile weight ~0), the relative threshold does not
+    fall to ~0 with it: faint weights are no correspondences, and the pair is declined as having none."""
+    pr = make_problem(n=6, h=60, w=80, seed=1, step=0.25)
+    target, weight = _pair(pr, 0, 5)
+    faint = weight * 0.01  # a trace of weight everywhere: q90 = 0.01, half of it 0.005
+    assert two_view_init(target, faint, pr.intr, min_parallax_deg=0.5, relative_weight=True) is None
+    # the same correspondences at a weight just above the floor initialise
+    assert two_view_init(target, weight * 0.12, pr.intr, min_parallax_deg=0.5, relative_weight=True) is not None
