@@ -16,8 +16,8 @@ motion of a rotating camera is exactly a homography (``K R K^-1``), so:
 
 When the corners give no homography (a bare wall), :class:`MotionPredictor` extrapolates the last frames' image
 motion at constant rate instead.  The caller (``FlowFrontend._track``) keeps whichever of the plain and the recovered
-flows passes most pixels of the forward-backward check.  All arrays are at the flow resolution: ``uint8 [H, W]`` images, ``float32 [H, W, 2]``
-flows.
+flows passes most pixels of the forward-backward check.  All arrays are at the flow resolution: ``uint8 [H, W]``
+images, ``float32 [H, W, 2]`` flows.
 """
 from __future__ import annotations
 
