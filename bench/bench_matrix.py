@@ -6,13 +6,14 @@ scenario x seeds plus the KITTI excerpts, beside the textbook VO peer (and COLMA
     python bench/bench_matrix.py --scenarios busy_street kitti_06 --seeds 3 --frames 60   # a smoke run
     python bench/bench_matrix.py --set report --labels --colmap --json out.json
     python bench/bench_matrix.py --reprint out.json [--markdown]  # the table, summary and targets of a saved run
+    python bench/bench_matrix.py --set tune --exposure --jobs 2    # under auto-exposure changes
 
 **Seed sets.**  ``tune`` = seeds 1, 2, 6, 7, 8: choose parameters on these.  ``report`` = seeds 3, 4, 5: report on
 these, never tune on them.  ``default`` = seed 0 (the sequences ``pvslam run`` and the published figures use).
 ``all`` = those three sets.  ``used`` = seeds 9-17: each batch of three was run once, fresh, to decide whether a
 change becomes the default (bench/RESULTS.md says which); they are seen now, so the next decision takes fresh seeds
-from 18 up (``--seeds``).  The KITTI excerpts (06 and 01, 51 frames each) have no seeds: they are in every set, so whoever tunes
-sees them too.  The printout and the JSON say which set ran.
+from 18 up (``--seeds``).  The KITTI excerpts (06 and 01, 51 frames each) have no seeds: they are in every set, so
+whoever tunes sees them too.  The printout and the JSON say which set ran.
 
 **What runs per cell** (see :mod:`bench.matrix_jobs`): the synthetic folder is generated (cached); pvslam runs
 with the default config and the ``images`` reader (no labels: ``segmenter.plugin = "none"``, ``vps.plugin =
@@ -67,7 +68,8 @@ def seed_set_of(seed: int) -> str:
 
 
 def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool, colmap: bool,
-         jobs: int, overrides: tuple[str, ...] = (), size: tuple[int, int] = (320, 240)) -> list[dict]:
+         jobs: int, overrides: tuple[str, ...] = (), size: tuple[int, int] = (320, 240),
+         exposure: bool = False) -> list[dict]:
     """One job per (synthetic scenario, seed) and one per KITTI excerpt, longest first (parallel efficiency)."""
     default_len = {"driving_city": 550, "driving_loop": 488, "handheld_fast": 360, "indoor_handheld": 330}
     cells = []
@@ -76,6 +78,7 @@ def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool
             cells.append({"scenario": sc, "seed": None if sc.startswith("kitti_") else seed, "frames": frames,
                           "out": str(out), "labels": labels, "colmap": colmap,
                           "colmap_threads": 1 if jobs > 1 else -1, "overrides": list(overrides), "size": list(size),
+                          "exposure": exposure and not sc.startswith("kitti_"),
                           "set": "shared" if sc.startswith("kitti_") else seed_set_of(seed)})
     return sorted(cells, key=lambda c: -(min(frames or 10 ** 9, default_len.get(c["scenario"], 300))))
 
@@ -289,6 +292,9 @@ def main(argv=None) -> int:
                     "--set`): compare a variant with the default on the same cells")
     ap.add_argument("--labels", action="store_true", help="also run pvslam with the oracle labels (synthetic only)")
     ap.add_argument("--colmap", action="store_true", help="also run COLMAP (pycolmap; slow)")
+    ap.add_argument("--exposure", action="store_true", help="every synthetic sequence (for every method) under a "
+                    "camera's auto-exposure changes: the synthetic plugin's exposure.auto_exposure_gain, a 1.5x ramp, "
+                    "a 0.7x step and back every 140 frames (KITTI as it is)")
     ap.add_argument("--json", help="write the rows, summary and targets to this JSON file")
     ap.add_argument("--out", help="folder for run directories and the KITTI peer folders (default: temporary)")
     ap.add_argument("--reprint", metavar="JSON", help="print the table, summary and targets of a saved --json run")
@@ -342,7 +348,10 @@ def main(argv=None) -> int:
     size = (int(wh[1]), int(wh[2]))
     if size != (320, 240):
         print(f"synthetic image size {size[0]}x{size[1]}")
-    cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs, tuple(args.override), size)
+    if args.exposure:
+        print("auto-exposure changes on every synthetic sequence (exposure.auto_exposure_gain)")
+    cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs, tuple(args.override), size,
+                 args.exposure)
     t0 = time.perf_counter()
     rows = []
     if args.jobs > 1:
@@ -366,8 +375,8 @@ def main(argv=None) -> int:
         Path(args.json).write_text(json.dumps({
             "set": label, "seeds": seeds, "seed_sets": SEED_SETS, "argv": sys.argv[1:] if argv is None else argv,
             "commit": commit(), "host": platform.node(), "cpus": os.cpu_count(), "jobs": args.jobs,
-            "frames": args.frames, "size": list(size), "wall_s": wall, "rows": rows, "summary": summ, "targets": tg}, indent=1,
-            default=str))
+            "frames": args.frames, "size": list(size), "exposure": args.exposure, "wall_s": wall, "rows": rows,
+            "summary": summ, "targets": tg}, indent=1, default=str))
         print(f"results written to {args.json}")
     return 0
 

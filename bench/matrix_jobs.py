@@ -192,6 +192,10 @@ def run_cell(job: dict) -> dict:
             fps = 10.0
         else:
             seq_dir = synthetic_sequence(scenario, seed, frames, tuple(job.get("size") or (320, 240)))
+            if job.get("exposure"):  # a copy whose images follow a camera's auto-exposure, for every method
+                from pvslam_plugins.datasets.synthetic.exposure import exposure_copy
+
+                seq_dir = exposure_copy(seq_dir, out / "exposure" / f"{scenario}-s{seed}-{time.time_ns()}")
             import json
 
             fps = float(json.loads((seq_dir / "meta.json").read_text())["fps"])

@@ -98,30 +98,17 @@ def test_bound_catches_broken_drive(tmp_path, drive140, broken):
     assert not ate < DRIVE_BOUND, ate
 
 
-def _exposure_gain(i: int) -> float:
-    """A camera's auto-exposure on the drive: a 1.5x ramp over frames 30-60 (a tunnel exit), held, then a sudden
-    step to 0.7x at frame 90 and back at frame 120."""
-    if i < 30:
-        return 1.0
-    if i < 60:
-        return 1.0 + 0.5 * (i - 30) / 30
-    return 1.5 if i < 90 else (0.7 if i < 120 else 1.0)
+def _exposure_run(out: Path, drive: Path, brightness: float):
+    """The drive through the ``images`` reader (no labels), every image scaled by ``brightness`` and by a camera's
+    auto-exposure (the synthetic plugin's ``exposure.auto_exposure_gain``: a 1.5x ramp over frames 30-60, held, a
+    0.7x step at frame 90 and back at 120)."""
+    from pvslam_plugins.datasets.synthetic.exposure import exposure_copy
 
-
-def _exposure_run(out: Path, drive: Path, brightness: float, exposure: bool):
-    """The drive through the ``images`` reader (no labels), every image scaled by ``brightness`` and, with
-    ``exposure``, by :func:`_exposure_gain` (clipped to 8 bits, as a camera would)."""
-    import cv2
-
-    rgb = out / "rgb"
-    rgb.mkdir(parents=True)
-    for i, name in enumerate(sorted(p.name for p in (drive / "rgb").iterdir())):
-        gain = brightness * (_exposure_gain(i) if exposure else 1.0)
-        img = cv2.imread(str(drive / "rgb" / name)).astype(np.float32) * gain
-        cv2.imwrite(str(rgb / name), np.clip(img, 0, 255).astype(np.uint8))
-    fps = json.loads((drive / "meta.json").read_text()).get("fps", 12.0)
-    res = _run(out / "runs", rgb, 'dataset.plugin="images"', f'dataset.calib="{(drive / "calib.txt").as_posix()}"',
-               f"dataset.fps={fps}", f'dataset.groundtruth="{(drive / "groundtruth.txt").as_posix()}"', *NO_SEG)
+    seq = exposure_copy(drive, out / "seq", brightness)
+    fps = json.loads((seq / "meta.json").read_text()).get("fps", 12.0)
+    calib, gt = (seq / "calib.txt").as_posix(), (seq / "groundtruth.txt").as_posix()
+    res = _run(out / "runs", seq / "rgb", 'dataset.plugin="images"', f'dataset.calib="{calib}"',
+               f"dataset.fps={fps}", f'dataset.groundtruth="{gt}"', *NO_SEG)
     assert res.poses.shape[0] == DRIVE_FRAMES and np.isfinite(res.poses.numpy()).all()
     return res
 
@@ -143,7 +130,7 @@ EXPOSURE_BOUND = 0.68  # on the median over BRIGHTNESS
 def test_drive_with_exposure_changes_within_bound(tmp_path, drive140):
     """Real cameras change exposure: DIS normalises each patch's mean and the photometric confidence removes a
     fitted global gain and offset, so gain ramps and steps must not break tracking or the scale."""
-    runs = [_exposure_run(tmp_path / f"expo{b}", drive140, b, True) for b in BRIGHTNESS]
+    runs = [_exposure_run(tmp_path / f"expo{b}", drive140, b) for b in BRIGHTNESS]
     for res in runs:
         t = res.metrics["timing"]
         assert t["tracking_failures"] == 0 and t["reinitialisations"] == 0
@@ -164,7 +151,7 @@ def test_exposure_bound_catches_a_flow_without_mean_normalisation(tmp_path, driv
         return dis
 
     monkeypatch.setattr(flow_ops, "create_dis", no_mean_normalisation)
-    res = _exposure_run(tmp_path, drive140, 1.0, True)
+    res = _exposure_run(tmp_path, drive140, 1.0)
     assert res.metrics["timing"]["tracking_failures"] > 0 and not _ate(res) < EXPOSURE_BOUND, _ate(res)
 
 

@@ -152,6 +152,33 @@ def test_overrides_reach_every_pvslam_run_and_a_typo_fails_first(tmp_path, monke
                            "--out", str(tmp_path)])
 
 
+def test_exposure_runs_every_method_on_an_exposed_copy(tmp_path, monkeypatch):
+    """--exposure: synthetic cells (not KITTI) run on a copy of the sequence whose images follow the auto-exposure
+    profile; the original folder is untouched."""
+    import cv2
+
+    cells = bench_matrix.plan(["busy_street", "kitti_06"], [3], None, tmp_path, False, False, 1, exposure=True)
+    assert [c["exposure"] for c in cells] == [True, False]
+    seq = _fake_sequence(tmp_path)
+    (seq / "rgb").mkdir()
+    for i in range(61):
+        cv2.imwrite(str(seq / "rgb" / f"{i:06d}.png"), np.full((8, 8, 3), 100, np.uint8))
+    seen = []
+
+    def fake_run(overrides, out, name):
+        seen.append([o for o in overrides if o.startswith("dataset.path=")][0])
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(matrix_jobs, "run_pvslam", fake_run)
+    monkeypatch.setattr(matrix_jobs, "synthetic_sequence", lambda *a: seq)
+    matrix_jobs.run_cell({"scenario": "busy_street", "seed": 3, "frames": 5, "out": str(tmp_path / "out"),
+                          "exposure": True})
+    rgb = Path(seen[0].split("=", 1)[1].strip('"'))
+    assert rgb.parent != seq and "exposure" in str(rgb)
+    assert int(cv2.imread(str(rgb / "000060.png"))[0, 0, 0]) == 150  # 100 x the 1.5x hold
+    assert int(cv2.imread(str(seq / "rgb" / "000060.png"))[0, 0, 0]) == 100
+
+
 def _fake_sequence(tmp_path):
     """A 5-frame synthetic-like folder: meta.json and a TUM ground truth (all run_cell reads before pvslam)."""
     import json
