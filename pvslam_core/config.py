@@ -116,8 +116,9 @@ class GraphSection(PluginConfig):
         "highway frames give 0.7-0.8 deg between nearby keyframes (far, forward-looking points)")
     init_relative_confidence: bool = Field(
         True, description="two-view initialisation counts a correspondence as confident above half of the pair's "
-        "90th-percentile weight (at most 0.5) instead of above 0.5 (false): a frontend whose weights sit lower, "
-        "such as the flow frontend with its texture term, would otherwise start the map seconds late")
+        "90th-percentile weight (at most 0.5, at least initializer.RELATIVE_FLOOR = 0.05) instead of above 0.5 "
+        "(false): a frontend whose weights sit lower, such as the flow frontend with its texture term, would "
+        "otherwise start the map seconds late")
     init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe, all ending "
                             "at the newest: from the window's first keyframe, from the middle, from two back (fast "
                             "motion breaks the flow of the farthest pair; pvslam_core/slam/bootstrap.py)")

@@ -51,12 +51,8 @@ def homography_flow(g0: np.ndarray, g1: np.ndarray, max_corners: int = 300, max_
     H, inl = cv2.findHomography(a, b, cv2.RANSAC, ransac_px)
     if H is None or inl is None or int(inl.sum()) < min_inliers:
         return None
-    try:
-        H_inv = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        return None
-    h, w = g0.shape
-    return _induced(H, h, w), _induced(H_inv, h, w), int(inl.sum())
+    pair = induced_flows(H, *g0.shape)
+    return None if pair is None else (*pair, int(inl.sum()))
 
 
 def flow_homography(fwd: np.ndarray, ok: np.ndarray, stride: int = 4, ransac_px: float = 1.0,
@@ -126,12 +122,16 @@ class MotionPredictor:
     def flows(self, ref_index: int, index: int, h: int, w: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """The flows (reference -> frame, frame -> reference; ``[h, w, 2]``) of the predicted motion, or None."""
         H = self.predict(ref_index, index)
-        if H is None:
-            return None
-        try:
-            return _induced(H, h, w), _induced(np.linalg.inv(H), h, w)
-        except np.linalg.LinAlgError:
-            return None
+        return None if H is None else induced_flows(H, h, w)
+
+
+def induced_flows(H: np.ndarray, h: int, w: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    """The flows ``H`` induces (``[h, w, 2]``: forward, and backward by its inverse), or None for a singular ``H``."""
+    try:
+        H_inv = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    return _induced(H, h, w), _induced(H_inv, h, w)
 
 
 def _induced(H: np.ndarray, h: int, w: int) -> np.ndarray:
