@@ -53,6 +53,13 @@ class BAConfigBase(PluginConfig):
         "behind has a magnified near scene whose flow is underestimated, and the depth-based pose then lands short "
         "of it (bench/RESULTS.md, issue 13, session 2026-12-02 e)",
     )
+    pgo_max_scale_disagreement: Optional[float] = Field(
+        1.25, gt=1,
+        description="leave a loop edge out of the pose graph when its scale measured from both ends (the old "
+        "keyframe's depth against the new one's, and the reverse) disagrees by more than this factor: the two "
+        "ratios of one consistent measurement multiply to 1. None: no check (and only one direction is measured). "
+        "A loop seen on few pixels can put a wrong scale into the whole chain (bench/RESULTS.md, issue 13, "
+        "session 2026-12-02 h)")
     pgo_min_pixels: int = Field(30, ge=1, description="minimum confidently matched pixels to trust a loop edge's "
                                 "Sim(3) measurement (else the loop is left to the BA alone)")
     final_iters: int = Field(4, ge=0, description="Gauss-Newton iterations per round of the global BA in finalize()")

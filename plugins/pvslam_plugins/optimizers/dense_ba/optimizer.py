@@ -4,6 +4,7 @@ closure (Sim(3) pose graph + relaxed loop BA, :meth:`loop`) and a global BA at t
 from __future__ import annotations
 
 import logging
+import math
 from typing import Callable, Optional
 
 import numpy as np
@@ -155,7 +156,8 @@ class DenseBAOptimizer(Optimizer):
         used_loops, drift, rejected = 0, 0.0, 0
         for li, lj in loops:
             a_new, b_old = max(li, lj), min(li, lj)
-            for a, b in ((b_old, a_new), (a_new, b_old)):  # prefer the old keyframe as the reference
+            meas = {}  # (a, b) -> (edge, Z_ab, scale ratio) of each usable direction
+            for a, b in ((b_old, a_new), (a_new, b_old)):
                 m = torch.nonzero((oii == a) & (ojj == b)).squeeze(1)
                 if len(m) == 0:
                     continue
@@ -164,6 +166,22 @@ class DenseBAOptimizer(Optimizer):
                                                   obs.target[e].to(dev), obs.weight[e].to(dev))
                 if used < c.pgo_min_pixels or not bool(torch.isfinite(Zab).all()) or not (0.05 < s < 20.0):
                     continue
+                meas[(a, b)] = (e, Zab, s)
+                if c.pgo_max_scale_disagreement is None:
+                    break  # one direction is enough without the check
+            if len(meas) == 2 and c.pgo_max_scale_disagreement is not None:
+                # the same relative scale measured from either end: a consistent pair multiplies to 1
+                product = meas[(b_old, a_new)][2] * meas[(a_new, b_old)][2]
+                if abs(math.log(product)) > math.log(c.pgo_max_scale_disagreement):
+                    log.info("loop %d <-> %d: measurement left out of the pose graph (scale %.3g from keyframe %d, "
+                             "%.3g from %d: product %.3g)", a_new, b_old, meas[(b_old, a_new)][2], b_old,
+                             meas[(a_new, b_old)][2], a_new, product)
+                    rejected += 1
+                    continue
+            for a, b in ((b_old, a_new), (a_new, b_old)):  # prefer the old keyframe as the reference
+                if (a, b) not in meas:
+                    continue
+                e, Zab, s = meas[(a, b)]
                 off = None if c.pgo_max_direction_deg is None else \
                     self._direction_error(Zab, obs.target[e], obs.weight[e], intr)
                 if off is not None and off > c.pgo_max_direction_deg:
@@ -179,7 +197,7 @@ class DenseBAOptimizer(Optimizer):
                 used_loops += 1
                 break
         if used_loops == 0:
-            why = f"{rejected} off the epipolar direction" if rejected else "no usable loop measurement"
+            why = f"{rejected} left out by the direction / scale checks" if rejected else "no usable loop measurement"
             return f"sim3 pgo skipped ({why})"
         if drift < c.pgo_min_drift:
             self.last_pgo = {"applied": False, "drift": drift}
