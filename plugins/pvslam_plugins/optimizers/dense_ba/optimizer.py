@@ -127,8 +127,11 @@ class DenseBAOptimizer(Optimizer):
         to the newest, with their current relative poses (scale 1), plus one edge per observed loop edge, measured
         by :func:`loop_relative_sim3` with the old keyframe fixed.  ``p`` is the newest keyframe of the previous
         loop call when it lies between the loop's old keyframe and the new one, else the oldest loop keyframe;
-        ``p`` and the loops' old keyframes are fixed.  Applies the corrected poses to the chain and divides each
-        chain keyframe's inverse depth by its scale.  Returns a message.
+        ``p`` and the loops' old keyframes are fixed.  A loop stays out of the graph when its translation is off the
+        loop edge's epipolar direction (``pgo_max_direction_deg``) or, where both of its edges are observed, when the
+        scale measured from either end disagrees (``pgo_max_scale_disagreement``; with one usable direction only,
+        that one is taken unchecked).  Applies the corrected poses to the chain and divides each chain keyframe's
+        inverse depth by its scale.  Returns a message.
 
         Why not all keyframes with keyframe 0 fixed: the graph holds the chain and this call's loop edges only, so
         it cannot know what earlier loops corrected.  On repeated laps (closures go to the previous lap, see the loop
