@@ -12,8 +12,9 @@ scenario x seeds plus the KITTI excerpts, beside the textbook VO peer (and COLMA
 these, never tune on them.  ``default`` = seed 0 (the sequences ``pvslam run`` and the published figures use).
 ``all`` = those three sets.  ``used`` = seeds 9-23: 9-17 and 21-23 each batch of three was run once, fresh, to
 decide whether a change becomes the default, 18-20 once as an unseen report of the default (bench/RESULTS.md says
-which); they are seen now, so the next decision takes fresh seeds from 24 up (``--seeds``).  The KITTI excerpts (06 and 01, 51 frames each) have no seeds: they are in every set, so
-whoever tunes sees them too.  The printout and the JSON say which set ran.
+which); they are seen now, so the next decision takes fresh seeds from 24 up (``--seeds``).  The KITTI excerpts
+(06 and 01, 51 frames each) have no seeds: they are in every set, so whoever tunes sees them too.  The printout
+and the JSON say which set ran.
 
 **What runs per cell** (see :mod:`bench.matrix_jobs`): the synthetic folder is generated (cached); pvslam runs
 with the default config and the ``images`` reader (no labels: ``segmenter.plugin = "none"``, ``vps.plugin =

@@ -184,7 +184,7 @@ class DenseBAOptimizer(Optimizer):
             for a, b in ((b_old, a_new), (a_new, b_old)):  # prefer the old keyframe as the reference
                 if (a, b) not in meas:
                     continue
-                e, Zab, s = meas[(a, b)]
+                e, Zab, _ = meas[(a, b)]
                 off = None if c.pgo_max_direction_deg is None else \
                     self._direction_error(Zab, obs.target[e], obs.weight[e], intr)
                 if off is not None and off > c.pgo_max_direction_deg:
