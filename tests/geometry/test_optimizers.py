@@ -281,3 +281,46 @@ def test_loop_scale_measured_from_both_ends_must_agree(loop_problem, monkeypatch
     assert "sim3 pgo skipped (1 left out by the direction / scale checks)" in rep.message, rep.message
     rep = make("online_ba", pgo_max_scale_disagreement=None).loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
     assert "sim3 pgo:" in rep.message, rep.message
+
+
+
+def _rescaled(poses, disps, s):
+    """The same map under the monocular gauge: positions x s, inverse depths / s."""
+    p = poses.clone()
+    p[:, :3] *= s
+    return p, disps / s
+
+
+@pytest.mark.parametrize("shrink", [True, False])
+def test_depth_damping_follows_a_shrinking_map(shrink):
+    """A monocular map's scale is arbitrary: the same window BA on a map at the initialiser's gauge (median inverse
+    depth 1) and on that map shrunk 20x must move them the same way.  With the absolute eta the shrunk map's depths
+    are damped 400x harder against the data (C scales with the squared baseline) and converge visibly less; with
+    depth_damping_shrink the two runs agree to float precision.  A map that grew keeps the absolute eta."""
+    pr = make_problem(n=8, seed=3)
+    p0, d0 = perturb(pr, fixed=(0,), rot=0.01, trans=0.03, disp_rel=0.3)
+    p0, d0 = _rescaled(p0, d0, float(d0.median()))  # the initialiser's gauge: median inverse depth 1
+    s = 0.05
+    # a damping strong enough to matter at the unit gauge, ep = 0: the pose damping is absolute
+    cfg = dict(window=8, iters=3, ep=0.0, depth_damping=1e-2, depth_damping_shrink=shrink)
+    ga, gb = pr.graph(p0, d0), pr.graph(*_rescaled(p0, d0, s))
+    opt = make("online_ba", **cfg)
+    eta_a, eta_b = opt.depth_damping(ga), opt.depth_damping(gb)
+    assert eta_a == pytest.approx(1e-2, rel=1e-5)
+    assert opt.depth_damping(pr.graph(*_rescaled(p0, d0, 1 / s))) == 1e-2  # grown: the absolute eta
+    ra, rb = opt.step(ga, pr.obs()), opt.step(gb, pr.obs())
+    assert not ra.rejected and not rb.rejected
+    pa, da = ga.poses.clone(), ga.disps.clone()
+    pb, db = _rescaled(gb.poses, gb.disps, 1.0 / s)  # back to the unit gauge
+    same = torch.allclose(pa[:, :3], pb[:, :3], atol=1e-4 * float(pa[:, :3].abs().max())) and \
+        torch.allclose(da, db, rtol=1e-3, atol=1e-5)
+    undamped = make("online_ba", **{**cfg, "depth_damping": 0.0}).step(pr.graph(p0, d0), pr.obs())
+    assert ra.cost_after > 1.5 * undamped.cost_after  # the damping matters at this strength
+    if shrink:
+        assert eta_b == pytest.approx(s * s * eta_a, rel=1e-5)
+        assert same, (float((pa - pb).abs().max()), float((da - db).abs().max()))
+        assert rb.cost_after == pytest.approx(ra.cost_after, rel=1e-3)
+    else:
+        assert eta_a == eta_b == 1e-2
+        assert not same
+        assert rb.cost_after > 1.05 * ra.cost_after, (ra.cost_after, rb.cost_after)

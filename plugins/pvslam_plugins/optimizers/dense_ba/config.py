@@ -22,6 +22,16 @@ class BAConfigBase(PluginConfig):
                                  "the frontend gives no learned damping); "
                        "with exact flow on 150 driving-loop frames 1e-3 left 0.88 % ATE (depths never converge in "
                        "the window), 1e-5 gave 0.007 %")
+    depth_damping_shrink: bool = Field(
+        False, description="Divide depth_damping by max(1, m)^2, m the median inverse depth of the last "
+        "depth_damping_horizon keyframes: depth_damping holds at the initialiser's gauge (median inverse depth 1) "
+        "and keeps its weight against the data when the map shrinks (C falls with the squared baseline; with a "
+        "fixed eta a shrinking map can stop converging and keep shrinking). Helps driving scenes, costs the "
+        "fast hand-held ones; off by default (bench/RESULTS.md, issue 13, session 2026-12-02 i). False: the "
+        "absolute eta of DROID-SLAM")
+    depth_damping_horizon: int = Field(
+        50, ge=1, description="keyframes whose median inverse depth measures the map's scale for "
+        "depth_damping_shrink (~5 BA windows: a passing near object does not move it)")
     min_depth: float = Field(0.2, gt=0, description="points with relative depth z_j/z_i below this get zero weight")
     robust: Optional[Literal["none", "huber", "cauchy"]] = Field(
         "cauchy", description="robust (IRLS) kernel on the 2D residual: 'none', 'huber' or 'cauchy'. Classical flow has "

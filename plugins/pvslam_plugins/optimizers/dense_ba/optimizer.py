@@ -52,8 +52,34 @@ class DenseBAOptimizer(Optimizer):
     def _ba(self, graph, obs: EdgeObservations, free: torch.Tensor, iters: int, lm: float, ep: float,
             depth_free: Optional[torch.Tensor] = None) -> OptimizerReport:
         c = self.config
-        return dense_ba(graph, obs, free, iters=iters, lm=lm, ep=ep, depth_damping=c.depth_damping, depth_free=depth_free,
-                        min_depth=c.min_depth, robust=c.robust, robust_scale=c.robust_scale)
+        return dense_ba(graph, obs, free, iters=iters, lm=lm, ep=ep, depth_damping=self.depth_damping(graph),
+                        depth_free=depth_free, min_depth=c.min_depth, robust=c.robust, robust_scale=c.robust_scale)
+
+    def depth_damping(self, graph) -> float:
+        """The BA's inverse-depth damping ``eta``: ``depth_damping / max(1, m)^2``, ``m`` the median finite positive
+        inverse depth of the last ``depth_damping_horizon`` keyframes (``depth_damping_shrink`` off: ``depth_damping``).
+
+        Why: the initialiser fixes the monocular gauge at a median inverse depth of 1, where ``depth_damping`` was
+        chosen.  A pixel's depth block is ``C = w Jd^2`` with ``Jd`` proportional to the baseline, so when the map
+        shrinks by ``s`` (positions x s, inverse depths / s) ``C`` falls by ``s^2`` and a fixed ``eta`` weighs ever
+        more against the data: the depths stop converging in the window, the BA's remainder shrinks the map further,
+        and driving_city/21 lost 99 % of its scale in 550 frames (6.5 % ATE).  Dividing by ``m^2`` keeps the damping's
+        weight as the map shrinks.  Only shrinking: a map that grows gets relatively weaker damping, which breaks
+        no feedback loop, and ``m`` also follows the scene's content (it fell 20x over busy_street/8's first 15
+        keyframes while the scale held; a fully scale-free ``eta`` damped that map 400x harder and lost it).  Not
+        the baseline: it collapses in every fast turn, where the damping holds the barely observable depths still
+        (handheld_fast lost its scale with a baseline-scaled ``eta``).  Off by default: on fresh seeds it fixed the
+        shrinking driving maps and cost every fast hand-held cell 12-17 % (bench/RESULTS.md, session 2026-12-02 i)."""
+        c = self.config
+        n = int(graph.n)
+        if not c.depth_damping_shrink or n < 1:
+            return c.depth_damping
+        d = graph.disps[max(0, n - c.depth_damping_horizon):n]
+        d = d[torch.isfinite(d) & (d > 0)]
+        if d.numel() == 0:
+            return c.depth_damping
+        m = max(1.0, float(d.median()))
+        return c.depth_damping / (m * m)
 
     def window_free(self, graph, window: int) -> torch.Tensor:
         """Poses of the last ``window`` keyframes are free; keyframe 0 is always fixed."""
