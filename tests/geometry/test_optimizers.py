@@ -283,7 +283,6 @@ def test_loop_scale_measured_from_both_ends_must_agree(loop_problem, monkeypatch
     assert "sim3 pgo:" in rep.message, rep.message
 
 
-
 def _rescaled(poses, disps, s):
     """The same map under the monocular gauge: positions x s, inverse depths / s."""
     p = poses.clone()
