@@ -168,6 +168,21 @@ def _cost(conf, valid, ru, rv) -> float:
     return float((valid * (conf[:, 0] * ru * ru + conf[:, 1] * rv * rv)).sum())
 
 
+def _robust_cost(conf, valid, ru, rv, kind: Optional[str], scale: float) -> float:
+    """The objective the IRLS weights of :func:`_robust_weights` minimise: each pixel's ``conf``-weighted squared
+    residual times ``2 rho(n) / n^2`` (``n`` the 2D residual; exact where ``conf`` is the same for u and v)."""
+    if kind is None or kind == "none":
+        return _cost(conf, valid, ru, rv)
+    n2 = (ru * ru + rv * rv).clamp(min=1e-12)
+    s2 = scale * scale
+    if kind == "huber":
+        n = n2.sqrt()
+        f = torch.where(n <= scale, torch.ones_like(n), (2.0 * scale * n - s2) / n2)
+    else:  # cauchy: rho = s^2 / 2 log(1 + n^2 / s^2)
+        f = torch.log1p(n2 / s2) * (s2 / n2)
+    return float((valid * f * (conf[:, 0] * ru * ru + conf[:, 1] * rv * rv)).sum())
+
+
 def weighted_cost(graph: "FrameGraph", obs: EdgeObservations, min_depth: float = 0.2) -> float:
     """``sum conf * valid * |target - reprojection|^2`` for the graph's current state."""
     h, w = graph.ba_shape
@@ -212,8 +227,18 @@ def dense_ba(
     weight_scale: float = WEIGHT_SCALE,
     dtype: Optional[torch.dtype] = None,
     max_chunk_pixels: int = 500_000,
+    max_iters: Optional[int] = None,
+    rel_tol: float = 0.0,
 ) -> OptimizerReport:
     """Run ``iters`` Gauss-Newton/LM iterations of dense BA on ``graph`` in place (see the module docstring).
+
+    ``max_iters`` (> ``iters``): after ``iters`` iterations go on, up to ``max_iters``, while the last iteration
+    lowered the objective (the robust one: :func:`_robust_cost`; the reported costs stay plain) by more than
+    ``rel_tol`` of it (the check is the cost evaluation that ends every call, so a call that stops costs nothing
+    extra).  Why: with the damping (``ep``, ``eta``) a step covers only part of the way
+    along the weakly observed directions - the monocular scale first - and where the data keep pulling (straight
+    drives) an unconverged window leaves its remainder to drift, while where the cost has settled (most windows of
+    fast hand-held motion) more iterations only follow noise (bench/RESULTS.md, issue 13, session 2026-12-03).
 
     ``free`` / ``depth_free``: bool ``[n]``.  ``depth_damping``: DROID's ``eta``, a float or a tensor broadcastable
     to ``[n, h, w]``; when ``obs.depth_damping`` (learned, per keyframe) is given it is used instead, as DROID:
@@ -296,9 +321,24 @@ def dense_ba(
         vw = valid * weight_scale if rw is None else valid * rw * weight_scale
         return ru, rv, out, cf[:, 0] * vw, cf[:, 1] * vw, cf
 
-    cost0 = None
+    n_iters = max(0, int(iters))
+    n_max = max(n_iters, int(max_iters)) if max_iters is not None else n_iters
+    adaptive = n_max > n_iters
+
+    def current_cost() -> tuple[float, float]:
+        """(the reported plain cost, the robust objective when adaptive) at the current state"""
+        total = rtotal = 0.0
+        for ch in chunks:
+            ru, rv, out, _, _, cf = linearise(ch, False)
+            total += _cost(cf, out["valid"], ru, rv)
+            if adaptive:
+                rtotal += _robust_cost(cf, out["valid"], ru, rv, robust, robust_scale)
+            del ru, rv, out, cf
+        return total, rtotal
+
+    cost0 = cost1 = None
     problems: list[str] = []
-    for it in range(max(0, int(iters))):
+    for it in range(n_max):
         # ---- assemble the reduced pose system chunk by chunk; per-pixel temporaries live for one chunk only
         v = torch.zeros(F, 6, dtype=torch.float64, device=dev)
         H = torch.zeros(F * F, 36, dtype=torch.float64, device=dev) if F > 0 and not sparse else None
@@ -306,11 +346,13 @@ def dense_ba(
         Cinv = torch.zeros(Ns, P, dtype=dtype, device=dev)
         wd = torch.zeros(Ns, P, dtype=dtype, device=dev)
         kept = None  # (chunk, B, Ad) of the last chunk, reused by the back-substitution
-        cost_it = 0.0
+        cost_it = rcost_it = 0.0
         for ci, ch in enumerate(chunks):
             ru, rv, out, wu, wv, cf = linearise(ch, "parts")
             if cost0 is None:
                 cost_it += _cost(cf, out["valid"], ru, rv)
+            if adaptive:
+                rcost_it += _robust_cost(cf, out["valid"], ru, rv, robust, robust_scale)
             blocks, q, Ad, Ci, wdc, B = assemble_chunk(ch, ru, rv, wu, wv, out, eta_map[src[ch.s0:ch.s1]], F,
                                                        want_B=ci == len(chunks) - 1)
             del ru, rv, out, wu, wv, cf
@@ -388,12 +430,14 @@ def dense_ba(
         if Ns > 0:
             d[src] = (d[src] + dd).clamp(min=DISP_MIN)
         report.iterations = it + 1
+        if n_iters <= it + 1 < n_max:  # adaptive: stop once the last iteration gained too little
+            cost1, rcost1 = current_cost()
+            if not rcost_it - rcost1 > rel_tol * rcost_it:
+                break
+            cost1 = None
 
-    cost1 = 0.0
-    for ch in chunks:
-        ru, rv, out, _, _, cf = linearise(ch, False)
-        cost1 += _cost(cf, out["valid"], ru, rv)
-        del ru, rv, out, cf
+    if cost1 is None:
+        cost1 = current_cost()[0]
     if cost0 is None:
         cost0 = cost1
     report.cost_before, report.cost_after = cost0, cost1

@@ -52,6 +52,20 @@ def test_step_windowed(name):
     assert float(err.max()) < float(se3_mul(se3_inv(pr.poses[6:]), p0[6:])[:, :3].norm(dim=-1).max())
 
 
+def test_window_ba_adaptive_iterations_from_the_config():
+    """``iters_max`` reaches the window BA: an unconverged window runs past ``iters``, a tolerance no iteration can
+    beat keeps ``iters``; the loop / final BAs keep their fixed counts."""
+    pr = make_problem(n=10, seed=4)
+    p0, d0 = perturb(pr, fixed=(0,), rot=0.01, trans=0.02, disp_rel=0.1)
+    counts = {}
+    for tol in (1e-4, 1.0):
+        g = pr.graph(p0.clone(), d0.clone())
+        counts[tol] = make("online_ba", window=6, iters=2, iters_max=7, iters_tol=tol).step(g, pr.obs()).iterations
+    assert counts[1.0] == 2 and 2 < counts[1e-4] <= 7, counts
+    with pytest.raises(Exception):
+        make("online_ba", iters_tol=-1.0)
+
+
 @pytest.mark.parametrize("name", ["online_ba", "offline_ba"])
 def test_loop_and_finalize_fix_scale_drift(name, loop_problem):
     pr = loop_problem

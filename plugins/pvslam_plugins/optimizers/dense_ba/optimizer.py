@@ -50,10 +50,11 @@ class DenseBAOptimizer(Optimizer):
 
     # ------------------------------------------------------------------------------------------ helpers
     def _ba(self, graph, obs: EdgeObservations, free: torch.Tensor, iters: int, lm: float, ep: float,
-            depth_free: Optional[torch.Tensor] = None) -> OptimizerReport:
+            depth_free: Optional[torch.Tensor] = None, max_iters: Optional[int] = None) -> OptimizerReport:
         c = self.config
         return dense_ba(graph, obs, free, iters=iters, lm=lm, ep=ep, depth_damping=self.depth_damping(graph),
-                        depth_free=depth_free, min_depth=c.min_depth, robust=c.robust, robust_scale=c.robust_scale)
+                        depth_free=depth_free, min_depth=c.min_depth, robust=c.robust, robust_scale=c.robust_scale,
+                        max_iters=max_iters, rel_tol=c.iters_tol)
 
     def depth_damping(self, graph) -> float:
         """The BA's inverse-depth damping ``eta``: ``depth_damping / max(1, m)^2``, ``m`` the median finite positive
@@ -88,21 +89,22 @@ class DenseBAOptimizer(Optimizer):
         free[max(1, n - window):] = True
         return free
 
-    def window_ba(self, graph, obs: EdgeObservations, window: int, iters: int, lm: float, ep: float) -> OptimizerReport:
+    def window_ba(self, graph, obs: EdgeObservations, window: int, iters: int, lm: float, ep: float,
+                  max_iters: Optional[int] = None) -> OptimizerReport:
         n = graph.n
         free = self.window_free(graph, window)
         # depths: the window's keyframes, plus any older keyframe that is the source of an observed edge
         depth_free = torch.zeros(n, dtype=torch.bool, device=graph.device)
         depth_free[max(0, n - window):] = True
         depth_free[obs.ii.to(graph.device)] = True
-        return self._ba(graph, obs, free, iters, lm, ep, depth_free)
+        return self._ba(graph, obs, free, iters, lm, ep, depth_free, max_iters)
 
     # ------------------------------------------------------------------------------------------ interface
     def step(self, graph, obs: EdgeObservations) -> OptimizerReport:
         c = self.config
         if graph.n < 2 or obs.ii.numel() == 0:
             return OptimizerReport(message="nothing to optimise")
-        return self.window_ba(graph, obs, c.window, c.iters, c.lm, c.ep)
+        return self.window_ba(graph, obs, c.window, c.iters, c.lm, c.ep, c.iters_max)
 
     def loop(self, graph, obs: EdgeObservations, loops: list[LoopClosure]) -> OptimizerReport:
         c = self.config
