@@ -351,7 +351,7 @@ def dense_ba(
             ru, rv, out, wu, wv, cf = linearise(ch, "parts")
             if cost0 is None:
                 cost_it += _cost(cf, out["valid"], ru, rv)
-            if adaptive:
+            if adaptive and it + 1 >= n_iters:  # only the iterations whose gain is tested need it
                 rcost_it += _robust_cost(cf, out["valid"], ru, rv, robust, robust_scale)
             blocks, q, Ad, Ci, wdc, B = assemble_chunk(ch, ru, rv, wu, wv, out, eta_map[src[ch.s0:ch.s1]], F,
                                                        want_B=ci == len(chunks) - 1)

@@ -64,6 +64,9 @@ def test_window_ba_adaptive_iterations_from_the_config():
     assert counts[1.0] == 2 and 2 < counts[1e-4] <= 7, counts
     with pytest.raises(Exception):
         make("online_ba", iters_tol=-1.0)
+    lp = make_problem(n=16, trajectory="loop", loop_edges=True, radius=2, seed=1)
+    opt = make("online_ba", iters=2, iters_max=7, iters_tol=0.0, final_iters=3)
+    assert opt.finalize(lp.graph(), lambda ii, jj: lp.obs(ii, jj)).iterations == 3
 
 
 @pytest.mark.parametrize("name", ["online_ba", "offline_ba"])

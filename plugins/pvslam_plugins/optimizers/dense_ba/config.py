@@ -18,9 +18,10 @@ class BAConfigBase(PluginConfig):
     iters: int = Field(2, ge=0, description="Gauss-Newton iterations per step() call")
     iters_max: Optional[int] = Field(
         None, ge=0, description="adaptive window BA: after `iters` iterations go on, up to this many, while the last "
-        "iteration lowered the weighted cost by more than iters_tol of it (None or <= iters: always `iters`)")
-    iters_tol: float = Field(0.01, ge=0, description="relative cost decrease of the last iteration below which the "
-                             "adaptive window BA stops (with iters_max)")
+        "iteration lowered the robust (IRLS) objective by more than iters_tol of it (None or <= iters: always `iters`); "
+        "the loop and final BAs keep their fixed counts")
+    iters_tol: float = Field(0.01, ge=0, description="relative decrease of the robust objective in the last iteration "
+                             "below which the adaptive window BA stops (with iters_max)")
     lm: float = Field(1e-4, ge=0, description="multiplicative LM damping of the reduced pose system (S_kk += lm S_kk)")
     ep: float = Field(0.1, ge=0, description="additive LM damping of the reduced pose system (S_kk += ep)")
     depth_damping: float = Field(1e-5, ge=0, description="inverse-depth damping added to C (DROID's eta; used when "
