@@ -3,6 +3,7 @@
     python bench/bench_pipeline.py                 # everything (about 15-25 minutes on 2 cores)
     python bench/bench_pipeline.py --only accuracy throughput
     python bench/bench_pipeline.py --quick         # shorter sequences, a smoke run of the script
+    python bench/bench_pipeline.py --only throughput long --set optimizer.iters=5   # a variant, measured the same way
 
 Sections (each prints its figures and a target line ``[PASS]``/``[MISS]`` with the measured value):
   throughput  frames/s end-to-end at 320x240 and at KITTI resolution (evaluation excluded)
@@ -12,7 +13,10 @@ Sections (each prints its figures and a target line ``[PASS]``/``[MISS]`` with t
               fragments (separate process); and a forced tracking loss (driving_block with 30 frames cut out):
               the new map fragment must be merged back by the revisit's loop
   kitti       ATE on the KITTI 06 and 01 excerpts in ../shared/data (skipped if absent)
-Results are also written as JSON to bench/results_pipeline.json.
+Results are also written as JSON to bench/results_pipeline_<sections>.json (with ``--set``:
+``..._overrides.json``, the overrides in it under ``"overrides"``).  ``--set KEY=VALUE`` applies to every run of every section (after the section's own config
+file and overrides), so a profile such as ``configs/accurate.toml`` (``optimizer.iters = 5``) is benchmarked on
+exactly the runs of the default.
 """
 from __future__ import annotations
 
@@ -31,6 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 KITTI = Path(os.environ.get("PVSLAM_KITTI", ROOT.parent / "shared" / "data" / "kitti-odometry"))
 RESULTS: dict = {}
+EXTRA: list[str] = []  # --set overrides, applied last to every run (the long run's child gets them as arguments)
 
 
 def target(name: str, ok: bool, measured: str, goal: str) -> None:
@@ -53,7 +58,7 @@ def run(overrides: list[str], out: Path):
     if overrides[:1] == ["--config-file"]:
         config, overrides = overrides[1], overrides[2:]
     base = [f'run.output_dir="{out.as_posix()}"', "run.progress=false"]
-    return run_config(config, overrides=base + overrides)
+    return run_config(config, overrides=base + overrides + EXTRA)
 
 
 def fmt_pct(r) -> str:
@@ -212,7 +217,7 @@ def _long_child(frames: int, out: str) -> None:
     seq = generate("driving_loop", frames)
     cfg = load_config(None, overrides=[f'dataset.path="{seq.as_posix()}"', "outputs.ply=false", "outputs.plots=false",
                                        "outputs.panoptic_png=false", "run.progress=false",
-                                       f'run.output_dir="{Path(out).as_posix()}"'])
+                                       f'run.output_dir="{Path(out).as_posix()}"', *EXTRA])
     run_dir = make_run_dir(out, "long")
     from pvslam_core.registry import get_registry
 
@@ -255,7 +260,8 @@ def section_long(out: Path, quick: bool, frames: int = 3000) -> None:
     print("\n== long sequence (separate process) ==")
     frames = 600 if quick else frames
     generate("driving_loop", frames)  # generation is not part of the measured run
-    cmd = [sys.executable, __file__, "--long-child", str(frames), "--out", str(out)]
+    cmd = [sys.executable, __file__, "--long-child", str(frames), "--out", str(out),
+           *(a for kv in EXTRA for a in ("--set", kv))]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         print(res.stderr[-3000:])
@@ -379,7 +385,14 @@ def main() -> None:
     ap.add_argument("--long-frames", type=int, default=3000, help="frames of the long run (the target is 3000)")
     ap.add_argument("--long-child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--out", help="folder for the run directories (default: a temporary folder)")
+    ap.add_argument("--set", action="append", default=[], dest="overrides", metavar="KEY=VALUE",
+                    help="config override applied to every run (repeatable), e.g. --set optimizer.iters=5")
     args = ap.parse_args()
+    EXTRA[:] = args.overrides
+    if EXTRA:
+        RESULTS["overrides"] = list(EXTRA)
+        if not args.long_child:
+            print("overrides on every run: " + " ".join(EXTRA))
     if args.long_child:
         _long_child(args.long_child, args.out)
         return
@@ -399,7 +412,7 @@ def main() -> None:
     if "kitti" in sections:
         section_kitti(out, args.quick)
     print(f"\nbenchmark wall time {time.time() - t0:.0f} s; run directories in {out}")
-    name = "results_pipeline_" + "_".join(sections) + ".json"
+    name = "results_pipeline_" + "_".join(sections) + ("_overrides" if EXTRA else "") + ".json"
     (ROOT / "bench" / name).write_text(json.dumps(RESULTS, indent=2, default=str))
 
 

@@ -102,10 +102,12 @@ class GraphSection(PluginConfig):
     """Keyframe and edge policy of the frame graph (DROID-SLAM style; anchors 1.5)."""
 
     ba_downsample: int = Field(8, ge=1, description="BA resolution = image size / ba_downsample")
-    ba_min_rows: int = Field(
-        30, ge=0, description="unless graph.ba_downsample is set explicitly, it is halved (8 -> 4 -> 2 -> 1) while the "
-        "BA grid would have fewer rows than this: small images keep a BA grid of about the size every threshold in "
-        "BA pixels was chosen at (30 rows: 240-row images at 1/8); 0 = never (pvslam_core/adapt.py)")
+    ba_min_focal: float = Field(
+        24.0, ge=0, description="unless graph.ba_downsample is set explicitly, it is halved (8 -> 4 -> 2 -> 1) while "
+        "the focal length at BA resolution, min(fx, fy) / ba_downsample in BA pixels per radian, would be below this: "
+        "every threshold in BA pixels was chosen at 272 / 8 = 34 (the 320x240 synthetic camera), and a flow in BA "
+        "pixels is that focal length times an angle; 24 ~ 34 / sqrt(2) halves where that lands nearer 34 (160x120: 17 "
+        "-> 34) and keeps 1/8 on KITTI at half size (45); 0 = never (pvslam_core/adapt.py)")
     warmup: int = Field(5, ge=2, description="keyframes collected before the map is initialised")
     warmup_seconds: float = Field(
         0.65, ge=0, description="...or fewer (at least 3) once they span this many seconds of video (0: off). A slow "

@@ -247,32 +247,39 @@ def test_a_video_that_claims_too_few_frames_is_read_to_its_end(data, tmp_path, m
     assert f"the container claims 10 frames, {N} were decoded" in caplog.text
 
 
-def test_ba_resolution_follows_small_images():
-    """graph.ba_downsample is halved for small images (a BA grid of at least graph.ba_min_rows rows) unless the user
-    set it, graph.ba_min_rows is 0, or the frontend registered a fixed one (raft_gru: its feature stride)."""
+def test_ba_resolution_follows_the_focal_length():
+    """graph.ba_downsample is halved while the focal length at BA resolution would be below graph.ba_min_focal (24
+    BA px per radian) unless the user set it, graph.ba_min_focal is 0, or the frontend registered a fixed one
+    (raft_gru: its feature stride).  A wide image of few rows keeps 1/8: KITTI at half size was halved by the
+    earlier row-count rule, which quadrupled its BA grid and cut its speed 3x."""
     reg = build_registry(extra_modules=(fakes,))
 
-    def fitted(w, h, *ov):
+    def fitted(w, h, *ov, f=None):
+        f = float(w if f is None else f)
         cfg = load_config(overrides=["dataset.plugin=fake", *ov], registry=reg)
-        info = SequenceInfo("cam", 10, Intrinsics(w, w, (w - 1) / 2, (h - 1) / 2, w, h), has_gt_panoptic=True)
+        info = SequenceInfo("cam", 10, Intrinsics(f, f, (w - 1) / 2, (h - 1) / 2, w, h), has_gt_panoptic=True)
         before = cfg.pipeline.graph.ba_downsample
         out, notes = fit_to_sequence(cfg, info, reg)
         assert cfg.pipeline.graph.ba_downsample == before  # the input is not modified
         return out.pipeline.graph.ba_downsample, notes
 
-    assert fitted(320, 240) == (8, []) and fitted(1241, 376) == (8, [])  # 30 / 47 rows at 1/8
-    ds, notes = fitted(160, 120)
-    assert ds == 4 and len(notes) == 1 and "15 rows" in notes[0] and "graph.ba_downsample" in notes[0]
-    assert fitted(64, 48)[0] == 1 and fitted(320, 176)[0] == 4  # 6 -> 48 rows; 22 -> 44 rows
-    assert fitted(160, 120, "graph.ba_downsample=8") == (8, [])  # the user's choice stands
-    assert fitted(160, 120, "graph.ba_min_rows=0") == (8, [])
-    assert fitted(160, 120, "graph.ba_downsample=6")[0] == 6  # set explicitly: never touched
-    assert fitted(160, 120, "frontend.plugin=raft_gru") == (8, [])  # a network's fixed stride
+    assert fitted(320, 240, f=272) == (8, [])  # the synthetic camera everything was tuned on: 34 BA px
+    assert fitted(616, 184, f=353.5) == (8, [])  # KITTI 06 at half size (configs/kitti.toml): 44 BA px, 23 rows
+    assert fitted(1241, 376, f=718.9) == (8, [])
+    ds, notes = fitted(160, 120, f=136)  # 17 BA px at 1/8 -> 34 at 1/4
+    assert ds == 4 and len(notes) == 1 and "17.0 BA px" in notes[0] and "graph.ba_downsample" in notes[0]
+    assert fitted(640, 480, f=160)[0] == 4  # a wide-angle lens: 20 BA px at 1/8, though the grid has 60 rows
+    assert fitted(64, 48)[0] == 2 and fitted(64, 48, f=40)[0] == 1  # 8 -> 16 -> 32; 5 -> 10 -> 20 -> 40
+    assert fitted(160, 120, "graph.ba_downsample=8", f=136) == (8, [])  # the user's choice stands
+    assert fitted(160, 120, "graph.ba_min_focal=0", f=136) == (8, [])
+    assert fitted(160, 120, "graph.ba_downsample=6", f=136)[0] == 6  # set explicitly: never touched
+    assert fitted(160, 120, "frontend.plugin=raft_gru", f=136) == (8, [])  # a network's fixed stride
 
 
 def test_the_pipeline_builds_its_frontend_at_the_fitted_resolution(tmp_path):
-    """Without graph.ba_downsample the fake 64x48 scene runs at 1/1 (48 rows): the frontend is built with the fitted
-    factor (its targets would not match the graph's grid otherwise), config.json records it, the log says why."""
+    """Without graph.ba_downsample the fake 64x48 scene (focal length 40 px) runs at 1/1: the frontend is built with
+    the fitted factor (its targets would not match the graph's grid otherwise), config.json records it, the log
+    says why."""
     import json
 
     p = tmp_path / "pipeline.toml"
@@ -282,4 +289,4 @@ def test_the_pipeline_builds_its_frontend_at_the_fitted_resolution(tmp_path):
     assert res.poses.shape == (12, 7) and bool(res.poses.isfinite().all())
     run = Path(res.run_dir)
     assert json.loads((run / "config.json").read_text())["graph"]["ba_downsample"] == 1
-    assert "graph.ba_downsample: 1 (at 1/8 the 64x48 images give a BA grid of 6 rows" in (run / "log.txt").read_text()
+    assert "graph.ba_downsample: 1 (at 1/8 the 64x48 camera's focal length 40 px is 5.0 BA px" in (run / "log.txt").read_text()

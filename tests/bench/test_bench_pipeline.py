@@ -1,0 +1,54 @@
+"""bench/bench_pipeline.py's ``--set``: the overrides reach every run (after the run's own), the long run's child
+process and the results file name, so a profile is measured on exactly the runs of the default."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench import bench_pipeline  # noqa: E402
+
+
+@pytest.fixture
+def extra():
+    saved = list(bench_pipeline.EXTRA)
+    yield bench_pipeline.EXTRA
+    bench_pipeline.EXTRA[:] = saved
+
+
+def test_set_overrides_come_last_in_every_run(monkeypatch, tmp_path, extra):
+    seen = []
+    import pvslam_core.api as api
+
+    monkeypatch.setattr(api, "run_config", lambda config, overrides: seen.append((config, overrides)))
+    extra[:] = ["optimizer.iters=5"]
+    bench_pipeline.run(["--config-file", "configs/kitti.toml", "outputs.ply=false"], tmp_path)
+    bench_pipeline.run(["outputs.plots=false"], tmp_path)
+    assert seen[0][0] == "configs/kitti.toml" and seen[1][0] is None
+    for _, ov in seen:
+        assert ov[-1] == "optimizer.iters=5"  # last: it wins over the section's own overrides
+    assert "outputs.ply=false" in seen[0][1] and "outputs.plots=false" in seen[1][1]
+    extra[:] = []
+    bench_pipeline.run(["outputs.plots=false"], tmp_path)
+    assert seen[2][1][-1] == "outputs.plots=false"
+
+
+def test_long_child_gets_the_overrides(monkeypatch, tmp_path, extra):
+    calls = []
+
+    class Done:
+        returncode, stderr, stdout = 1, "stop here", ""
+
+    monkeypatch.setattr(bench_pipeline, "generate", lambda *a, **k: tmp_path)
+    monkeypatch.setattr(bench_pipeline.subprocess, "run", lambda cmd, **k: calls.append(cmd) or Done())
+    extra[:] = ["optimizer.iters=5", "loop.plugin=none"]
+    bench_pipeline.section_long(tmp_path, quick=True)
+    cmd = calls[0]
+    assert cmd[cmd.index("--long-child") + 1] == "600"
+    sets = [cmd[i + 1] for i, a in enumerate(cmd) if a == "--set"]
+    assert sets == ["optimizer.iters=5", "loop.plugin=none"]
