@@ -108,6 +108,9 @@ class GraphSection(PluginConfig):
         "every threshold in BA pixels was chosen at 272 / 8 = 34 (the 320x240 synthetic camera), and a flow in BA "
         "pixels is that focal length times an angle; 24 ~ 34 / sqrt(2) halves where that lands nearer 34 (160x120: 17 "
         "-> 34) and keeps 1/8 on KITTI at half size (45); 0 = never (pvslam_core/adapt.py)")
+    # ba_min_rows (a row count) was replaced by ba_min_focal: run directories' config.json that still carry it load,
+    # with a warning, and the focal rule applies
+    renamed: ClassVar[dict[str, Any]] = {"ba_min_rows": None}
     warmup: int = Field(5, ge=2, description="keyframes collected before the map is initialised")
     warmup_seconds: float = Field(
         0.65, ge=0, description="...or fewer (at least 3) once they span this many seconds of video (0: off). A slow "

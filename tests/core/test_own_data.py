@@ -290,3 +290,14 @@ def test_the_pipeline_builds_its_frontend_at_the_fitted_resolution(tmp_path):
     run = Path(res.run_dir)
     assert json.loads((run / "config.json").read_text())["graph"]["ba_downsample"] == 1
     assert "graph.ba_downsample: 1 (at 1/8 the 64x48 camera's focal length 40 px is 5.0 BA px" in (run / "log.txt").read_text()
+
+
+def test_old_ba_min_rows_key_still_loads_with_a_warning(caplog):
+    """config.json of run directories written before the focal rule carry graph.ba_min_rows: they load (the key is
+    ignored, the focal rule applies) and the log says so."""
+    with caplog.at_level("WARNING", logger="pvslam.config"):
+        cfg = load_config({"graph": {"ba_min_rows": 30}})
+    assert "ba_min_rows" in caplog.text and "ignored" in caplog.text
+    assert cfg.pipeline.graph.ba_min_focal == 24.0
+    with pytest.raises(ConfigError, match="ba_min_row"):  # a typo of it is still an error
+        load_config({"graph": {"ba_min_row": 30}})

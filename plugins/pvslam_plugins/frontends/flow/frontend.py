@@ -125,6 +125,9 @@ class FlowFrontend(DynamicMasking, Frontend):
                                threads=self.cfg.flow_threads)
         self._last_track: Optional[tuple] = None  # (reference frame index, frame index, fwd, bwd) of the last track
         self._predictor = MotionPredictor()  # per-frame homographies for tracking recovery (recover.py)
+        # the predictor's last observation, running on a flow worker: its RANSAC homography (~1 ms a frame) is needed
+        # only when a later frame fails to track, so the pipeline thread does not wait for it (_predictor_ready)
+        self._observing = None
         self._reproject_fn = reproject_fn
         self._kfs: dict[int, _Keyframe] = {}  # stable keyframe id -> keyframe (insertion order = time order)
         self._edges: dict[tuple[int, int], _Edge] = {}  # (source id, target id) -> cached edge
@@ -253,7 +256,7 @@ class FlowFrontend(DynamicMasking, Frontend):
             # not bring the failures under the threshold, from the motion predicted at constant rate; keep the best
             starts = [lambda: homography_flow(last.gray, gray)]
             if self.cfg.track_predict_recover:
-                starts.append(lambda: self._predictor.flows(last.frame_index, frame.index, *gray.shape))
+                starts.append(lambda: self._predictor_ready().flows(last.frame_index, frame.index, *gray.shape))
             for start in starts:
                 if fail_frac <= self.cfg.track_recover_fail_fraction:
                     break
@@ -289,7 +292,8 @@ class FlowFrontend(DynamicMasking, Frontend):
                                        f"check (> {self.cfg.max_fb_fail_fraction:.0%}); sudden jump or cut?")
         self._last_track = (last.frame_index, frame.index, fwd, bwd)
         if self.cfg.track_predict_recover:
-            self._predictor.observe(last.frame_index, frame.index, fwd, fb_f <= fail_px)
+            self._observing = self._lanes.submit(self._predictor_ready().observe, last.frame_index, frame.index, fwd,
+                                                 fb_f <= fail_px)
         coverage = 1.0 - fail_frac
         is_kf = mean_flow > self.cfg.keyframe_thresh or coverage < self.cfg.keyframe_min_coverage
         self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": last_sid,
@@ -297,6 +301,14 @@ class FlowFrontend(DynamicMasking, Frontend):
                          **({} if cue is None else {"cue": cue})}
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
+
+    def _predictor_ready(self) -> MotionPredictor:
+        """The motion predictor once its last observation (on a flow worker) has finished: the same state as with the
+        observation made in place, in the same order."""
+        if self._observing is not None:
+            fut, self._observing = self._observing, None
+            fut.result()
+        return self._predictor
 
     def _velocity_init(self, p: Optional[tuple], ref_index: int,
                        index: int) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable, Optional, Sequence
 
 import numpy as np
@@ -77,6 +77,20 @@ class DisLanes:
         futures = {i: pool.submit(fn, it) for i, it in enumerate(items) if i % k}
         mine = {i: fn(it) for i, it in enumerate(items) if i % k == 0}
         return [mine[i] if i in mine else futures[i].result() for i in range(len(items))]
+
+    def submit(self, fn: Callable, *args) -> Future:
+        """``fn(*args)`` on a worker, after the workers' earlier calls (with one thread: here, at once).  For work that
+        nothing needs until later (the motion predictor's per-frame homography): the caller waits on the future
+        before it reads what ``fn`` writes, so the result is the same as a call in place."""
+        pool = self._workers()
+        if pool is not None:
+            return pool.submit(fn, *args)
+        fut: Future = Future()
+        try:
+            fut.set_result(fn(*args))
+        except BaseException as exc:  # noqa: BLE001 - delivered by fut.result(), as from a worker
+            fut.set_exception(exc)
+        return fut
 
     def run(self, calls: Sequence[Call]) -> tuple[list[np.ndarray], float]:
         """The flows of ``calls`` in order, and the summed seconds of the calls."""

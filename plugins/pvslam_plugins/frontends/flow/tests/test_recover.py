@@ -132,3 +132,34 @@ def test_fast_pan_without_corners_tracks_from_the_predicted_motion(monkeypatch):
     assert float((u[ok] - dx / 8).abs().median()) < 0.1 and float((v[ok] - dy / 8).abs().median()) < 0.1
     off = results[False]
     assert off.failed or float((off.weight[0] > 0.5).float().mean()) < 0.3
+
+
+def test_the_predictor_observing_on_a_flow_worker_changes_nothing(monkeypatch):
+    """With two flow threads each frame's predictor observation runs on the worker while the pipeline goes on; the
+    recovery that reads it waits for it: targets, weights and the predictor's chain equal those of one thread."""
+    import pvslam_plugins.frontends.flow.frontend as frontend_module
+
+    big = S.texture("astronaut", size=(S.H + 2 * S.PAD + 200, S.W + 2 * S.PAD + 400))
+    out = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(frontend_module, "homography_flow", homography_flow)
+        fe = FlowFrontend(FlowFrontendConfig(flow_threads=threads, texture_tau=0.0))
+        fe.add_keyframe(0, S.frame(S.shifted(big, 0, 0), 0), None)
+        tracks = []
+        for k in range(1, 5):
+            if k == 3:  # no corners from here on: frames 3 and 4 recover from the prediction
+                monkeypatch.setattr(frontend_module, "homography_flow", lambda *a, **kw: None)
+            f = S.frame(S.shifted(big, k * -64.0, k * -16.0), k)
+            r = fe.track(f, None)
+            tracks.append((r.failed, r.target, r.weight))
+            if k < 3:
+                fe.add_keyframe(k, f, None)
+        pred = fe._predictor_ready()
+        out[threads] = (tracks, {i: (c, g.copy()) for i, (c, g) in pred._g.items()}, fe.stats["track_recovered"])
+        fe._lanes.close()
+    (t1, g1, n1), (t2, g2, n2) = out[1], out[2]
+    assert n1 == n2 >= 3 and sorted(g1) == sorted(g2) and len(g1) >= 3
+    for i in g1:
+        assert g1[i][0] == g2[i][0] and np.array_equal(g1[i][1], g2[i][1])
+    for (f1, a1, w1), (f2, a2, w2) in zip(t1, t2):
+        assert f1 == f2 and torch.equal(a1, a2) and torch.equal(w1, w2)
