@@ -4,7 +4,8 @@ Each frame's pose is stored as ``anchor keyframe (stable id)`` plus the relative
 the full trajectory follows the keyframes when bundle adjustment or loop closure moves them.  Keyframes are
 anchored to themselves with the identity.  For non-keyframes the frontend's correspondences to the anchor (at the
 BA resolution) are kept so the relative pose can be re-estimated with motion-only BA once the anchor's depth is
-final (:meth:`FramePoses.refill`).  When an anchor keyframe is removed, its frames re-anchor to the keyframe
+final (:meth:`FramePoses.refill`; the mapper's per-keyframe fill runs on a background thread,
+:meth:`FramePoses.refine_many_later`).  When an anchor keyframe is removed, its frames re-anchor to the keyframe
 before it (the graph tells, see :meth:`on_keyframe_removed`).  Poses are T_wc ``[t, q_xyzw]``
 (:mod:`pvslam_core.types`).
 """
@@ -15,6 +16,7 @@ from typing import TYPE_CHECKING, Optional
 
 import torch
 
+from ..background import BackgroundWriter
 from ..geometry.lie import se3_inv, se3_mul
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -41,29 +43,58 @@ class FramePoses:
 
     def __init__(self, graph: "FrameGraph", robust: Optional[str] = None, robust_scale: float = 1.0) -> None:
         self.graph = graph
-        self.entries: list[FrameEntry] = []
+        self._entries: list[FrameEntry] = []
         self.robust, self.robust_scale = robust, robust_scale  # IRLS kernel of the motion-only BA
+        # refine_many_later: motion-only BAs on a worker thread, from inputs copied when they were queued. Entries
+        # being refined are in _busy; whatever reads or moves them first waits (sync), so every result is the one
+        # a call in place would give
+        self._worker: Optional[BackgroundWriter] = None
+        self._busy: set[int] = set()
         graph.add_listener(self)
 
+    @property
+    def entries(self) -> list[FrameEntry]:
+        """Every frame's entry, in input order (after the queued refinements have finished)."""
+        self.sync()
+        return self._entries
+
     def __len__(self) -> int:
-        return len(self.entries)
+        return len(self._entries)
+
+    def sync(self) -> None:
+        """Wait for the queued refinements (re-raises an error of one of them)."""
+        if self._busy:
+            self._worker.drain()
+            self._busy.clear()
+
+    def close(self) -> None:
+        """Finish the queued refinements and stop the worker thread (a later refinement starts a new one)."""
+        self.sync()
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
 
     def add_keyframe(self, index: int, timestamp: float, kf_id: int) -> None:
-        self.entries.append(FrameEntry(index, timestamp, kf_id, IDENTITY.clone(), is_keyframe=True))
+        self._entries.append(FrameEntry(index, timestamp, kf_id, IDENTITY.clone(), is_keyframe=True))
 
     def add_frame(self, index: int, timestamp: float, anchor: int, rel: torch.Tensor,
                   target: Optional[torch.Tensor] = None, weight: Optional[torch.Tensor] = None,
                   failed: bool = False) -> FrameEntry:
         e = FrameEntry(index, timestamp, anchor, rel.detach().to("cpu", torch.float64), target, weight, failed=failed)
-        self.entries.append(e)
+        self._entries.append(e)
         return e
 
     def last_rel(self) -> torch.Tensor:
-        return self.entries[-1].rel.clone() if self.entries else IDENTITY.clone()
+        if not self._entries:
+            return IDENTITY.clone()
+        if id(self._entries[-1]) in self._busy:
+            self.sync()
+        return self._entries[-1].rel.clone()
 
     # ------------------------------------------------------------------------------------ GraphListener --
     def on_keyframe_removed(self, kf_id: int) -> None:
         """Frames anchored to ``kf_id`` re-anchor to the keyframe before it (poses unchanged)."""
+        self.sync()  # the refinements of its frames finish before they move
         g = self.graph
         k = g.index_of(kf_id)
         if k == 0:
@@ -82,8 +113,8 @@ class FramePoses:
 
     # ----------------------------------------------------------------------------------------- queries --
     def pending(self, anchor: int) -> list[FrameEntry]:
-        """Non-keyframes anchored to keyframe id ``anchor``."""
-        return [e for e in self.entries if e.anchor == anchor and not e.is_keyframe]
+        """Non-keyframes anchored to keyframe id ``anchor`` (anchors are never changed by a queued refinement)."""
+        return [e for e in self._entries if e.anchor == anchor and not e.is_keyframe]
 
     def poses(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(timestamps float64 [T], poses float64 [T, 7])`` for every frame so far, vectorised."""
@@ -98,6 +129,8 @@ class FramePoses:
 
     def pose_of(self, e: FrameEntry) -> torch.Tensor:
         """float64 [7] T_wc of one entry under the current keyframe poses."""
+        if id(e) in self._busy:
+            self.sync()
         return se3_mul(self.graph.poses[self.graph.index_of(e.anchor)].double().cpu(), e.rel)
 
     # ---------------------------------------------------------------------------------- motion-only BA --
@@ -120,20 +153,44 @@ class FramePoses:
     def refine_many(self, entries: list[FrameEntry], inits_wc: torch.Tensor, iters: int = 4) -> int:
         """:meth:`refine` for several entries (one batched motion-only BA per anchor keyframe, from ``inits_wc
         [len(entries), 7]``). Returns how many were updated."""
-        from ..geometry.ba import motion_only_ba
+        self.sync()
+        return self._run(entries, self._plan(entries, inits_wc), iters)
 
+    def refine_many_later(self, entries: list[FrameEntry], inits_wc: torch.Tensor, iters: int = 4) -> None:
+        """:meth:`refine_many` on a worker thread: its inputs (anchor poses and depths, targets) are copied now, the
+        entries' relative poses are written when it has run; every reader of those entries waits for it.  Why: the
+        mapper refines a keyframe's frames once its depth is final, and nothing needs them before the output (or a
+        keyframe removal), so the ~2.5 ms a frame of motion-only BA need not hold up the next frames' tracking."""
+        if not entries:
+            return
+        plan = self._plan(entries, inits_wc, copy=True)
+        if self._worker is None:
+            self._worker = BackgroundWriter(depth=8, name="pvslam-poses")
+        self._busy.update(id(e) for e in entries)
+        self._worker.submit(self._run, list(entries), plan, iters)
+
+    def _plan(self, entries: list[FrameEntry], inits_wc: torch.Tensor, copy: bool = False) -> list[tuple]:
+        """Per anchor keyframe: ``(rows, anchor pose, anchor depth, intrinsics, inits, targets, weights)``."""
         g = self.graph
         by_anchor: dict[int, list[int]] = {}
         for n, e in enumerate(entries):
             by_anchor.setdefault(e.anchor, []).append(n)
-        done = 0
+        plan = []
         for anchor, rows in by_anchor.items():
             a = g.index_of(anchor)
-            t_a = g.poses[a].double()
-            init = inits_wc[rows].to(t_a.device, torch.float64)
-            target = torch.stack([entries[n].target for n in rows])
-            weight = torch.stack([entries[n].weight for n in rows])
-            poses, costs = motion_only_ba(init, t_a, g.disps[a], g.intrinsics, target, weight, iters=iters,
+            t_a = g.poses[a].double()  # views of the graph's storage, which the BA updates in place: copied
+            t_a, disp, intr = (t_a.clone(), g.disps[a].clone(), g.intrinsics.clone()) if copy else \
+                (t_a, g.disps[a], g.intrinsics)
+            plan.append((rows, t_a, disp, intr, inits_wc[rows].to(t_a.device, torch.float64),
+                         torch.stack([entries[n].target for n in rows]), torch.stack([entries[n].weight for n in rows])))
+        return plan
+
+    def _run(self, entries: list[FrameEntry], plan: list[tuple], iters: int) -> int:
+        from ..geometry.ba import motion_only_ba
+
+        done = 0
+        for rows, t_a, disp, intr, init, target, weight in plan:
+            poses, costs = motion_only_ba(init, t_a, disp, intr, target, weight, iters=iters,
                                           robust=self.robust, robust_scale=self.robust_scale)
             ok = torch.isfinite(poses).all(-1).tolist()  # a failed solve returns its (finite) start pose
             inv_a = se3_inv(t_a.cpu())

@@ -439,7 +439,7 @@ class Mapper(GraphListener):
         alpha = torch.tensor([0.0 if ts_b <= ts_a else (e.timestamp - ts_a) / (ts_b - ts_a) for e in pend],
                              dtype=torch.float64)
         inits = se3_interpolate(t_a.expand(len(pend), 7), nxt.expand(len(pend), 7), alpha)
-        self.frames.refine_many(pend, inits)  # one batched motion-only BA for all of them
+        self.frames.refine_many_later(pend, inits)  # one batched motion-only BA for all of them, on a worker
         self.cpu["fill"] += thread_time() - t0
 
     # -------------------------------------------------------------------------------------- pruning --
@@ -510,6 +510,7 @@ class Mapper(GraphListener):
             self.frames.refill()
         elif not self.initialized:
             LOG.warning("the map was never initialised (too little parallax); poses are identity/extrapolated")
+        self.frames.close()  # the queued frame refinements are done; their worker thread stops
 
 
 def _concat(parts: list[EdgeObservations], order: torch.Tensor) -> EdgeObservations:
