@@ -14,9 +14,9 @@ Sections (each prints its figures and a target line ``[PASS]``/``[MISS]`` with t
               the new map fragment must be merged back by the revisit's loop
   kitti       ATE on the KITTI 06 and 01 excerpts in ../shared/data (skipped if absent)
 Results are also written as JSON to bench/results_pipeline_<sections>.json (with ``--set``:
-``..._overrides.json``, the overrides in it under ``"overrides"``).  ``--set KEY=VALUE`` applies to every run of every section (after the section's own config
-file and overrides), so a profile such as ``configs/accurate.toml`` (``optimizer.iters = 5``) is benchmarked on
-exactly the runs of the default.
+``..._overrides.json``, the overrides in it under ``"overrides"``).  ``--set KEY=VALUE`` applies to every run of
+every section (after the section's own config file and overrides), so a profile such as ``configs/accurate.toml``
+(``optimizer.iters = 5``) is benchmarked on exactly the runs of the default.
 """
 from __future__ import annotations
 

@@ -20,7 +20,7 @@ initialised and the driving loop reached 9.4 % instead of 0.4 % (bench/RESULTS.m
 network's feature stride), it is halved while ``min(fx, fy) / ba_downsample`` is below ``graph.ba_min_focal`` (24,
 about 34 / sqrt(2): halve where that lands nearer 34; a power-of-two divisor of the old factor, so the reader's crop
 stays valid).  Why the focal length and not the image height (the first version of this rule, which required 30
-rows): a wide image of few rows is not a coarse one -- KITTI at half size (616x184, fx 359: 45 at 1/8) was halved
+rows): a wide image of few rows is not a coarse one -- KITTI at half size (616x184, fx 354: 44 at 1/8) was halved
 by the row count, which quadrupled its BA grid, made every frame a keyframe and cut its speed from ~20 to 7
 frames/s without a better map (bench/RESULTS.md, session 2026-12-03).
 

@@ -107,7 +107,7 @@ class GraphSection(PluginConfig):
         "the focal length at BA resolution, min(fx, fy) / ba_downsample in BA pixels per radian, would be below this: "
         "every threshold in BA pixels was chosen at 272 / 8 = 34 (the 320x240 synthetic camera), and a flow in BA "
         "pixels is that focal length times an angle; 24 ~ 34 / sqrt(2) halves where that lands nearer 34 (160x120: 17 "
-        "-> 34) and keeps 1/8 on KITTI at half size (45); 0 = never (pvslam_core/adapt.py)")
+        "-> 34) and keeps 1/8 on KITTI at half size (44); 0 = never (pvslam_core/adapt.py)")
     # ba_min_rows (a row count) was replaced by ba_min_focal: run directories' config.json that still carry it load,
     # with a warning, and the focal rule applies
     renamed: ClassVar[dict[str, Any]] = {"ba_min_rows": None}

@@ -181,8 +181,9 @@ class FramePoses:
             t_a = g.poses[a].double()  # views of the graph's storage, which the BA updates in place: copied
             t_a, disp, intr = (t_a.clone(), g.disps[a].clone(), g.intrinsics.clone()) if copy else \
                 (t_a, g.disps[a], g.intrinsics)
-            plan.append((rows, t_a, disp, intr, inits_wc[rows].to(t_a.device, torch.float64),
-                         torch.stack([entries[n].target for n in rows]), torch.stack([entries[n].weight for n in rows])))
+            target = torch.stack([entries[n].target for n in rows])
+            weight = torch.stack([entries[n].weight for n in rows])
+            plan.append((rows, t_a, disp, intr, inits_wc[rows].to(t_a.device, torch.float64), target, weight))
         return plan
 
     def _run(self, entries: list[FrameEntry], plan: list[tuple], iters: int) -> int:

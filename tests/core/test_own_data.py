@@ -289,7 +289,8 @@ def test_the_pipeline_builds_its_frontend_at_the_fitted_resolution(tmp_path):
     assert res.poses.shape == (12, 7) and bool(res.poses.isfinite().all())
     run = Path(res.run_dir)
     assert json.loads((run / "config.json").read_text())["graph"]["ba_downsample"] == 1
-    assert "graph.ba_downsample: 1 (at 1/8 the 64x48 camera's focal length 40 px is 5.0 BA px" in (run / "log.txt").read_text()
+    log = (run / "log.txt").read_text()
+    assert "graph.ba_downsample: 1 (at 1/8 the 64x48 camera's focal length 40 px is 5.0 BA px" in log
 
 
 def test_old_ba_min_rows_key_still_loads_with_a_warning(caplog):

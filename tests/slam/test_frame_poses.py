@@ -74,7 +74,8 @@ def test_refinement_on_the_worker_equals_the_one_in_place_and_readers_wait():
             fp.refine_many_later(entries, inits, iters=6)
             assert fp._busy == {id(e) for e in entries}
             # the map moves right after the refinement was queued: the refinement used the anchor as it was
-            g.set_poses(torch.tensor([0]), se3_mul(pr.poses[0], se3_exp(torch.full((6,), 0.1, dtype=torch.float64)))[None])
+            bump = se3_exp(torch.full((6,), 0.1, dtype=torch.float64))
+            g.set_poses(torch.tensor([0]), se3_mul(pr.poses[0], bump)[None])
             g.set_disps(torch.tensor([0]), g.disps[0:1] * 2.0)
             rel_last = fp.last_rel()  # the newest entry is being refined: this waits
             assert not fp._busy
