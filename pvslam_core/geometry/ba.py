@@ -180,7 +180,7 @@ def _robust_cost(conf, valid, ru, rv, kind: Optional[str], scale: float) -> floa
         f = torch.where(n <= scale, torch.ones_like(n), (2.0 * scale * n - s2) / n2)
     else:  # cauchy: rho = s^2 / 2 log(1 + n^2 / s^2)
         f = torch.log1p(n2 / s2) * (s2 / n2)
-    return float((valid * f * (conf[:, 0] * ru * ru + conf[:, 1] * rv * rv)).sum())
+    return _cost(conf, valid * f, ru, rv)
 
 
 def weighted_cost(graph: "FrameGraph", obs: EdgeObservations, min_depth: float = 0.2) -> float:
@@ -325,13 +325,13 @@ def dense_ba(
     n_max = max(n_iters, int(max_iters)) if max_iters is not None else n_iters
     adaptive = n_max > n_iters
 
-    def current_cost() -> tuple[float, float]:
-        """(the reported plain cost, the robust objective when adaptive) at the current state"""
+    def current_cost(with_robust: bool) -> tuple[float, float]:
+        """(the reported plain cost, the robust objective if ``with_robust`` else 0) at the current state"""
         total = rtotal = 0.0
         for ch in chunks:
             ru, rv, out, _, _, cf = linearise(ch, False)
             total += _cost(cf, out["valid"], ru, rv)
-            if adaptive:
+            if with_robust:
                 rtotal += _robust_cost(cf, out["valid"], ru, rv, robust, robust_scale)
             del ru, rv, out, cf
         return total, rtotal
@@ -431,13 +431,13 @@ def dense_ba(
             d[src] = (d[src] + dd).clamp(min=DISP_MIN)
         report.iterations = it + 1
         if n_iters <= it + 1 < n_max:  # adaptive: stop once the last iteration gained too little
-            cost1, rcost1 = current_cost()
+            cost1, rcost1 = current_cost(with_robust=True)
             if not rcost_it - rcost1 > rel_tol * rcost_it:
                 break
             cost1 = None
 
     if cost1 is None:
-        cost1 = current_cost()[0]
+        cost1 = current_cost(with_robust=False)[0]
     if cost0 is None:
         cost0 = cost1
     report.cost_before, report.cost_after = cost0, cost1
