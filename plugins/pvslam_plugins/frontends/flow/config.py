@@ -129,6 +129,34 @@ class FlowFrontendConfig(PluginConfig):
         "the flows are computed again from the homography of LK-tracked corners (recover.py: a fast turn moves "
         "the image beyond DIS's coarsest level) and the better of the two is kept; 1.0: never.",
     )
+    road_plane: bool = Field(
+        False,
+        description="Replace DIS's flow on the ground ahead of a car camera by the flow of the road plane's "
+        "homography where that explains the image better (road_plane.py): a direct search of the plane's motion "
+        "with the map's rotation, for the near road at speed that DIS cannot follow.",
+    )
+    road_region: float = Field(
+        0.15, gt=0.0, lt=0.5,
+        description="With road_plane: the searched rows start this fraction of the image height below the "
+        "principal point (the ground well ahead of a level camera).",
+    )
+    road_max_gap: int = Field(
+        5, ge=0,
+        description="With road_plane: keyframe pairs further apart (frames) keep DIS's flow. The plane's flow has "
+        "no forward-backward check (both directions come from one homography), and far apart the ground left in "
+        "view is a thin band near the horizon where sidewalks and building bases pass for road.",
+    )
+    road_verify: bool = Field(
+        False,
+        description="With road_plane: weigh each plane pixel by DIS's residual between the views aligned by the "
+        "merged flow (two more DIS calls per pair) instead of the texture term (road_frontend.py). Lower mean ATE "
+        "on the car scenarios, but one fewer cell >= 3x below the textbook VO on unseen seeds: not in the profile.",
+    )
+    road_margin: float = Field(
+        0.9, gt=0.0, le=2.0,
+        description="With road_plane: a pixel takes the plane's flow where its 5x5 brightness residual is below "
+        "this factor times DIS's.",
+    )
     track_predict_recover: bool = Field(
         True,
         description="When the corners' homography does not recover a failing track, DIS also starts from the image "

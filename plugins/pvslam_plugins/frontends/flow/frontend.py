@@ -30,6 +30,10 @@ re-initialisations per sequence to none.  When the corners give no homography or
 (a fast turn over a bare wall), DIS also starts from the motion predicted at constant rate
 (``track_predict_recover``, :class:`.recover.MotionPredictor`).
 
+With ``road_plane`` (opt-in, ``configs/car_road.toml``; :mod:`.road_frontend`, :mod:`.road_plane`) the ground
+ahead of a car camera takes the flow of its homography, found by a direct search, where DIS cannot follow the near
+road at speed (tracking flows and keyframe pairs up to ``road_max_gap`` frames apart).
+
 Rounds per new keyframe (``rounds``, default 1).  On an edge's first ``observe`` the weight is the
 confidence only; on its next ``dynamic_updates`` calls (after at least one BA round) pixels whose observed target
 disagrees with the reprojection under the current estimate by more than ``dynamic_thresh`` BA px (and 3x the
@@ -64,6 +68,7 @@ from pvslam_core.slam.graph import median_disp_map
 from . import dynamic as D
 from .dynamic_masking import DynamicMasking
 from .recover import MotionPredictor, homography_flow
+from .road_frontend import RoadFlows
 from . import flow_ops as F
 from .lanes import DisLanes
 from .config import FlowFrontendConfig
@@ -98,7 +103,7 @@ def _default_reproject():
     return reproject
 
 
-class FlowFrontend(DynamicMasking, Frontend):
+class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
     """DIS optical-flow frontend (see the module docstring)."""
 
     def __init__(self, config: Optional[FlowFrontendConfig] = None, device: Any = "cpu", reproject_fn=None,
@@ -135,6 +140,7 @@ class FlowFrontend(DynamicMasking, Frontend):
         self._cue_t: Optional[torch.Tensor] = None  # the epipolar cue's last translation direction (its sign prior)
         self._graph = None  # last graph seen in observe (for initial_depth)
         self._texture = F.TextureTerm(self.cfg.texture_tau, self.cfg.texture_quantile)  # per source image
+        self._road_setup()  # the road plane's flow (road_frontend.py, opt-in)
         self.stats = {"track_calls": 0, "track_s": 0.0, "dis_calls": 0, "dis_s": 0.0, "edges_computed": 0,
                       "reprojection_init_used": 0, "track_recoveries": 0, "track_recovered": 0}
 
@@ -197,13 +203,20 @@ class FlowFrontend(DynamicMasking, Frontend):
         return [(k, g0, g1, init_f), (k, g1, g0, init_b)]
 
 
-    def _direction(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, h: int, w: int):
-        """BA target, confidence and FB error of the flow ``g0 -> g1`` (``fwd``), checked against ``bwd``."""
+    def _direction(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, h: int, w: int,
+                   plane: Optional[tuple] = None):
+        """BA target, confidence and FB error of the flow ``g0 -> g1`` (``fwd``), checked against ``bwd``.
+        ``plane = (mask, weight)``: pixels whose flow is the road plane's and their verification weight
+        (``road_verify``, :meth:`_road_flows`), which stands in for the texture term there: that term is for DIS's
+        mistakes on weak texture, and the road's texture is weak."""
         conf, fb = F.fb_consistency(fwd, bwd, self._sigma())
         if self.cfg.photo_sigma > 0:
             conf = conf * F.photometric_confidence(g0, g1, fwd, self.cfg.photo_sigma)
         if self.cfg.texture_tau > 0:
-            conf = conf * self._texture(g0)
+            tex = self._texture(g0)
+            conf = conf * (tex if plane is None else np.where(plane[0], plane[1], tex))
+        elif plane is not None:
+            conf = conf * np.where(plane[0], plane[1], np.float32(1.0))
         t, wgt = F.pool_to_ba(fwd, conf, h, w, self.cfg.weighted_pooling)
         return t, wgt, fb
 
@@ -248,7 +261,8 @@ class FlowFrontend(DynamicMasking, Frontend):
         # frame becomes a keyframe (add_keyframe): most frames do not
         init_f, init_b = self._velocity_init(last_track, last.frame_index, frame.index)
         fwd, bwd = self._flows(self._pair_calls(last.gray, gray, init_f, init_b, kind="track"))
-        tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w)
+        fwd, bwd, road, plane = self._road_track(last_sid, last.gray, last.frame_index, gray, frame, fwd, bwd)
+        tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w, plane[0])
         fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
         fail_frac = float(np.mean(~(fb_f <= fail_px)))  # inf (left the image) counts as failed
         if fail_frac > self.cfg.track_recover_fail_fraction:
@@ -270,6 +284,7 @@ class FlowFrontend(DynamicMasking, Frontend):
                 if frac2 < fail_frac:
                     self.stats["track_recovered"] += 1
                     fwd, bwd, tf, wf, fb_f, fail_frac = fwd2, bwd2, tf2, wf2, fb2, frac2
+                    plane = (None, None)
         xs, ys = F.pixel_grid_np(h, w)
         mean_flow = float(np.sqrt((tf[0] - xs) ** 2 + (tf[1] - ys) ** 2).mean())
         target = torch.from_numpy(tf)
@@ -297,7 +312,7 @@ class FlowFrontend(DynamicMasking, Frontend):
         coverage = 1.0 - fail_frac
         is_kf = mean_flow > self.cfg.keyframe_thresh or coverage < self.cfg.keyframe_min_coverage
         self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": last_sid,
-                         "fwd": (tf, wf), "flows": (fwd, bwd), "ba_shape": (h, w),
+                         "fwd": (tf, wf), "flows": (fwd, bwd), "ba_shape": (h, w), "road": road, "plane": plane[1],
                          **({} if cue is None else {"cue": cue})}
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
@@ -343,10 +358,11 @@ class FlowFrontend(DynamicMasking, Frontend):
                 and pend["last_sid"] == self._last_id()):
             a = pend["last_sid"]
             (tf, wf), (fwd, bwd) = pend["fwd"], pend["flows"]
-            tb, wb, _ = self._direction(gray, self._kfs[a].gray, bwd, fwd, *pend["ba_shape"])
+            tb, wb, _ = self._direction(gray, self._kfs[a].gray, bwd, fwd, *pend["ba_shape"], pend.get("plane"))
             self._edges[(a, sid)] = _Edge(torch.from_numpy(tf), torch.from_numpy(wf))
             self._edges[(sid, a)] = _Edge(torch.from_numpy(tb), torch.from_numpy(wb))
         self._kfs[sid] = _Keyframe(gray=gray, frame_index=frame.index, seg_ba=seg_ba, thing_ids=things)
+        self._road_keyframe(sid, pend)
         if pend is not None and pend.get("last_sid") in self._kfs and self.cfg.dynamic_masking:
             ref = self._kfs[pend["last_sid"]].dyn  # its moving regions, moved along the tracked flow
             if ref is not None and tuple(ref.shape) == tuple(pend["fwd"][0].shape[-2:]) and bool((ref > 0).any()):
@@ -360,6 +376,7 @@ class FlowFrontend(DynamicMasking, Frontend):
     # -------------------------------------------------------------------------------- graph listener --
     def on_keyframe_removed(self, kf_id: int) -> None:
         self._kfs.pop(kf_id, None)
+        self._road_chain.remove(kf_id)  # (road_frontend.py)
         for key in [e for e in self._edges if kf_id in e]:
             del self._edges[key]
 
@@ -440,16 +457,18 @@ class FlowFrontend(DynamicMasking, Frontend):
         if self.cfg.use_reprojection_init and plist:
             inits = self._reprojection_inits(graph, plist, h, w)
         # one job per pair and initialisation (independent: on flow_threads threads, lanes.py), then the choices
-        keys, jobs = [], []  # (a, b, initialised), (gray a, gray b, (init_f, init_b) or None)
-        for (a, b) in plist:
+        rots, priors = self._road_pairs(graph, ids, plist)  # the road plane's inputs (road_frontend.py), or Nones
+        # (a, b, initialised), (gray a, gray b, (init_f, init_b) or None, rotation a -> b, prior plane motion)
+        keys, jobs = [], []
+        for p, (a, b) in enumerate(plist):
             ga, gb = self._kfs[ids[a]].gray, self._kfs[ids[b]].gray
             init = inits.get((a, b))
             if init is not None:
                 keys.append((a, b, True))
-                jobs.append((ga, gb, init))
+                jobs.append((ga, gb, init, rots[p], priors[p]))
             if init is None or b - a >= self.cfg.init_compare_min_gap:
                 keys.append((a, b, False))
-                jobs.append((ga, gb, None))
+                jobs.append((ga, gb, None, rots[p], priors[p]))
         results = self._lanes.map(lambda job: self._pair_job(*job, h, w), jobs)
         self.stats["dis_calls"] += 2 * len(jobs)
         self.stats["dis_s"] += sum(r[2] for r in results)
@@ -472,11 +491,14 @@ class FlowFrontend(DynamicMasking, Frontend):
             self._edges[(sb, sa)] = _Edge(torch.from_numpy(bwd[0]), torch.from_numpy(bwd[1]))
             self.stats["edges_computed"] += 2
 
-    def _pair_job(self, ga: np.ndarray, gb: np.ndarray, init, h: int, w: int):
-        """Both flows of a pair (from ``init = (init_f, init_b)`` or zero) and both directions' BA targets,
-        confidences and FB errors, on the calling thread's DIS objects: ``(fwd, bwd, dis seconds)``."""
+    def _pair_job(self, ga: np.ndarray, gb: np.ndarray, init, R: Optional[np.ndarray], prior: Optional[np.ndarray],
+                  h: int, w: int):
+        """Both flows of a pair (from ``init = (init_f, init_b)`` or zero; with the road plane's where ``R``, the
+        rotation a -> b, is given, searched from ``prior``) and both directions' BA targets, confidences and FB
+        errors, on the calling thread's DIS objects: ``(fwd, bwd, dis seconds)``."""
         (f, s0), (b, s1) = (self._lanes.flow(c) for c in self._pair_calls(ga, gb, *(init or (None, None))))
-        return self._direction(ga, gb, f, b, h, w), self._direction(gb, ga, b, f, h, w), s0 + s1
+        f, b, _, plane_f, plane_b = self._road_flows(ga, gb, f, b, R, prior)
+        return self._direction(ga, gb, f, b, h, w, plane_f), self._direction(gb, ga, b, f, h, w, plane_b), s0 + s1
 
     def _reprojection_inits(self, graph, plist, h, w):
         """Initial flows (flow resolution, both directions) for pairs ``(a < b)`` whose predicted mean flow is

@@ -1,0 +1,111 @@
+"""The flow frontend's use of the road plane (``road_plane``, opt-in; the search and the merge: :mod:`.road_plane`).
+
+Where the plane's flow goes in: the tracking flow of every frame (rotation predicted at the rate of the last two
+keyframes, the plane motion started from the last frame's at constant velocity, else searched from scratch), and
+the edge flows of keyframe pairs at most ``road_max_gap`` frames apart (the map's rotation; pairs further apart than
+two frames start from the chain of tracked plane motions, :class:`~.road_plane.RoadChain`).  A plane pixel's
+confidence is its verification weight ``exp(-r^2 / 2 sigma^2)`` (``r``: DIS's residual between the views aligned
+by the merged flow; ``sigma`` as the forward-backward check's) in place of the texture term: the plane's two
+directions come from one homography, so the forward-backward check passes them all, and the texture term was made
+for DIS's mistakes on weak texture - the road's own (``road_verify = false``: no verification, the texture term
+on every pixel).
+
+A mixin of :class:`~.frontend.FlowFrontend` (like :class:`~.dynamic_masking.DynamicMasking`): it reads ``cfg``,
+``_graph``, ``_kfs``, ``_lanes`` and ``_sigma``.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import cv2
+import numpy as np
+import torch
+
+from .road_plane import RoadChain, RoadPlane, flow_intrinsics
+
+
+class RoadFlows:
+    """Road-plane flow for the tracking and edge flows of :class:`~.frontend.FlowFrontend` (module docstring)."""
+
+    def _road_setup(self) -> None:
+        self._road = RoadPlane(self.cfg.road_region, self.cfg.road_margin) if self.cfg.road_plane else None
+        self._road_chain = RoadChain()  # the keyframes' poses relative to the road (priors of pairs far apart)
+        self._road_vel: Optional[tuple[int, np.ndarray]] = None  # (frame index, plane motion per frame) last tracked
+        self._K_flow: Optional[np.ndarray] = None  # K at the flow resolution, from the first tracked frame
+
+    def _road_flows(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, R: Optional[np.ndarray],
+                    prior: Optional[np.ndarray] = None):
+        """A pair's DIS flows with the road plane's flow merged in, the plane motion ``v`` and per direction
+        ``(mask, weight)`` of the plane's pixels for ``_direction``; unchanged and Nones without ``road_plane``, a
+        rotation or an accepted plane."""
+        if self._road is None or self._K_flow is None or R is None:
+            return fwd, bwd, None, None, None
+        verify = (lambda a, c: self._lanes.flow(("edge", a, c, None))[0]) if self.cfg.road_verify else None
+        f, b, use_f, use_b, v, res_f, res_b = self._road.apply(g0, g1, fwd, bwd, self._K_flow, R, prior, verify)
+        if v is None or res_f is None:  # (without road_verify the texture term weighs the plane's pixels too)
+            return f, b, v, None, None
+        s2 = 2.0 * self._sigma() ** 2
+        return f, b, v, (use_f, np.exp(-res_f ** 2 / s2).astype(np.float32)), \
+            (use_b, np.exp(-res_b ** 2 / s2).astype(np.float32))
+
+    def _road_track(self, last_sid: int, g_last: np.ndarray, last_index: int, gray: np.ndarray, frame, fwd: np.ndarray,
+                    bwd: np.ndarray):
+        """The tracking flows of ``frame`` (against keyframe ``last_sid``) with the road's: ``(fwd, bwd, road,
+        plane)``; ``road = (R, v)`` for the keyframe chain (None without ``road_plane``), ``plane`` the directions'
+        ``(mask, weight)`` or Nones."""
+        if self._road is None:
+            return fwd, bwd, None, (None, None)
+        if self._K_flow is None:
+            i = frame.intrinsics
+            self._K_flow = flow_intrinsics(i.fx, i.fy, i.cx, i.cy, gray.shape[1] / frame.width,
+                                           gray.shape[0] / frame.height)
+        R = self._predicted_rotation(last_sid, frame.index)
+        gap = frame.index - last_index
+        vel = self._road_vel if self._road_vel is not None and self._road_vel[0] == frame.index - 1 else None
+        fwd, bwd, v, *plane = self._road_flows(g_last, gray, fwd, bwd, R, None if vel is None else vel[1] * gap)
+        if v is None and vel is not None:  # the velocity's start did not hold: search from scratch
+            fwd, bwd, v, *plane = self._road_flows(g_last, gray, fwd, bwd, R)
+        self._road_vel = None if v is None or gap <= 0 else (frame.index, v / gap)
+        # the chain of road poses (RoadChain) bridges a frame without a plane with the velocity's motion
+        return fwd, bwd, (R, v if v is not None or vel is None else vel[1] * gap), plane
+
+    def _road_keyframe(self, sid: int, pend: Optional[dict]) -> None:
+        """Keyframe ``sid`` joins the chain of road poses through the plane motion its tracking found."""
+        if self._road is None:
+            return
+        road = pend.get("road") if pend is not None else None
+        self._road_chain.add(sid, pend.get("last_sid") if road is not None else None, *(road or (None, None)))
+
+    def _predicted_rotation(self, last_sid: int, index: int) -> np.ndarray:
+        """Rotation ``[3, 3]`` from the last keyframe's camera to frame ``index``'s, predicted at the rate between
+        the last two keyframes of the graph (identity before there are two)."""
+        g = self._graph
+        pos = {} if g is None else {int(s): k for k, s in enumerate(g.ids.tolist())}
+        known = [s for s in self._kfs if s in pos]
+        if len(known) < 2 or known[-1] != last_sid:
+            return np.eye(3)
+        a, b = known[-2], known[-1]
+        gap = self._kfs[b].frame_index - self._kfs[a].frame_index
+        if gap <= 0:
+            return np.eye(3)
+        from pvslam_core.geometry.projective import edge_transforms
+        R_ab = edge_transforms(g.poses.detach().double().cpu(), torch.tensor([pos[a]]), torch.tensor([pos[b]]))[0][0]
+        rvec = cv2.Rodrigues(R_ab.numpy())[0] * ((index - self._kfs[b].frame_index) / gap)
+        return cv2.Rodrigues(rvec)[0]
+
+    def _road_pairs(self, graph, ids: list[int], plist: list[tuple[int, int]]) -> tuple[list, list]:
+        """Per keyframe pair ``(a, b)`` (graph indices) the map's rotation a -> b and the chain's prior plane motion,
+        or None: pairs more than ``road_max_gap`` frames apart get no rotation (no plane), and without a prior
+        only pairs a few frames apart share ground rows for a search from scratch."""
+        none = [None] * len(plist)
+        if self._road is None or self._K_flow is None or not plist:
+            return none, none
+        from pvslam_core.geometry.projective import edge_transforms
+        a = torch.tensor([p[0] for p in plist], dtype=torch.int64)
+        b = torch.tensor([p[1] for p in plist], dtype=torch.int64)
+        rots = list(edge_transforms(graph.poses.detach().double().cpu(), a, b)[0].numpy())
+        priors = [self._road_chain.prior(ids[i], ids[j]) for i, j in plist]
+        gaps = [abs(self._kfs[ids[j]].frame_index - self._kfs[ids[i]].frame_index) for i, j in plist]
+        rots = [R if g <= self.cfg.road_max_gap and (pr is not None or g <= 2) else None
+                for R, pr, g in zip(rots, priors, gaps)]
+        return rots, priors
