@@ -52,9 +52,10 @@ def homography(K: np.ndarray, R: np.ndarray, v: np.ndarray) -> np.ndarray:
 class RoadPlane:
     """Search of ``v``, the acceptance test and the per-pixel merge (module docstring).
 
-    ``region``: the grid search's rows start at ``cy + region * H``; ``horizon``: a search from a prior and the
-    merge start at ``cy + horizon * H``; ``margin``: a pixel takes the plane's flow where its local residual is
-    below ``margin`` x DIS's; ``min_inside``: the least share of the searched pixels that must stay in view."""
+    ``region``: a search from scratch covers the rows from ``cy + region * H``, ``horizon``: a search from a prior
+    those from ``cy + horizon * H`` (the plane's flow is merged on the rows its search covered); ``margin``: a pixel
+    takes the plane's flow where its local residual is below ``margin`` x DIS's; ``min_inside``: the least share of
+    the searched pixels that must stay in view; ``prior_tol``: how far (relative) a search may leave its prior."""
 
     def __init__(self, region: float = 0.15, margin: float = 0.9, horizon: float = 0.03, min_inside: float = 0.08,
                  window: int = 5, starts: int = 3, prior_tol: float = 0.25):
