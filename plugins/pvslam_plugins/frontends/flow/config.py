@@ -149,8 +149,8 @@ class FlowFrontendConfig(PluginConfig):
     road_verify: bool = Field(
         False,
         description="With road_plane: weigh each plane pixel by DIS's residual between the views aligned by the "
-        "merged flow (two more DIS calls per pair) instead of the texture term (road_frontend.py). Lower mean ATE "
-        "on the car scenarios, but one fewer cell >= 3x below the textbook VO on unseen seeds: not in the profile.",
+        "merged flow (two more DIS calls per pair) instead of the texture term (road_frontend.py); on in "
+        "configs/car_road.toml.",
     )
     road_margin: float = Field(
         0.9, gt=0.0, le=2.0,
