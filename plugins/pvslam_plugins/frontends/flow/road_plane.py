@@ -28,6 +28,8 @@ from typing import Callable, Optional
 import cv2
 import numpy as np
 
+from . import flow_ops as F
+
 _N = np.array([0.0, 1.0, 0.0])  # ground normal in the camera frame (x right, y down, z forward)
 _OFFS = np.concatenate([np.eye(3), -np.eye(3)])  # the pattern search's neighbours
 
@@ -38,10 +40,9 @@ def flow_intrinsics(fx: float, fy: float, cx: float, cy: float, sx: float, sy: f
 
 
 def _warp(g1: np.ndarray, flow: np.ndarray) -> np.ndarray:
-    """``g1`` seen from the first view through ``flow`` (``g1(x + f(x))``, uint8)."""
-    H, W = g1.shape
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
-    return cv2.remap(g1, xs + flow[..., 0], ys + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    """``g1`` seen from the first view through ``flow`` (``g1(x + f(x))``, uint8; flow_ops' cached pixel grid)."""
+    pos = cv2.add(F._grids(*g1.shape)[2], flow)
+    return cv2.remap(g1, pos, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def homography(K: np.ndarray, R: np.ndarray, v: np.ndarray) -> np.ndarray:
