@@ -31,6 +31,11 @@ the same linearisation point.  Peak memory is therefore set by the chunk budget 
 edge-pixel of one chunk at float32), not by the number of edges; a problem that fits one chunk is linearised
 once, as without chunking.
 
+Disparity prior.  ``obs.disp_prior`` / ``obs.disp_prior_weight`` (``[n, h, w]``, DROID-SLAM's ``disps_sens`` and
+``alpha``) add ``alpha (d - d_prior)^2 / weight_scale`` per pixel to the objective: ``C += alpha``,
+``w += alpha (d_prior - d)`` (DROID's kernel, which takes ``alpha = 0.05``).  Being diagonal in the depths it changes
+nothing else of the Schur step; a prior at a constant scale also fixes the monocular gauge.
+
 Gauge.  Poses with ``free = False`` do not enter the system.  The caller fixes at least one pose (keyframe 0);
 for monocular problems the remaining scale direction (all free translations and all depths scaled together) is
 *not* fixed explicitly: it is held by the LM damping (``ep``, ``lm``) and by the depth damping ``eta``, so it
@@ -287,6 +292,15 @@ def dense_ba(
     eta_src = obs.depth_damping if obs.depth_damping is not None else torch.as_tensor(depth_damping)
     if not _all_finite(eta_src) or bool((eta_src < 0).any()):
         return _report_reject(report, "dense_ba: non-finite or negative depth damping; estimate left unchanged")
+    prior = None  # (target [N, P], alpha [N, P]): DROID's disps_sens term, C += alpha, w += alpha (d_sens - d)
+    if obs.disp_prior is not None:
+        if tuple(obs.disp_prior.shape) != (N, h, w):
+            raise ValueError(f"obs.disp_prior must be [{N}, {h}, {w}], got {tuple(obs.disp_prior.shape)}")
+        prior = (obs.disp_prior.to(dev, dtype).reshape(N, P), obs.disp_prior_weight.to(dev, dtype).reshape(N, P))
+        if not (_all_finite(prior[0]) and _all_finite(prior[1])) or bool((prior[1] < 0).any()):
+            return _report_reject(report, "dense_ba: non-finite disparity prior or negative prior weight; "
+                                          "estimate left unchanged")
+        eta_map = eta_map + prior[1]  # the prior's curvature joins the depth diagonal
 
     free_idx = torch.nonzero(free).squeeze(1)
     F = int(free_idx.shape[0])
@@ -325,9 +339,16 @@ def dense_ba(
     n_max = max(n_iters, int(max_iters)) if max_iters is not None else n_iters
     adaptive = n_max > n_iters
 
+    def prior_cost() -> float:
+        """The disparity prior's part of the objective, in the units of the flow cost (alpha / weight_scale)."""
+        if prior is None or Ns == 0:
+            return 0.0
+        return float((prior[1][src] * (d[src] - prior[0][src]) ** 2).sum()) / weight_scale
+
     def current_cost(with_robust: bool) -> tuple[float, float]:
-        """(the reported plain cost, the robust objective if ``with_robust`` else 0) at the current state"""
-        total = rtotal = 0.0
+        """(the reported plain cost, the robust objective if ``with_robust`` else 0) at the current state; the
+        objective includes the disparity prior, the reported cost does not (it stays the flow residual's)"""
+        total, rtotal = 0.0, prior_cost() if with_robust else 0.0
         for ch in chunks:
             ru, rv, out, _, _, cf = linearise(ch, False)
             total += _cost(cf, out["valid"], ru, rv)
@@ -346,15 +367,18 @@ def dense_ba(
         Cinv = torch.zeros(Ns, P, dtype=dtype, device=dev)
         wd = torch.zeros(Ns, P, dtype=dtype, device=dev)
         kept = None  # (chunk, B, Ad) of the last chunk, reused by the back-substitution
-        cost_it = rcost_it = 0.0
+        cost_it = 0.0
+        rcost_it = prior_cost() if adaptive and it + 1 >= n_iters else 0.0
         for ci, ch in enumerate(chunks):
             ru, rv, out, wu, wv, cf = linearise(ch, "parts")
             if cost0 is None:
                 cost_it += _cost(cf, out["valid"], ru, rv)
             if adaptive and it + 1 >= n_iters:  # only the iterations whose gain is tested need it
                 rcost_it += _robust_cost(cf, out["valid"], ru, rv, robust, robust_scale)
-            blocks, q, Ad, Ci, wdc, B = assemble_chunk(ch, ru, rv, wu, wv, out, eta_map[src[ch.s0:ch.s1]], F,
-                                                       want_B=ci == len(chunks) - 1)
+            s_ch = src[ch.s0:ch.s1]
+            wd0 = None if prior is None else prior[1][s_ch] * (prior[0][s_ch] - d[s_ch])
+            blocks, q, Ad, Ci, wdc, B = assemble_chunk(ch, ru, rv, wu, wv, out, eta_map[s_ch], F,
+                                                       want_B=ci == len(chunks) - 1, wd0=wd0)
             del ru, rv, out, wu, wv, cf
             if ch.ns > 0:
                 Cinv[ch.s0:ch.s1], wd[ch.s0:ch.s1] = Ci, wdc

@@ -161,12 +161,13 @@ def rowvec(x: torch.Tensor, JT: torch.Tensor) -> torch.Tensor:
     return torch.bmm(x.unsqueeze(1), JT.transpose(1, 2)).squeeze(1)
 
 
-def assemble_chunk(ch: Chunk, ru, rv, wu, wv, out, eta_c, F: int, want_B: bool):
+def assemble_chunk(ch: Chunk, ru, rv, wu, wv, out, eta_c, F: int, want_B: bool, wd0=None):
     """One chunk's contribution: ``(blocks, q, Ad, Cinv, wd, B)``.
 
     ``blocks``: float64 ``6 x 6`` blocks aligned with ``ch.H_sel``; ``q [Ec, 6]``: reduced gradient of pose ``jj``
     of each edge (that of ``ii`` is ``-Ad^T q``); ``Cinv, wd [ns, P]``: inverse depth diagonal and depth gradient
-    of the chunk's sources (None without sources); ``B``: :func:`depth_rows` (only with ``want_B``).  The
+    of the chunk's sources (None without sources; ``wd0 [ns, P]``: a depth gradient to start from, the disparity
+    prior's); ``B``: :func:`depth_rows` (only with ``want_B``).  The
     Jacobians in ``out`` are scaled in place (by ``sqrt(w)``): ``out`` is spent afterwards."""
     JuT, JvT, Jdu, Jdv = out["JuT"], out["JvT"], out["Jdu"], out["Jdv"]  # [Ec, 6, P] x2, [Ec, P] x2
     Ad = out["Ad"].double()  # [Ec, 6, 6];  Ji = -Jj Ad is never formed
@@ -177,7 +178,7 @@ def assemble_chunk(ch: Chunk, ru, rv, wu, wv, out, eta_c, F: int, want_B: bool):
         bu, bv = wu[:m] * Jdu[:m], wv[:m] * Jdv[:m]
         C = eta_c.clone()
         C.index_add_(0, ch.ls, bu * Jdu[:m] + bv * Jdv[:m])
-        wd = torch.zeros_like(C)
+        wd = torch.zeros_like(C) if wd0 is None else wd0.to(C.dtype, copy=True)
         wd.index_add_(0, ch.ls, bu * ru[:m] + bv * rv[:m])
         Cinv = 1.0 / C.clamp(min=1e-12)
         del C

@@ -525,5 +525,7 @@ def _concat(parts: list[EdgeObservations], order: torch.Tensor) -> EdgeObservati
         return torch.cat([v.to(parts[0].target.device) for v in vals])[order.to(parts[0].target.device)]
 
     damping = next((p.depth_damping for p in parts if p.depth_damping is not None), None)
+    prior = next((p for p in parts if p.disp_prior is not None), None)  # per keyframe, like the damping
     return EdgeObservations(cat("ii"), cat("jj"), cat("target"), cat("weight"), dynamic=cat("dynamic"),
-                            depth_damping=damping)
+                            depth_damping=damping, disp_prior=None if prior is None else prior.disp_prior,
+                            disp_prior_weight=None if prior is None else prior.disp_prior_weight)

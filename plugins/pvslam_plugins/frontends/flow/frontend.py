@@ -30,9 +30,11 @@ re-initialisations per sequence to none.  When the corners give no homography or
 (a fast turn over a bare wall), DIS also starts from the motion predicted at constant rate
 (``track_predict_recover``, :class:`.recover.MotionPredictor`).
 
-With ``road_plane`` (opt-in, ``configs/car_road.toml``; :mod:`.road_frontend`, :mod:`.road_plane`) the ground
-ahead of a car camera takes the flow of its homography, found by a direct search, where DIS cannot follow the near
-road at speed (tracking flows and keyframe pairs up to ``road_max_gap`` frames apart).
+With ``road_plane`` (default; :mod:`.road_frontend`, :mod:`.road_plane`) the ground ahead of a car camera takes
+the flow of its homography, found by a direct search, where DIS cannot follow the near road at speed (tracking flows
+and keyframe pairs up to ``road_max_gap`` frames apart), and once the map's road depth and its motion agree on a
+camera height, the road pixels' inverse depth gets a BA prior at that height (``road_depth_weight``: the scale of a
+car camera's map cannot drift).  Without a road (indoors) the search finds no plane and nothing changes.
 
 Rounds per new keyframe (``rounds``, default 1).  On an edge's first ``observe`` the weight is the
 confidence only; on its next ``dynamic_updates`` calls (after at least one BA round) pixels whose observed target
@@ -376,7 +378,7 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
     # -------------------------------------------------------------------------------- graph listener --
     def on_keyframe_removed(self, kf_id: int) -> None:
         self._kfs.pop(kf_id, None)
-        self._road_chain.remove(kf_id)  # (road_frontend.py)
+        self._road_removed(kf_id)  # (road_frontend.py)
         for key in [e for e in self._edges if kf_id in e]:
             del self._edges[key]
 
@@ -445,7 +447,9 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
             en.rounds += 1
             en.requested = True
         weight2 = weight[:, None].expand(E, 2, h, w).contiguous()
-        return EdgeObservations(ii=ii, jj=jj, target=target.float(), weight=weight2.float(), dynamic=dyn.float())
+        prior, alpha = self._road_depth_prior(graph, ids, dev)  # the road's inverse depth (road_frontend.py)
+        return EdgeObservations(ii=ii, jj=jj, target=target.float(), weight=weight2.float(), dynamic=dyn.float(),
+                                disp_prior=prior, disp_prior_weight=alpha)
 
     def _compute_edges(self, graph, ids: list[int], ii: list[int], jj: list[int], h: int, w: int) -> None:
         """Compute DIS flow for the (unordered) pairs behind the given edges; cache both directions."""

@@ -10,11 +10,22 @@ directions come from one homography, so the forward-backward check passes them a
 for DIS's mistakes on weak texture - the road's own (``road_verify = false``: no verification, the texture term
 on every pixel).
 
+The road's depth (``road_depth_weight``, opt-in): a keyframe's verified plane pixels (those of its tracking flow)
+lie on the road, whose inverse depth at BA row ``y`` is ``(y - cy) / (fy h)`` for a camera ``h`` above it.  The
+camera height of a car camera does not change, so one ``h`` in map units gives every keyframe an inverse-depth
+prior (the BA's ``disp_prior``, DROID-SLAM's sensor-depth term) at one scale: on a straight road, where the flow
+hardly constrains the scale, it cannot drift.  ``h`` is measured once, when the map's road depth and the map's
+motion over the road's (in camera heights) tell the same height (:meth:`RoadFlows._camera_height`); until then
+there is no prior.  The prior's weight is relative, ``alpha0 (d - d_prior)^2 / d_prior^2``: the flow's depth
+curvature grows with the squared baseline, so an absolute weight would be strong or negligible by the map's
+scale.  The plane's normal is taken as the camera's y axis, as the search does.
+
 A mixin of :class:`~.frontend.FlowFrontend` (like :class:`~.dynamic_masking.DynamicMasking`): it reads ``cfg``,
 ``_graph``, ``_kfs``, ``_lanes`` and ``_sigma``.
 """
 from __future__ import annotations
 
+import logging
 from typing import Optional
 
 import cv2
@@ -22,6 +33,12 @@ import numpy as np
 import torch
 
 from .road_plane import RoadChain, RoadPlane, flow_intrinsics
+
+LOG = logging.getLogger("pvslam")
+
+ROAD_H_KEYFRAMES = 3  # consecutive keyframes whose road and motion measure the camera height (_camera_height)
+ROAD_H_SETTLE = 2  # ... the newest of them at least this many keyframes older than the newest keyframe
+ROAD_H_AGREE = 1.25  # the largest ratio between the two measurements that counts as agreement
 
 
 class RoadFlows:
@@ -32,6 +49,9 @@ class RoadFlows:
         self._road_chain = RoadChain()  # the keyframes' poses relative to the road (priors of pairs far apart)
         self._road_vel: Optional[tuple[int, np.ndarray]] = None  # (frame index, plane motion per frame) last tracked
         self._K_flow: Optional[np.ndarray] = None  # K at the flow resolution, from the first tracked frame
+        self._road_w: dict[int, torch.Tensor] = {}  # kf id -> float32 [h, w] weight of its road pixels (BA res)
+        self.road_height: Optional[float] = None  # the camera height in map units, once measured (module doc)
+        self.road_height_tries: list[tuple[int, float, float]] = []  # (keyframes, by motion, by depth) measured
 
     def _road_flows(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, R: Optional[np.ndarray],
                     prior: Optional[np.ndarray] = None):
@@ -75,6 +95,80 @@ class RoadFlows:
             return
         road = pend.get("road") if pend is not None else None
         self._road_chain.add(sid, pend.get("last_sid") if road is not None else None, *(road or (None, None)))
+        plane = pend.get("plane") if pend is not None else None  # (mask, weight) in this frame's pixels, or Nones
+        if self.cfg.road_depth_weight > 0 and plane is not None and plane[0] is not None:
+            h, w = pend["ba_shape"]  # block means as the BA targets' (flow_ops.pool_to_ba)
+            frac = cv2.resize(plane[0].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+            wsum = cv2.resize(np.where(plane[0], plane[1], 0).astype(np.float32), (w, h),
+                              interpolation=cv2.INTER_AREA)
+            keep = frac >= 0.5  # BA pixels mostly road
+            if keep.any():
+                self._road_w[sid] = torch.from_numpy(np.where(keep, wsum / np.maximum(frac, 1e-6), 0.0)
+                                                     .astype(np.float32))
+
+    def _road_removed(self, kf_id: int) -> None:
+        self._road_chain.remove(kf_id)
+        self._road_w.pop(kf_id, None)
+
+    def _camera_height(self, graph, ids: list[int], ray: torch.Tensor) -> Optional[float]:
+        """The camera height in map units, or None while the map cannot tell it: over the newest
+        ``ROAD_H_KEYFRAMES`` consecutive keyframes with road pixels that are at least ``ROAD_H_SETTLE`` keyframes
+        older than the newest, measured twice - from their road pixels' inverse depth (``(y - cy) / (fy d)``) and
+        from the map's translation over the road's (in camera heights) between them - and accepted only when the
+        two agree within ``ROAD_H_AGREE``: where DIS misjudges the near road, the map's road depth and its motion
+        disagree, and a prior at either height would pull the map apart."""
+        n = len(ids)
+        ks = [k for k in range(1, n - ROAD_H_SETTLE) if ids[k] in self._road_w
+              and self._road_chain.prior(ids[k - 1], ids[k]) is not None]
+        if len(ks) < ROAD_H_KEYFRAMES:
+            return None
+        ks = ks[-ROAD_H_KEYFRAMES:]
+        from pvslam_core.geometry.projective import edge_transforms
+        t = edge_transforms(graph.poses.detach().double().cpu(), torch.tensor([k - 1 for k in ks]),
+                            torch.tensor(ks))[1].norm(dim=-1).numpy()
+        v = np.array([np.linalg.norm(self._road_chain.prior(ids[k - 1], ids[k])) for k in ks])
+        by_depth = []
+        for k in ks:
+            m = (self._road_w[ids[k]] > 0.5) & (ray > 0)
+            d = graph.disps[k].detach().float().cpu()[m]
+            ok = torch.isfinite(d) & (d > 0)
+            if int(ok.sum()) >= 8:
+                by_depth.append(float((ray[m][ok] / d[ok]).median()))
+        if len(by_depth) < len(ks) or not (np.isfinite(t).all() and np.isfinite(v).all()) or t.sum() <= 0 \
+                or v.sum() <= 0:
+            return None
+        h_motion, h_depth = float(t.sum() / v.sum()), float(np.median(by_depth))
+        self.road_height_tries.append((n, h_motion, h_depth))
+        if not abs(np.log(h_motion / h_depth)) <= np.log(ROAD_H_AGREE):
+            return None
+        hgt = float(np.sqrt(h_motion * h_depth))
+        LOG.info("road plane: camera height %.4g map units (keyframes %s: %.4g from the motion, %.4g from the road "
+                 "depth; %d tries)", hgt, ks, h_motion, h_depth, len(self.road_height_tries))
+        return hgt
+
+    def _road_depth_prior(self, graph, ids: list[int], dev) -> tuple[Optional[torch.Tensor], Optional[torch.Tensor]]:
+        """The BA's ``(disp_prior, disp_prior_weight)`` ``[n, h, w]`` from the road pixels of the graph's keyframes
+        at the camera height (measured here the first time enough keyframes have settled), or Nones."""
+        if self.cfg.road_depth_weight <= 0 or not self._road_w:
+            return None, None
+        n = len(ids)
+        h, w = (int(v) for v in graph.ba_shape)
+        fx, fy, cx, cy = (float(v) for v in graph.intrinsics.cpu())
+        ray = ((torch.arange(h, dtype=torch.float32) - cy) / fy)[:, None].expand(h, w)  # (y - cy) / fy
+        if self.road_height is None:
+            self.road_height = self._camera_height(graph, ids, ray)
+            if self.road_height is None:
+                return None, None
+        prior = torch.zeros(n, h, w)
+        alpha = torch.zeros(n, h, w)
+        for k, s in enumerate(ids):
+            wk = self._road_w.get(s)
+            if wk is not None:
+                prior[k] = ray.clamp(min=0.0) / self.road_height
+                # alpha0 (d - dp)^2 / dp^2: a relative error, so the weight against the flow's terms does not
+                # depend on the map's scale (the flow's depth curvature grows with the squared baseline)
+                alpha[k] = self.cfg.road_depth_weight * wk * (ray > 0) / prior[k].clamp(min=1e-6) ** 2
+        return prior.to(dev), alpha.to(dev)
 
     def _predicted_rotation(self, last_sid: int, index: int) -> np.ndarray:
         """Rotation ``[3, 3]`` from the last keyframe's camera to frame ``index``'s, predicted at the rate between

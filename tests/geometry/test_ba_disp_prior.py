@@ -1,0 +1,130 @@
+"""dense_ba's disparity prior (DROID-SLAM's ``disps_sens`` term): it pulls depths to the prior, fixes the monocular
+scale, joins the chunked Schur step exactly, and bad priors are refused."""
+import pytest
+import torch
+
+from pvslam_core.geometry.ba import dense_ba
+from pvslam_core.geometry.testing import make_problem, perturb
+from pvslam_core.types import EdgeObservations
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return make_problem(n=7, seed=0)
+
+
+def with_prior(pr, target, alpha, **kw):
+    o = pr.obs(**kw)
+    return EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior=target, disp_prior_weight=alpha)
+
+
+def scaled(pr, s):
+    """The ground truth seen at scale ``s`` (positions x s, inverse depths / s): same reprojections exactly."""
+    p = pr.poses.clone()
+    p[:, :3] = p[:, :3] * s
+    return p, pr.disps / s
+
+
+def baseline_ratio(g, pr):
+    est = (g.poses[1:, :3] - g.poses[0, :3]).norm(dim=-1)
+    true = (pr.poses[1:, :3] - pr.poses[0, :3]).norm(dim=-1)
+    return float((est / true).median())
+
+
+def test_prior_on_a_third_of_the_pixels_moves_the_scale_to_it(problem):
+    """Start at the exact solution scaled by 2 (zero flow residual, a monocular gauge direction): without a prior
+    nothing moves; a prior at the true scale on a third of the rows pulls poses and all depths to it."""
+    pr = problem
+    p0, d0 = scaled(pr, 2.0)
+    free = torch.ones(7, dtype=torch.bool)
+    free[0] = False
+    g = pr.graph(p0, d0)
+    dense_ba(g, pr.obs(), free, iters=8, depth_damping=1e-6)
+    assert baseline_ratio(g, pr) == pytest.approx(2.0, rel=1e-3)
+    alpha = torch.zeros_like(pr.disps)
+    alpha[:, -pr.shape[0] // 3:] = 0.05  # the lower third (as the road's)
+    g = pr.graph(p0, d0)
+    rep = dense_ba(g, with_prior(pr, pr.disps.clone(), alpha), free, iters=8, depth_damping=1e-6)
+    assert not rep.rejected
+    assert baseline_ratio(g, pr) == pytest.approx(1.0, abs=0.02)
+    seen = torch.zeros_like(pr.disps, dtype=torch.bool)
+    for e in range(len(pr.ii)):
+        seen[pr.ii[e]] |= pr.weight[e, 0] > 0
+    rel = ((g.disps - pr.disps).abs() / pr.disps)[seen]
+    assert float(rel.median()) < 0.02  # the rows without a prior follow through the flow
+
+
+def test_strong_prior_pins_the_depth_and_zero_weight_is_no_prior(problem):
+    pr = problem
+    p0, d0 = perturb(pr, fixed=(0, 1))
+    free = torch.ones(7, dtype=torch.bool)
+    free[:2] = False
+    ref = pr.graph(p0, d0)
+    dense_ba(ref, pr.obs(), free, iters=3)
+    g = pr.graph(p0, d0)
+    dense_ba(g, with_prior(pr, torch.full_like(pr.disps, 123.0), torch.zeros_like(pr.disps)), free, iters=3)
+    torch.testing.assert_close(g.disps, ref.disps)  # weight 0 everywhere: the plain BA
+    torch.testing.assert_close(g.poses, ref.poses)
+    target = pr.disps * 1.3
+    alpha = torch.zeros_like(pr.disps)
+    alpha[3, 5:10, 5:10] = 1e3
+    g = pr.graph(p0, d0)
+    dense_ba(g, with_prior(pr, target, alpha), free, iters=3)
+    torch.testing.assert_close(g.disps[3, 5:10, 5:10], target[3, 5:10, 5:10], rtol=1e-3, atol=0)
+
+
+def test_prior_chunked_equals_unchunked():
+    pr = make_problem(n=9, h=30, w=40, seed=4, noise=0.2, radius=2)
+    p0, d0 = perturb(pr, fixed=(0,))
+    free = torch.ones(9, dtype=torch.bool)
+    free[0] = False
+    gen = torch.Generator().manual_seed(0)
+    alpha = 0.05 * (torch.rand(pr.disps.shape, generator=gen) > 0.5).float()
+    out = []
+    for mcp in (10**12, 1300, 1):
+        g = pr.graph(p0, d0)
+        rep = dense_ba(g, with_prior(pr, pr.disps * 0.9, alpha), free, iters=3, max_chunk_pixels=mcp,
+                       max_iters=6, rel_tol=1e-3)
+        assert not rep.rejected
+        out.append((g.poses.clone(), g.disps.clone(), rep.iterations))
+    for poses, disps, its in out[1:]:
+        assert its == out[0][2]
+        torch.testing.assert_close(poses, out[0][0], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(disps, out[0][1], rtol=1e-5, atol=1e-6)
+
+
+def test_bad_priors_are_refused(problem):
+    pr = problem
+    p0, d0 = perturb(pr, fixed=(0,))
+    free = torch.ones(7, dtype=torch.bool)
+    free[0] = False
+    bad = torch.ones_like(pr.disps)
+    bad[2, 3, 4] = float("nan")
+    g = pr.graph(p0, d0)
+    rep = dense_ba(g, with_prior(pr, bad, torch.ones_like(pr.disps)), free, iters=2)
+    assert rep.rejected and "disparity prior" in rep.message
+    assert torch.equal(g.poses, p0) and torch.equal(g.disps, d0)
+    rep = dense_ba(g, with_prior(pr, pr.disps, -torch.ones_like(pr.disps)), free, iters=2)
+    assert rep.rejected and "prior weight" in rep.message
+    with pytest.raises(ValueError, match=r"disp_prior must be \[7"):
+        dense_ba(g, with_prior(pr, pr.disps[:3], pr.disps[:3]), free, iters=2)
+    o = pr.obs()
+    with pytest.raises(ValueError, match="come together"):
+        EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior=pr.disps)
+    with pytest.raises(ValueError, match="differ in shape"):
+        EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior=pr.disps, disp_prior_weight=pr.disps[:2])
+
+
+def test_concatenated_observations_keep_the_prior(problem):
+    """The mapper joins live and retired (frozen) edges' observations; the per-keyframe prior goes along."""
+    from pvslam_core.slam.mapper import _concat
+
+    pr = problem
+    alpha = torch.full_like(pr.disps, 0.05)
+    live = with_prior(pr, pr.disps.clone(), alpha)
+    frozen = pr.obs()
+    order = torch.arange(live.ii.numel() + frozen.ii.numel()).flip(0)
+    both = _concat([live, frozen], order)
+    assert both.disp_prior is live.disp_prior and both.disp_prior_weight is live.disp_prior_weight
+    assert both.ii.numel() == 2 * live.ii.numel()
+    assert _concat([frozen, pr.obs()], torch.arange(2 * frozen.ii.numel())).disp_prior is None
