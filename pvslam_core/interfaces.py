@@ -138,6 +138,12 @@ class Frontend(GraphListener, ABC):
         mapper's default (the previous keyframe's depth moved into the new pose)."""
         return None
 
+    def depth_prior(self, graph: "FrameGraph", idx: torch.Tensor) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
+        """A prior on the inverse depth of graph keyframes ``idx`` (int64 ``[m]``): ``(disp [m, h, w], weight
+        [m, h, w])``, weight 0 where there is none (DROID-SLAM's sensor depth; the flow frontend's road), or None.
+        The mapper asks for the depth sources of every BA call (``EdgeObservations.disp_prior``)."""
+        return None
+
 
 class LoopDetector(GraphListener, ABC):
     """Keyframe -> global descriptor; proposes loop candidates ``(i, j, score)`` with temporal exclusion.

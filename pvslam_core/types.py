@@ -248,9 +248,11 @@ class EdgeObservations:
     # float32 [n, h, w]: per-keyframe inverse-depth damping for the BA, one map per graph keyframe (learned
     # frontends: DROID's eta); None -> the optimizer's configured constant
     depth_damping: Optional[torch.Tensor] = None
-    # float32 [n, h, w]: a prior on each graph keyframe's inverse depth (DROID-SLAM's ``disps_sens``: a depth
-    # sensor's, or a frontend's own, e.g. the road plane's) and its weight (DROID's alpha, 0.05 there; 0: no prior
-    # at that pixel); None -> no prior.  The BA adds ``alpha (d - disp_prior)^2`` per pixel (geometry/ba.py).
+    # a prior on the inverse depth of graph keyframes ``disp_prior_ids`` (int64 [m]): target float32 [m, h, w]
+    # (DROID-SLAM's ``disps_sens``: a depth sensor's, or a frontend's own, e.g. the road plane's) and weight
+    # float32 [m, h, w] (DROID's alpha, 0.05 there; 0: no prior at that pixel); None -> no prior.  The BA adds
+    # ``alpha (d - disp_prior)^2`` per pixel of the keyframes whose depth it optimises (geometry/ba.py).
+    disp_prior_ids: Optional[torch.Tensor] = None
     disp_prior: Optional[torch.Tensor] = None
     disp_prior_weight: Optional[torch.Tensor] = None
 
@@ -261,11 +263,16 @@ class EdgeObservations:
                 f"EdgeObservations: inconsistent edge counts ii={tuple(self.ii.shape)} jj={tuple(self.jj.shape)} "
                 f"target={tuple(self.target.shape)} weight={tuple(self.weight.shape)}"
             )
-        if (self.disp_prior is None) != (self.disp_prior_weight is None):
-            raise ValueError("EdgeObservations: disp_prior and disp_prior_weight come together (both or neither)")
-        if self.disp_prior is not None and tuple(self.disp_prior.shape) != tuple(self.disp_prior_weight.shape):
-            raise ValueError(f"EdgeObservations: disp_prior {tuple(self.disp_prior.shape)} and disp_prior_weight "
-                             f"{tuple(self.disp_prior_weight.shape)} differ in shape")
+        given = [t is not None for t in (self.disp_prior_ids, self.disp_prior, self.disp_prior_weight)]
+        if any(given) and not all(given):
+            raise ValueError("EdgeObservations: disp_prior_ids, disp_prior and disp_prior_weight come together (all "
+                             "three or none)")
+        if all(given) and not (tuple(self.disp_prior.shape) == tuple(self.disp_prior_weight.shape)
+                               and self.disp_prior.dim() == 3
+                               and tuple(self.disp_prior_ids.shape) == (self.disp_prior.shape[0],)):
+            raise ValueError(f"EdgeObservations: disp_prior_ids {tuple(self.disp_prior_ids.shape)}, disp_prior "
+                             f"{tuple(self.disp_prior.shape)} and disp_prior_weight "
+                             f"{tuple(self.disp_prior_weight.shape)} must be [m], [m, h, w], [m, h, w]")
 
 
 @dataclass

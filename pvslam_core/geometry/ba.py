@@ -31,8 +31,8 @@ the same linearisation point.  Peak memory is therefore set by the chunk budget 
 edge-pixel of one chunk at float32), not by the number of edges; a problem that fits one chunk is linearised
 once, as without chunking.
 
-Disparity prior.  ``obs.disp_prior`` / ``obs.disp_prior_weight`` (``[n, h, w]``, DROID-SLAM's ``disps_sens`` and
-``alpha``) add ``alpha (d - d_prior)^2 / weight_scale`` per pixel to the objective: ``C += alpha``,
+Disparity prior.  ``obs.disp_prior`` / ``obs.disp_prior_weight`` (``[m, h, w]`` for the graph keyframes
+``obs.disp_prior_ids``; DROID-SLAM's ``disps_sens`` and ``alpha``) add ``alpha (d - d_prior)^2 / weight_scale`` per pixel to the objective: ``C += alpha``,
 ``w += alpha (d_prior - d)`` (DROID's kernel, which takes ``alpha = 0.05``).  Being diagonal in the depths it changes
 nothing else of the Schur step; a prior at a constant scale also fixes the monocular gauge.
 
@@ -292,15 +292,16 @@ def dense_ba(
     eta_src = obs.depth_damping if obs.depth_damping is not None else torch.as_tensor(depth_damping)
     if not _all_finite(eta_src) or bool((eta_src < 0).any()):
         return _report_reject(report, "dense_ba: non-finite or negative depth damping; estimate left unchanged")
-    prior = None  # (target [N, P], alpha [N, P]): DROID's disps_sens term, C += alpha, w += alpha (d_sens - d)
     if obs.disp_prior is not None:
-        if tuple(obs.disp_prior.shape) != (N, h, w):
-            raise ValueError(f"obs.disp_prior must be [{N}, {h}, {w}], got {tuple(obs.disp_prior.shape)}")
-        prior = (obs.disp_prior.to(dev, dtype).reshape(N, P), obs.disp_prior_weight.to(dev, dtype).reshape(N, P))
-        if not (_all_finite(prior[0]) and _all_finite(prior[1])) or bool((prior[1] < 0).any()):
+        m = int(obs.disp_prior_ids.shape[0])
+        if tuple(obs.disp_prior.shape) != (m, h, w):
+            raise ValueError(f"obs.disp_prior must be [{m}, {h}, {w}], got {tuple(obs.disp_prior.shape)}")
+        if m and (int(obs.disp_prior_ids.min()) < 0 or int(obs.disp_prior_ids.max()) >= N):
+            raise IndexError(f"obs.disp_prior_ids out of range for {N} keyframes")
+        if not (_all_finite(obs.disp_prior) and _all_finite(obs.disp_prior_weight)) \
+                or bool((obs.disp_prior_weight < 0).any()):
             return _report_reject(report, "dense_ba: non-finite disparity prior or negative prior weight; "
                                           "estimate left unchanged")
-        eta_map = eta_map + prior[1]  # the prior's curvature joins the depth diagonal
 
     free_idx = torch.nonzero(free).squeeze(1)
     F = int(free_idx.shape[0])
@@ -315,6 +316,20 @@ def dense_ba(
     src_map = torch.full((N,), -1, dtype=torch.int64, device=dev)
     src_map[src] = torch.arange(Ns, device=dev)
     report.num_free_poses = F
+    # the disparity prior per depth source (target, alpha) [Ns, P]: DROID's disps_sens term, C += alpha,
+    # w += alpha (d_sens - d); sources without one get alpha 0
+    prior = None
+    if obs.disp_prior is not None and Ns > 0:
+        at = torch.full((N,), -1, dtype=torch.int64, device=dev)
+        at[obs.disp_prior_ids.to(dev, torch.int64)] = torch.arange(int(obs.disp_prior_ids.shape[0]), device=dev)
+        row = at[src]
+        has = torch.nonzero(row >= 0).squeeze(1)
+        if has.numel():
+            tgt_s = torch.zeros(Ns, P, dtype=dtype, device=dev)
+            alpha_s = torch.zeros(Ns, P, dtype=dtype, device=dev)
+            tgt_s[has] = obs.disp_prior.to(dev, dtype).reshape(-1, P)[row[has]]
+            alpha_s[has] = obs.disp_prior_weight.to(dev, dtype).reshape(-1, P)[row[has]]
+            prior = (tgt_s, alpha_s)
 
     G = se3_inv(graph.poses)  # world-to-camera, updated by left retraction
     d = graph.disps.reshape(N, P).to(dtype, copy=True)  # the graph itself is written only at the end
@@ -341,9 +356,9 @@ def dense_ba(
 
     def prior_cost() -> float:
         """The disparity prior's part of the objective, in the units of the flow cost (alpha / weight_scale)."""
-        if prior is None or Ns == 0:
+        if prior is None:
             return 0.0
-        return float((prior[1][src] * (d[src] - prior[0][src]) ** 2).sum()) / weight_scale
+        return float((prior[1] * (d[src] - prior[0]) ** 2).sum()) / weight_scale
 
     def current_cost(with_robust: bool) -> tuple[float, float]:
         """(the reported plain cost, the robust objective if ``with_robust`` else 0) at the current state; the
@@ -376,8 +391,11 @@ def dense_ba(
             if adaptive and it + 1 >= n_iters:  # only the iterations whose gain is tested need it
                 rcost_it += _robust_cost(cf, out["valid"], ru, rv, robust, robust_scale)
             s_ch = src[ch.s0:ch.s1]
-            wd0 = None if prior is None else prior[1][s_ch] * (prior[0][s_ch] - d[s_ch])
-            blocks, q, Ad, Ci, wdc, B = assemble_chunk(ch, ru, rv, wu, wv, out, eta_map[s_ch], F,
+            eta_c, wd0 = eta_map[s_ch], None
+            if prior is not None:  # the prior's curvature joins the depth diagonal, its pull the depth gradient
+                a_ch = prior[1][ch.s0:ch.s1]
+                eta_c, wd0 = eta_c + a_ch, a_ch * (prior[0][ch.s0:ch.s1] - d[s_ch])
+            blocks, q, Ad, Ci, wdc, B = assemble_chunk(ch, ru, rv, wu, wv, out, eta_c, F,
                                                        want_B=ci == len(chunks) - 1, wd0=wd0)
             del ru, rv, out, wu, wv, cf
             if ch.ns > 0:

@@ -8,6 +8,7 @@ only.  Per new keyframe ``k``::
     graph.add_keyframe; frontend.add_keyframe(id); loop_detector.add_keyframe(id); neighbour + proximity edges
     retire edges that left the window (graph -> listeners.on_edges_retired)
     rounds x (obs = frontend.observe(active edges); optimizer.step(obs))          # online BA
+        (every obs also carries frontend.depth_prior of its depth sources, if the frontend has one)
     candidates = loop_detector.query(id); closure = policy.decide(candidates)     # one loop owner
     if closure: loop edges (i, j-1), (i, j), (i, j+1); optimizer.loop(...) unless gated
         (a closure into an older map fragment not merged yet first relocalises k and moves the current fragment
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
+from dataclasses import replace
 from time import thread_time
 from typing import Optional
 
@@ -108,7 +110,17 @@ class Mapper(GraphListener):
         dev = self.graph.device
         obs = self.frontend.observe(self.graph, ii.to(dev), jj.to(dev))
         self.graph.record_observations(obs)
-        return obs
+        return self._with_prior(obs)
+
+    def _with_prior(self, obs: EdgeObservations) -> EdgeObservations:
+        """``obs`` with the frontend's inverse-depth prior (:meth:`Frontend.depth_prior`) for its depth sources."""
+        if obs.ii.numel() == 0:
+            return obs
+        src = torch.unique(obs.ii)
+        prior = self.frontend.depth_prior(self.graph, src)
+        if prior is None:
+            return obs
+        return replace(obs, disp_prior_ids=src, disp_prior=prior[0], disp_prior_weight=prior[1])
 
     def _release_pairs(self, ii: torch.Tensor, jj: torch.Tensor) -> None:
         """Tell the frontend that observed pairs which are not active edges (initialisation) are done with."""
@@ -140,7 +152,7 @@ class Mapper(GraphListener):
         if ri.numel() == 0:
             return obs
         frozen = self.graph.retired_observations(ri, rj)
-        return _concat([obs, frozen], torch.arange(obs.ii.numel() + ri.numel()))
+        return self._with_prior(_concat([obs, frozen], torch.arange(obs.ii.numel() + ri.numel())))
 
     def _reference(self, track: Optional[TrackResult]) -> dict:
         """The newest keyframe as this frame's tracking reference (captured before this frame changes the map)."""
@@ -494,7 +506,7 @@ class Mapper(GraphListener):
         parts = [self._observe(ii[live], jj[live])] if len(live) else []
         parts.append(g.retired_observations(ii[dead], jj[dead]))
         order = torch.argsort(torch.cat([live, dead]))
-        return _concat(parts, order)
+        return self._with_prior(_concat(parts, order))
 
     def finalize(self) -> None:
         self._settle_provisional(keep=True)  # it holds the last frames' reference; the final BA optimises it
@@ -525,7 +537,6 @@ def _concat(parts: list[EdgeObservations], order: torch.Tensor) -> EdgeObservati
         return torch.cat([v.to(parts[0].target.device) for v in vals])[order.to(parts[0].target.device)]
 
     damping = next((p.depth_damping for p in parts if p.depth_damping is not None), None)
-    prior = next((p for p in parts if p.disp_prior is not None), None)  # per keyframe, like the damping
+    # (no depth prior: it is per depth source, and the caller asks for the joined edges' sources, _with_prior)
     return EdgeObservations(cat("ii"), cat("jj"), cat("target"), cat("weight"), dynamic=cat("dynamic"),
-                            depth_damping=damping, disp_prior=None if prior is None else prior.disp_prior,
-                            disp_prior_weight=None if prior is None else prior.disp_prior_weight)
+                            depth_damping=damping)

@@ -13,9 +13,12 @@ def problem():
     return make_problem(n=7, seed=0)
 
 
-def with_prior(pr, target, alpha, **kw):
-    o = pr.obs(**kw)
-    return EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior=target, disp_prior_weight=alpha)
+def with_prior(pr, target, alpha, ids=None):
+    """The problem's observations with a prior on keyframes ``ids`` (default: all, in order)."""
+    o = pr.obs()
+    ids = torch.arange(target.shape[0]) if ids is None else ids
+    return EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior_ids=ids, disp_prior=target,
+                            disp_prior_weight=alpha)
 
 
 def scaled(pr, s):
@@ -106,25 +109,63 @@ def test_bad_priors_are_refused(problem):
     assert torch.equal(g.poses, p0) and torch.equal(g.disps, d0)
     rep = dense_ba(g, with_prior(pr, pr.disps, -torch.ones_like(pr.disps)), free, iters=2)
     assert rep.rejected and "prior weight" in rep.message
-    with pytest.raises(ValueError, match=r"disp_prior must be \[7"):
-        dense_ba(g, with_prior(pr, pr.disps[:3], pr.disps[:3]), free, iters=2)
     o = pr.obs()
     with pytest.raises(ValueError, match="come together"):
         EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior=pr.disps)
-    with pytest.raises(ValueError, match="differ in shape"):
-        EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior=pr.disps, disp_prior_weight=pr.disps[:2])
+    with pytest.raises(ValueError, match=r"must be \[m\], \[m, h, w\]"):
+        EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior_ids=torch.arange(7), disp_prior=pr.disps,
+                         disp_prior_weight=pr.disps[:2])
 
 
-def test_concatenated_observations_keep_the_prior(problem):
-    """The mapper joins live and retired (frozen) edges' observations; the per-keyframe prior goes along."""
-    from pvslam_core.slam.mapper import _concat
+def test_prior_on_some_keyframes_in_any_order(problem):
+    """A prior given for keyframes [5, 2] (sparse, unordered) is the same as the full prior that is zero elsewhere;
+    a keyframe whose depth is not optimised ignores its prior."""
+    pr = problem
+    p0, d0 = perturb(pr, fixed=(0, 1))
+    free = torch.ones(7, dtype=torch.bool)
+    free[:2] = False
+    target, alpha = pr.disps * 1.2, torch.zeros_like(pr.disps)
+    alpha[[2, 5]] = 0.05
+    full = pr.graph(p0, d0)
+    dense_ba(full, with_prior(pr, target, alpha), free, iters=3)
+    part = pr.graph(p0, d0)
+    ids = torch.tensor([5, 2])
+    dense_ba(part, with_prior(pr, target[ids], alpha[ids], ids), free, iters=3)
+    torch.testing.assert_close(part.disps, full.disps)
+    torch.testing.assert_close(part.poses, full.poses)
+    plain = pr.graph(p0, d0)
+    dense_ba(plain, pr.obs(), free, iters=3)
+    assert not torch.allclose(plain.disps[2], full.disps[2])
+    depth_free = torch.ones(7, dtype=torch.bool)
+    depth_free[[2, 5]] = False
+    a, b = pr.graph(p0, d0), pr.graph(p0, d0)
+    dense_ba(a, with_prior(pr, target[ids], alpha[ids], ids), free, iters=3, depth_free=depth_free)
+    dense_ba(b, pr.obs(), free, iters=3, depth_free=depth_free)
+    torch.testing.assert_close(a.disps, b.disps)
+    with pytest.raises(IndexError, match="disp_prior_ids out of range"):
+        dense_ba(a, with_prior(pr, target[:1], alpha[:1], torch.tensor([7])), free, iters=1)
+
+
+def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
+    """Mapper._with_prior: the frontend's Frontend.depth_prior for the unique depth sources of the observations
+    (after live and retired edges are joined), nothing when the frontend has none."""
+    from pvslam_core.slam.mapper import Mapper, _concat
 
     pr = problem
-    alpha = torch.full_like(pr.disps, 0.05)
-    live = with_prior(pr, pr.disps.clone(), alpha)
-    frozen = pr.obs()
-    order = torch.arange(live.ii.numel() + frozen.ii.numel()).flip(0)
-    both = _concat([live, frozen], order)
-    assert both.disp_prior is live.disp_prior and both.disp_prior_weight is live.disp_prior_weight
-    assert both.ii.numel() == 2 * live.ii.numel()
-    assert _concat([frozen, pr.obs()], torch.arange(2 * frozen.ii.numel())).disp_prior is None
+    asked = []
+
+    class FE:
+        def depth_prior(self, graph, idx):
+            asked.append(idx.tolist())
+            return None if 0 in idx.tolist() else (pr.disps[idx], torch.full_like(pr.disps[idx], 0.05))
+
+    m = Mapper.__new__(Mapper)
+    m.frontend, m.graph = FE(), pr.graph()
+    o = pr.obs()
+    sel = o.ii > 0
+    part = EdgeObservations(o.ii[sel], o.jj[sel], o.target[sel], o.weight[sel])
+    got = m._with_prior(_concat([part, part], torch.arange(2 * int(sel.sum()))))
+    assert asked[-1] == sorted(set(o.ii[sel].tolist()))
+    assert got.disp_prior_ids.tolist() == asked[-1] and got.disp_prior.shape == (len(asked[-1]), *pr.shape)
+    torch.testing.assert_close(got.disp_prior, pr.disps[got.disp_prior_ids])
+    assert m._with_prior(o).disp_prior is None  # keyframe 0 among the sources: this frontend gives none

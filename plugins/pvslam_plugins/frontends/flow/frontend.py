@@ -447,9 +447,7 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
             en.rounds += 1
             en.requested = True
         weight2 = weight[:, None].expand(E, 2, h, w).contiguous()
-        prior, alpha = self._road_depth_prior(graph, ids, dev)  # the road's inverse depth (road_frontend.py)
-        return EdgeObservations(ii=ii, jj=jj, target=target.float(), weight=weight2.float(), dynamic=dyn.float(),
-                                disp_prior=prior, disp_prior_weight=alpha)
+        return EdgeObservations(ii=ii, jj=jj, target=target.float(), weight=weight2.float(), dynamic=dyn.float())
 
     def _compute_edges(self, graph, ids: list[int], ii: list[int], jj: list[int], h: int, w: int) -> None:
         """Compute DIS flow for the (unordered) pairs behind the given edges; cache both directions."""

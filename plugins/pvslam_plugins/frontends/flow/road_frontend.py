@@ -10,10 +10,11 @@ directions come from one homography, so the forward-backward check passes them a
 for DIS's mistakes on weak texture - the road's own (``road_verify = false``: no verification, the texture term
 on every pixel).
 
-The road's depth (``road_depth_weight``, opt-in): a keyframe's verified plane pixels (those of its tracking flow)
+The road's depth (``road_depth_weight``, default 1): a keyframe's verified plane pixels (those of its tracking flow)
 lie on the road, whose inverse depth at BA row ``y`` is ``(y - cy) / (fy h)`` for a camera ``h`` above it.  The
 camera height of a car camera does not change, so one ``h`` in map units gives every keyframe an inverse-depth
-prior (the BA's ``disp_prior``, DROID-SLAM's sensor-depth term) at one scale: on a straight road, where the flow
+prior (:meth:`RoadFlows.depth_prior`, which the mapper hands to the BA as ``disp_prior``: DROID-SLAM's sensor-depth
+term) at one scale: on a straight road, where the flow
 hardly constrains the scale, it cannot drift.  ``h`` is measured once, when the map's road depth and the map's
 motion over the road's (in camera heights) tell the same height (:meth:`RoadFlows._camera_height`); until then
 there is no prior.  The prior's weight is relative, ``alpha0 (d - d_prior)^2 / d_prior^2``: the flow's depth
@@ -26,6 +27,7 @@ A mixin of :class:`~.frontend.FlowFrontend` (like :class:`~.dynamic_masking.Dyna
 from __future__ import annotations
 
 import logging
+from collections import deque
 from typing import Optional
 
 import cv2
@@ -51,7 +53,9 @@ class RoadFlows:
         self._K_flow: Optional[np.ndarray] = None  # K at the flow resolution, from the first tracked frame
         self._road_w: dict[int, torch.Tensor] = {}  # kf id -> float32 [h, w] weight of its road pixels (BA res)
         self.road_height: Optional[float] = None  # the camera height in map units, once measured (module doc)
-        self.road_height_tries: list[tuple[int, float, float]] = []  # (keyframes, by motion, by depth) measured
+        # the gate's measurements (keyframes, by motion, by depth), the newest 64; and how many there were
+        self.road_height_tries: deque[tuple[int, float, float]] = deque(maxlen=64)
+        self._road_height_n = 0
 
     def _road_flows(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, R: Optional[np.ndarray],
                     prior: Optional[np.ndarray] = None):
@@ -112,7 +116,7 @@ class RoadFlows:
 
     def _camera_height(self, graph, ids: list[int], ray: torch.Tensor) -> Optional[float]:
         """The camera height in map units, or None while the map cannot tell it: over the newest
-        ``ROAD_H_KEYFRAMES`` consecutive keyframes with road pixels that are at least ``ROAD_H_SETTLE`` keyframes
+        ``ROAD_H_KEYFRAMES`` keyframes with road pixels and a plane motion from the keyframe before them that are at least ``ROAD_H_SETTLE`` keyframes
         older than the newest, measured twice - from their road pixels' inverse depth (``(y - cy) / (fy d)``) and
         from the map's translation over the road's (in camera heights) between them - and accepted only when the
         two agree within ``ROAD_H_AGREE``: where DIS misjudges the near road, the map's road depth and its motion
@@ -139,36 +143,40 @@ class RoadFlows:
             return None
         h_motion, h_depth = float(t.sum() / v.sum()), float(np.median(by_depth))
         self.road_height_tries.append((n, h_motion, h_depth))
+        self._road_height_n += 1
         if not abs(np.log(h_motion / h_depth)) <= np.log(ROAD_H_AGREE):
             return None
         hgt = float(np.sqrt(h_motion * h_depth))
         LOG.info("road plane: camera height %.4g map units (keyframes %s: %.4g from the motion, %.4g from the road "
-                 "depth; %d tries)", hgt, ks, h_motion, h_depth, len(self.road_height_tries))
+                 "depth; %d tries)", hgt, ks, h_motion, h_depth, self._road_height_n)
         return hgt
 
-    def _road_depth_prior(self, graph, ids: list[int], dev) -> tuple[Optional[torch.Tensor], Optional[torch.Tensor]]:
-        """The BA's ``(disp_prior, disp_prior_weight)`` ``[n, h, w]`` from the road pixels of the graph's keyframes
-        at the camera height (measured here the first time enough keyframes have settled), or Nones."""
+    def depth_prior(self, graph, idx: torch.Tensor) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
+        """:meth:`Frontend.depth_prior`: the road's inverse depth ``(y - cy) / (fy h)`` and its weight
+        ``alpha0 w / dp^2`` (``w``: the road pixels' verification weight) for graph keyframes ``idx``, once the
+        camera height ``h`` is known (measured here, :meth:`_camera_height`); None before, or with no road pixels
+        among ``idx``."""
         if self.cfg.road_depth_weight <= 0 or not self._road_w:
-            return None, None
-        n = len(ids)
+            return None
+        ids = graph.ids.tolist()
         h, w = (int(v) for v in graph.ba_shape)
         fx, fy, cx, cy = (float(v) for v in graph.intrinsics.cpu())
         ray = ((torch.arange(h, dtype=torch.float32) - cy) / fy)[:, None].expand(h, w)  # (y - cy) / fy
         if self.road_height is None:
             self.road_height = self._camera_height(graph, ids, ray)
             if self.road_height is None:
-                return None, None
-        prior = torch.zeros(n, h, w)
-        alpha = torch.zeros(n, h, w)
-        for k, s in enumerate(ids):
-            wk = self._road_w.get(s)
-            if wk is not None:
-                prior[k] = ray.clamp(min=0.0) / self.road_height
-                # alpha0 (d - dp)^2 / dp^2: a relative error, so the weight against the flow's terms does not
-                # depend on the map's scale (the flow's depth curvature grows with the squared baseline)
-                alpha[k] = self.cfg.road_depth_weight * wk * (ray > 0) / prior[k].clamp(min=1e-6) ** 2
-        return prior.to(dev), alpha.to(dev)
+                return None
+        road = [self._road_w.get(ids[k]) for k in idx.tolist()]
+        if all(r is None for r in road):
+            return None
+        dp = ray.clamp(min=0.0) / self.road_height  # [h, w] the road's inverse depth
+        # alpha0 (d - dp)^2 / dp^2: a relative error, so the weight against the flow's terms does not depend on the
+        # map's scale (the flow's depth curvature grows with the squared baseline)
+        rel = torch.where(ray > 0, self.cfg.road_depth_weight / dp.clamp(min=1e-6) ** 2, torch.zeros_like(dp))
+        zero = torch.zeros(h, w)
+        alpha = torch.stack([zero if r is None else rel * r for r in road])
+        dev = graph.disps.device
+        return dp.expand(len(road), h, w).contiguous().to(dev), alpha.to(dev)
 
     def _predicted_rotation(self, last_sid: int, index: int) -> np.ndarray:
         """Rotation ``[3, 3]`` from the last keyframe's camera to frame ``index``'s, predicted at the rate between

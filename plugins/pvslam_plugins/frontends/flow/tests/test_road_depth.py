@@ -49,26 +49,30 @@ def _graph(zs, scale: float, depth_factor: float) -> FrameGraph:
 
 
 def _observe(fe, g):
+    """The frontend's edge observations and, as the mapper asks for them, the depth prior of every keyframe."""
     n = g.n
-    return fe.observe(g, torch.arange(n - 1), torch.arange(1, n))
+    obs = fe.observe(g, torch.arange(n - 1), torch.arange(1, n))
+    assert obs.disp_prior is None  # the prior is per keyframe: the mapper asks for it (Frontend.depth_prior)
+    return fe.depth_prior(g, torch.arange(n))
 
 
 def test_no_height_while_road_depth_and_motion_disagree(drive):
     fe, zs = drive
-    fe.road_height, fe.road_height_tries = None, []
-    obs = _observe(fe, _graph(zs, scale=0.05, depth_factor=8.0))  # the road 8x too far for the motion
-    assert fe.road_height is None and obs.disp_prior is None and obs.disp_prior_weight is None
+    fe.road_height = None
+    fe.road_height_tries.clear()
+    assert _observe(fe, _graph(zs, scale=0.05, depth_factor=8.0)) is None  # the road 8x too far for the motion
+    assert fe.road_height is None
     (n, by_motion, by_depth), = fe.road_height_tries
     assert n == 8 and by_depth / by_motion == pytest.approx(8.0, rel=0.1)
 
 
 def test_height_and_prior_where_they_agree(drive):
     fe, zs = drive
-    fe.road_height, fe.road_height_tries = None, []
+    fe.road_height = None
+    fe.road_height_tries.clear()
     scale = 0.05
-    obs = _observe(fe, _graph(zs, scale=scale, depth_factor=1.0))
+    prior, alpha = _observe(fe, _graph(zs, scale=scale, depth_factor=1.0))
     assert fe.road_height == pytest.approx(CAM_H * scale, rel=0.05)
-    prior, alpha = obs.disp_prior, obs.disp_prior_weight
     assert prior.shape == alpha.shape == (8, 30, 40)
     assert float(alpha[0].abs().sum()) == 0.0  # the first keyframe was never tracked: no road pixels known
     ray = ((torch.arange(30, dtype=torch.float32) - 14.5) / 36.0)[:, None].expand(30, 40)
@@ -80,6 +84,11 @@ def test_height_and_prior_where_they_agree(drive):
         torch.testing.assert_close(prior[k][on], (ray / fe.road_height)[on])
         rel = alpha[k][on] * prior[k][on] ** 2 / A0  # the relative weight: the verification weight in [0, 1]
         assert float(rel.max()) <= 1.0 + 1e-5 and float(rel.median()) > 0.3
+    # only the asked keyframes; none with road pixels: no prior
+    p2, a2 = fe.depth_prior(_graph(zs, scale=scale, depth_factor=1.0), torch.tensor([5, 2]))
+    torch.testing.assert_close(a2, alpha[[5, 2]])
+    torch.testing.assert_close(p2, prior[[5, 2]])
+    assert fe.depth_prior(_graph(zs, scale=scale, depth_factor=1.0), torch.tensor([0])) is None
     # measured once: a later map at another scale does not move it
     h = fe.road_height
     _observe(fe, _graph(zs, scale=0.2, depth_factor=1.0))
@@ -93,7 +102,7 @@ def test_prior_without_the_verified_plane_does_nothing():
         assert cfg.road_depth_weight > 0
         fe, zs = _drive(cfg)
         assert fe._road_w == {}
-        assert _observe(fe, _graph(zs, 0.05, 1.0)).disp_prior is None and fe.road_height is None
+        assert _observe(fe, _graph(zs, 0.05, 1.0)) is None and fe.road_height is None
     assert FlowFrontendConfig(road_depth_weight=0.0).road_depth_weight == 0.0
     with pytest.raises(ValueError, match="greater than or equal to 0"):
         FlowFrontendConfig(road_depth_weight=-1.0)
