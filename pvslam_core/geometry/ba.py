@@ -31,10 +31,11 @@ the same linearisation point.  Peak memory is therefore set by the chunk budget 
 edge-pixel of one chunk at float32), not by the number of edges; a problem that fits one chunk is linearised
 once, as without chunking.
 
-Disparity prior.  ``obs.disp_prior`` / ``obs.disp_prior_weight`` (``[m, h, w]`` for the graph keyframes
-``obs.disp_prior_ids``; DROID-SLAM's ``disps_sens`` and ``alpha``) add ``alpha (d - d_prior)^2 / weight_scale`` per pixel to the objective: ``C += alpha``,
-``w += alpha (d_prior - d)`` (DROID's kernel, which takes ``alpha = 0.05``).  Being diagonal in the depths it changes
-nothing else of the Schur step; a prior at a constant scale also fixes the monocular gauge.
+Disparity prior. ``obs.disp_prior`` / ``obs.disp_prior_weight`` (``[m, h, w]`` for the graph keyframes
+``obs.disp_prior_ids``; DROID-SLAM's ``disps_sens`` and ``alpha``) add ``alpha (d - d_prior)^2 / weight_scale`` per
+pixel to the objective: ``C += alpha``, ``w += alpha (d_prior - d)`` (DROID's kernel, which takes ``alpha = 0.05``).
+Being diagonal in the depths it changes nothing else of the Schur step; a prior at a constant scale also fixes the
+monocular gauge.
 
 Gauge.  Poses with ``free = False`` do not enter the system.  The caller fixes at least one pose (keyframe 0);
 for monocular problems the remaining scale direction (all free translations and all depths scaled together) is

@@ -159,10 +159,10 @@ class FlowFrontendConfig(PluginConfig):
     )
     road_depth_weight: float = Field(
         1.0, ge=0.0,
-        description="With road_plane and road_verify (without either it does nothing): weight alpha0 of a BA prior on each keyframe's inverse depth d at "
-        "its verified plane pixels, alpha0 (d - dp)^2 / dp^2 with dp = (y - cy) / (fy h), the road's at one camera "
-        "height h for the whole run, set once the map's road depth and its motion agree on it (road_frontend.py); "
-        "0: off.",
+        description="With road_plane and road_verify (without either it does nothing; both on in "
+        "configs/car_road.toml): weight alpha0 of a BA prior on each keyframe's inverse depth d at its verified "
+        "plane pixels, alpha0 (d - dp)^2 / dp^2 with dp = (y - cy) / (fy h), the road's at one camera height h for "
+        "the whole run, set once the map's road depth and its motion agree on it (road_frontend.py); 0: off.",
     )
     track_predict_recover: bool = Field(
         True,

@@ -10,16 +10,16 @@ directions come from one homography, so the forward-backward check passes them a
 for DIS's mistakes on weak texture - the road's own (``road_verify = false``: no verification, the texture term
 on every pixel).
 
-The road's depth (``road_depth_weight``, 1; with ``road_plane`` and ``road_verify``): a keyframe's verified plane pixels (those of its tracking flow)
-lie on the road, whose inverse depth at BA row ``y`` is ``(y - cy) / (fy h)`` for a camera ``h`` above it.  The
-camera height of a car camera does not change, so one ``h`` in map units gives every keyframe an inverse-depth
-prior (:meth:`RoadFlows.depth_prior`, which the mapper hands to the BA as ``disp_prior``: DROID-SLAM's sensor-depth
-term) at one scale: on a straight road, where the flow
-hardly constrains the scale, it cannot drift.  ``h`` is measured once, when the map's road depth and the map's
-motion over the road's (in camera heights) tell the same height (:meth:`RoadFlows._camera_height`); until then
-there is no prior.  The prior's weight is relative, ``alpha0 (d - d_prior)^2 / d_prior^2``: the flow's depth
-curvature grows with the squared baseline, so an absolute weight would be strong or negligible by the map's
-scale.  The plane's normal is taken as the camera's y axis, as the search does.
+The road's depth (``road_depth_weight``, 1; with ``road_plane`` and ``road_verify``): a keyframe's verified plane
+pixels (those of its tracking flow) lie on the road, whose inverse depth at BA row ``y`` is ``(y - cy) / (fy h)``
+for a camera ``h`` above it. The camera height of a car camera does not change, so one ``h`` in map units gives
+every keyframe an inverse-depth prior (:meth:`RoadFlows.depth_prior`, which the mapper hands to the BA as
+``disp_prior``: DROID-SLAM's sensor-depth term) at one scale: on a straight road, where the flow hardly constrains
+the scale, it cannot drift. ``h`` is measured once, when the map's road depth and the map's motion over the road's
+(in camera heights) tell the same height (:meth:`RoadFlows._camera_height`); until then there is no prior. The
+prior's weight is relative, ``alpha0 (d - d_prior)^2 / d_prior^2``: the flow's depth curvature grows with the
+squared baseline, so an absolute weight would be strong or negligible by the map's scale. The plane's normal is
+taken as the camera's y axis, as the search does.
 
 A mixin of :class:`~.frontend.FlowFrontend` (like :class:`~.dynamic_masking.DynamicMasking`): it reads ``cfg``,
 ``_graph``, ``_kfs``, ``_lanes`` and ``_sigma``.
@@ -115,12 +115,12 @@ class RoadFlows:
         self._road_w.pop(kf_id, None)
 
     def _camera_height(self, graph, ids: list[int], ray: torch.Tensor) -> Optional[float]:
-        """The camera height in map units, or None while the map cannot tell it: over the newest
-        ``ROAD_H_KEYFRAMES`` keyframes with road pixels and a plane motion from the keyframe before them that are at least ``ROAD_H_SETTLE`` keyframes
-        older than the newest, measured twice - from their road pixels' inverse depth (``(y - cy) / (fy d)``) and
-        from the map's translation over the road's (in camera heights) between them - and accepted only when the
-        two agree within ``ROAD_H_AGREE``: where DIS misjudges the near road, the map's road depth and its motion
-        disagree, and a prior at either height would pull the map apart."""
+        """The camera height in map units, or None while the map cannot tell it: over the newest ``ROAD_H_KEYFRAMES``
+        keyframes with road pixels and a plane motion from the keyframe before them that are at least
+        ``ROAD_H_SETTLE`` keyframes older than the newest, measured twice - from their road pixels' inverse depth
+        (``(y - cy) / (fy d)``) and from the map's translation over the road's (in camera heights) between them -
+        and accepted only when the two agree within ``ROAD_H_AGREE``: where DIS misjudges the near road, the map's
+        road depth and its motion disagree, and a prior at either height would pull the map apart."""
         n = len(ids)
         ks = [k for k in range(1, n - ROAD_H_SETTLE) if ids[k] in self._road_w
               and self._road_chain.prior(ids[k - 1], ids[k]) is not None]
