@@ -120,6 +120,31 @@ def test_loop_without_pgo_runs(loop_problem):
     assert not rep.rejected and rep.cost_after < rep.cost_before and "sim3" not in rep.message
 
 
+def test_no_sim3_pose_graph_where_a_depth_prior_observes_the_scale(loop_problem, monkeypatch):
+    """A loop whose observations carry a depth prior (the scale is observed) gets the loop BA without the Sim(3)
+    pose graph, which would rescale the chain against the prior; ``sim3_pgo_with_depth_prior`` runs it anyway."""
+    import pvslam_plugins.optimizers.dense_ba.optimizer as O
+
+    pr = loop_problem
+    n = pr.poses.shape[0]
+    calls = []
+    orig = O.DenseBAOptimizer.sim3_correction
+    monkeypatch.setattr(O.DenseBAOptimizer, "sim3_correction",
+                        lambda self, *a: calls.append(1) or orig(self, *a))
+    o = pr.obs()
+    ids = torch.arange(n)
+    prior = EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior_ids=ids, disp_prior=pr.disps.clone(),
+                             disp_prior_weight=torch.full_like(pr.disps, 0.05))
+    drifted = scale_drifted(pr, rate=0.96, yaw_drift=0.01)
+    g = pr.graph(*drifted)
+    rep = make("online_ba").loop(g, prior, [_loop(n - 1, 0)])
+    assert not calls and "skipped (the observations carry a depth prior" in rep.message and not rep.rejected
+    assert not torch.equal(g.poses, drifted[0])  # the loop BA ran
+    make("online_ba", sim3_pgo_with_depth_prior=True).loop(pr.graph(*drifted), prior, [_loop(n - 1, 0)])
+    make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
+    assert len(calls) == 2
+
+
 def test_online_finalize_zero_iters(loop_problem):
     g = loop_problem.graph()
     rep = make("online_ba", final_iters=0).finalize(g, lambda ii, jj: loop_problem.obs(ii, jj))
