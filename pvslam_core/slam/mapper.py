@@ -107,10 +107,16 @@ class Mapper(GraphListener):
         return self.frames.poses()
 
     def _observe(self, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
+        """The frontend's observations of edges ``ii -> jj`` with the depth prior of their sources."""
+        return self._with_prior(self._observe_edges(ii, jj))
+
+    def _observe_edges(self, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
+        """The frontend's observations (recorded in the graph), without the depth prior: for callers that join
+        them with stored ones first and then ask for the prior of the joined sources once."""
         dev = self.graph.device
         obs = self.frontend.observe(self.graph, ii.to(dev), jj.to(dev))
         self.graph.record_observations(obs)
-        return self._with_prior(obs)
+        return obs
 
     def _with_prior(self, obs: EdgeObservations) -> EdgeObservations:
         """``obs`` with the frontend's inverse-depth prior (:meth:`Frontend.depth_prior`) for its depth sources."""
@@ -137,7 +143,7 @@ class Mapper(GraphListener):
             if ii.numel() == 0:
                 return
             t0 = thread_time()
-            obs = self._with_frozen(self._observe(ii, jj), k)
+            obs = self._with_prior(self._with_frozen(self._observe_edges(ii, jj), k))
             t1 = thread_time()
             report = self.optimizer.step(self.graph, obs)
             self.cpu["edges"] += t1 - t0
@@ -147,12 +153,13 @@ class Mapper(GraphListener):
                 LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
 
     def _with_frozen(self, obs: EdgeObservations, k: int) -> EdgeObservations:
-        """``obs`` plus the stored observations of the retired edges :func:`.edges.frozen_edges` selects."""
+        """``obs`` plus the stored observations of the retired edges :func:`.edges.frozen_edges` selects (no depth
+        prior: the caller asks for the joined sources', :meth:`_with_prior`)."""
         ri, rj = frozen_edges(self.graph, k, self.cfg, first=self.fragment_start)
         if ri.numel() == 0:
             return obs
         frozen = self.graph.retired_observations(ri, rj)
-        return self._with_prior(_concat([obs, frozen], torch.arange(obs.ii.numel() + ri.numel())))
+        return _concat([obs, frozen], torch.arange(obs.ii.numel() + ri.numel()))
 
     def _reference(self, track: Optional[TrackResult]) -> dict:
         """The newest keyframe as this frame's tracking reference (captured before this frame changes the map)."""
@@ -503,7 +510,7 @@ class Mapper(GraphListener):
             return self._observe(ii, jj)
         live = torch.nonzero(~retired).squeeze(1)
         dead = torch.nonzero(retired).squeeze(1)
-        parts = [self._observe(ii[live], jj[live])] if len(live) else []
+        parts = [self._observe_edges(ii[live], jj[live])] if len(live) else []
         parts.append(g.retired_observations(ii[dead], jj[dead]))
         order = torch.argsort(torch.cat([live, dead]))
         return self._with_prior(_concat(parts, order))

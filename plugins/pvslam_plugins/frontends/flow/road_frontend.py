@@ -34,6 +34,8 @@ import cv2
 import numpy as np
 import torch
 
+from pvslam_core.geometry.projective import edge_transforms
+
 from .road_plane import RoadChain, RoadPlane, flow_intrinsics
 
 LOG = logging.getLogger("pvslam")
@@ -122,15 +124,14 @@ class RoadFlows:
         and accepted only when the two agree within ``ROAD_H_AGREE``: where DIS misjudges the near road, the map's
         road depth and its motion disagree, and a prior at either height would pull the map apart."""
         n = len(ids)
-        ks = [k for k in range(1, n - ROAD_H_SETTLE) if ids[k] in self._road_w
-              and self._road_chain.prior(ids[k - 1], ids[k]) is not None]
+        motion = {k: self._road_chain.prior(ids[k - 1], ids[k]) for k in range(1, n - ROAD_H_SETTLE)
+                  if ids[k] in self._road_w}  # the road's translation k-1 -> k, in camera heights
+        ks = [k for k, v in motion.items() if v is not None][-ROAD_H_KEYFRAMES:]
         if len(ks) < ROAD_H_KEYFRAMES:
             return None
-        ks = ks[-ROAD_H_KEYFRAMES:]
-        from pvslam_core.geometry.projective import edge_transforms
         t = edge_transforms(graph.poses.detach().double().cpu(), torch.tensor([k - 1 for k in ks]),
                             torch.tensor(ks))[1].norm(dim=-1).numpy()
-        v = np.array([np.linalg.norm(self._road_chain.prior(ids[k - 1], ids[k])) for k in ks])
+        v = np.array([np.linalg.norm(motion[k]) for k in ks])
         by_depth = []
         for k in ks:
             m = (self._road_w[ids[k]] > 0.5) & (ray > 0)
@@ -190,7 +191,6 @@ class RoadFlows:
         gap = self._kfs[b].frame_index - self._kfs[a].frame_index
         if gap <= 0:
             return np.eye(3)
-        from pvslam_core.geometry.projective import edge_transforms
         R_ab = edge_transforms(g.poses.detach().double().cpu(), torch.tensor([pos[a]]), torch.tensor([pos[b]]))[0][0]
         rvec = cv2.Rodrigues(R_ab.numpy())[0] * ((index - self._kfs[b].frame_index) / gap)
         return cv2.Rodrigues(rvec)[0]
@@ -202,7 +202,6 @@ class RoadFlows:
         none = [None] * len(plist)
         if self._road is None or self._K_flow is None or not plist:
             return none, none
-        from pvslam_core.geometry.projective import edge_transforms
         a = torch.tensor([p[0] for p in plist], dtype=torch.int64)
         b = torch.tensor([p[1] for p in plist], dtype=torch.int64)
         rots = list(edge_transforms(graph.poses.detach().double().cpu(), a, b)[0].numpy())
