@@ -130,11 +130,11 @@ class FlowFrontendConfig(PluginConfig):
         "the image beyond DIS's coarsest level) and the better of the two is kept; 1.0: never.",
     )
     road_plane: bool = Field(
-        False,
+        True,
         description="Replace DIS's flow on the ground ahead of a car camera by the flow of the road plane's "
         "homography where that explains the image better (road_plane.py): a direct search of the plane's motion "
-        "with the map's rotation, for the near road at speed that DIS cannot follow; on in configs/car_road.toml "
-        "(not for a hand-held camera over a floor: the road's depth prior assumes a constant camera height).",
+        "with the map's rotation, for the near road at speed that DIS cannot follow. Off for a hand-held camera "
+        "that walks over a floor (the road's depth prior assumes a constant camera height) or to save ~20 % CPU.",
     )
     road_region: float = Field(
         0.15, gt=0.0, lt=0.5,
@@ -148,19 +148,18 @@ class FlowFrontendConfig(PluginConfig):
         "view is a thin band near the horizon where sidewalks and building bases pass for road.",
     )
     road_verify: bool = Field(
-        False,
+        True,
         description="With road_plane: weigh each plane pixel by DIS's residual between the views aligned by the "
         "merged flow (two more DIS calls per pair) instead of the texture term (road_frontend.py).",
     )
     road_margin: float = Field(
-        0.9, gt=0.0, le=2.0,
+        1.1, gt=0.0, le=2.0,
         description="With road_plane: a pixel takes the plane's flow where its 5x5 brightness residual is below "
         "this factor times DIS's.",
     )
     road_depth_weight: float = Field(
         1.0, ge=0.0,
-        description="With road_plane and road_verify (without either it does nothing; both on in "
-        "configs/car_road.toml): weight alpha0 of a BA prior on each keyframe's inverse depth d at its verified "
+        description="With road_plane and road_verify (without either it does nothing; both on by default): weight alpha0 of a BA prior on each keyframe's inverse depth d at its verified "
         "plane pixels, alpha0 (d - dp)^2 / dp^2 with dp = (y - cy) / (fy h), the road's at one camera height h for "
         "the whole run, set once the map's road depth and its motion agree on it (road_frontend.py); 0: off.",
     )

@@ -30,7 +30,7 @@ re-initialisations per sequence to none.  When the corners give no homography or
 (a fast turn over a bare wall), DIS also starts from the motion predicted at constant rate
 (``track_predict_recover``, :class:`.recover.MotionPredictor`).
 
-With ``road_plane`` (opt-in, ``configs/car_road.toml``; :mod:`.road_frontend`, :mod:`.road_plane`) the ground ahead
+With ``road_plane`` (default; :mod:`.road_frontend`, :mod:`.road_plane`) the ground ahead
 of a car camera takes the flow of its homography, found by a direct search, where DIS cannot follow the near road at
 speed (tracking flows and keyframe pairs up to ``road_max_gap`` frames apart), and once the map's road depth and its
 motion agree on a camera height, the road pixels' inverse depth gets a BA prior at that height

@@ -10,7 +10,7 @@ directions come from one homography, so the forward-backward check passes them a
 for DIS's mistakes on weak texture - the road's own (``road_verify = false``: no verification, the texture term
 on every pixel).
 
-The road's depth (``road_depth_weight``, 1; with ``road_plane`` and ``road_verify``): a keyframe's verified plane
+The road's depth (``road_depth_weight``, default 1; with ``road_plane`` and ``road_verify``, both default): a keyframe's verified plane
 pixels (those of its tracking flow) lie on the road, whose inverse depth at BA row ``y`` is ``(y - cy) / (fy h)``
 for a camera ``h`` above it. The camera height of a car camera does not change, so one ``h`` in map units gives
 every keyframe an inverse-depth prior (:meth:`RoadFlows.depth_prior`, which the mapper hands to the BA as

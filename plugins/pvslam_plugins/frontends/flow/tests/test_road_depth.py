@@ -34,7 +34,7 @@ def _drive(cfg: FlowFrontendConfig):
 
 @pytest.fixture(scope="module")
 def drive():
-    return _drive(FlowFrontendConfig(road_plane=True, road_verify=True, road_depth_weight=A0))
+    return _drive(FlowFrontendConfig(road_depth_weight=A0))  # road_plane and road_verify: the defaults
 
 
 def _graph(zs, scale: float, depth_factor: float) -> FrameGraph:
@@ -98,8 +98,7 @@ def test_height_and_prior_where_they_agree(drive):
 def test_prior_without_the_verified_plane_does_nothing():
     """road_depth_weight only acts on verified plane pixels: with road_verify off (no verification weights) or
     road_plane off the frontend gives the BA no prior, and such a config loads (a saved run config has every key)."""
-    for cfg in (FlowFrontendConfig(road_plane=True, road_verify=False),
-                FlowFrontendConfig(road_plane=False, road_verify=True)):
+    for cfg in (FlowFrontendConfig(road_verify=False), FlowFrontendConfig(road_plane=False)):
         assert cfg.road_depth_weight > 0
         fe, zs = _drive(cfg)
         assert fe._road_w == {}
