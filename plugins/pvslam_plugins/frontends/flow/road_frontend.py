@@ -1,7 +1,8 @@
-"""The flow frontend's use of the road plane (``road_plane``, opt-in; the search and the merge: :mod:`.road_plane`).
+"""The flow frontend's use of the road plane (``road_plane``, default; the search and the merge: :mod:`.road_plane`).
 
 Where the plane's flow goes in: the tracking flow of every frame (rotation predicted at the rate of the last two
-keyframes, the plane motion started from the last frame's at constant velocity, else searched from scratch), and
+keyframes, the plane motion started from the last frame's at constant velocity, else searched from scratch; after
+``ROAD_BACKOFF_AFTER`` misses in a row, as indoors, only on every few frames), and
 the edge flows of keyframe pairs at most ``road_max_gap`` frames apart (the map's rotation; pairs further apart than
 two frames start from the chain of tracked plane motions, :class:`~.road_plane.RoadChain`).  A plane pixel's
 confidence is its verification weight ``exp(-r^2 / 2 sigma^2)`` (``r``: DIS's residual between the views aligned
@@ -43,6 +44,10 @@ LOG = logging.getLogger("pvslam")
 ROAD_H_KEYFRAMES = 3  # consecutive keyframes whose road and motion measure the camera height (_camera_height)
 ROAD_H_SETTLE = 2  # ... the newest of them at least this many keyframes older than the newest keyframe
 ROAD_H_AGREE = 1.25  # the largest ratio between the two measurements that counts as agreement
+# Without a road (indoors) the search from scratch never finds a plane, at ~a fifth of the frame's CPU: after
+# this many consecutive misses the tracking search skips 1, 2, 4, ... frames between tries (a found plane resets it)
+ROAD_BACKOFF_AFTER = 8
+ROAD_BACKOFF_MAX = 8  # ... at most this many: a road coming into view is found within 9 frames (0.3 s at 30 Hz)
 
 
 class RoadFlows:
@@ -58,6 +63,8 @@ class RoadFlows:
         # the gate's measurements (keyframes, by motion, by depth), the newest 64; and how many there were
         self.road_height_tries: deque[tuple[int, float, float]] = deque(maxlen=64)
         self._road_height_n = 0
+        self._road_misses = 0  # consecutive tracking searches from scratch without a plane
+        self._road_skip = 0  # frames whose tracking search is still to be skipped (the back-off)
 
     def _road_flows(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, R: Optional[np.ndarray],
                     prior: Optional[np.ndarray] = None):
@@ -85,12 +92,19 @@ class RoadFlows:
             i = frame.intrinsics
             self._K_flow = flow_intrinsics(i.fx, i.fy, i.cx, i.cy, gray.shape[1] / frame.width,
                                            gray.shape[0] / frame.height)
+        vel = self._road_vel if self._road_vel is not None and self._road_vel[0] == frame.index - 1 else None
+        if vel is None and self._road_skip > 0:  # backing off: no road for a while, this frame is not searched
+            self._road_skip -= 1
+            self._road.stats["backed_off"] += 1
+            return fwd, bwd, (None, None), (None, None)  # no plane motion: the keyframe chain starts anew
         R = self._predicted_rotation(last_sid, frame.index)
         gap = frame.index - last_index
-        vel = self._road_vel if self._road_vel is not None and self._road_vel[0] == frame.index - 1 else None
         fwd, bwd, v, *plane = self._road_flows(g_last, gray, fwd, bwd, R, None if vel is None else vel[1] * gap)
         if v is None and vel is not None:  # the velocity's start did not hold: search from scratch
             fwd, bwd, v, *plane = self._road_flows(g_last, gray, fwd, bwd, R)
+        self._road_misses = 0 if v is not None else self._road_misses + 1
+        if self._road_misses >= ROAD_BACKOFF_AFTER:
+            self._road_skip = min(2 ** (self._road_misses - ROAD_BACKOFF_AFTER), ROAD_BACKOFF_MAX)
         self._road_vel = None if v is None or gap <= 0 else (frame.index, v / gap)
         # the chain of road poses (RoadChain) bridges a frame without a plane with the velocity's motion
         return fwd, bwd, (R, v if v is not None or vel is None else vel[1] * gap), plane
@@ -183,15 +197,22 @@ class RoadFlows:
         """Rotation ``[3, 3]`` from the last keyframe's camera to frame ``index``'s, predicted at the rate between
         the last two keyframes of the graph (identity before there are two)."""
         g = self._graph
-        pos = {} if g is None else {int(s): k for k, s in enumerate(g.ids.tolist())}
-        known = [s for s in self._kfs if s in pos]
-        if len(known) < 2 or known[-1] != last_sid:
+        known: list[tuple[int, int]] = []  # the newest two keyframes still in the graph: (id, graph index)
+        for s in (reversed(self._kfs) if g is not None else ()):
+            try:
+                known.append((s, g.index_of(s)))
+            except KeyError:
+                continue
+            if len(known) == 2:
+                break
+        if len(known) < 2 or known[0][0] != last_sid:
             return np.eye(3)
-        a, b = known[-2], known[-1]
+        (b, ib), (a, ia) = known
         gap = self._kfs[b].frame_index - self._kfs[a].frame_index
         if gap <= 0:
             return np.eye(3)
-        R_ab = edge_transforms(g.poses.detach().double().cpu(), torch.tensor([pos[a]]), torch.tensor([pos[b]]))[0][0]
+        two = g.poses[[ia, ib]].detach().double().cpu()  # only these two (a copy of every pose costs O(N) a frame)
+        R_ab = edge_transforms(two, torch.tensor([0]), torch.tensor([1]))[0][0]
         rvec = cv2.Rodrigues(R_ab.numpy())[0] * ((index - self._kfs[b].frame_index) / gap)
         return cv2.Rodrigues(rvec)[0]
 

@@ -64,7 +64,7 @@ class RoadPlane:
         self.min_inside, self.window, self.starts = float(min_inside), int(window), int(starts)
         self.prior_tol = float(prior_tol)
         self.stats = {"searches": 0, "accepted": 0, "replaced_px": 0, "none_in_view": 0, "worse_than_dis": 0,
-                      "left_prior": 0}
+                      "left_prior": 0, "backed_off": 0}  # backed_off: frames the frontend did not search
 
     # ------------------------------------------------------------------------------------------ search --
     def _level(self, g0: np.ndarray, K: np.ndarray, R: np.ndarray, stride: int, r0: int):
