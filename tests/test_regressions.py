@@ -288,7 +288,7 @@ MV_FRAMES = 120  # busy_street: buses and cars up to a third of the image crossi
 # the default (session 2026-12-02 g) it protects the busy street on its own: masking on 1.46 / 0.98 / 7.16, off
 # 2.86 / 0.99 / 4.00 (moving_vehicles on 0.62 / 0.24 / 0.18, off 0.51 / 0.22 / 0.25), so the test of the test
 # switches the texture term off to see the masking alone (it must hold with masking on, and fail with it off).
-# Since the road plane's depth prior became the default (session 2026-12-03 d) it holds the busy street's scale on
+# Since the road plane's depth prior became the default (sessions 12-03 d, e) it holds the busy street's scale on
 # its own too (masking off and texture term off: ~0.1 %), so the masking's variants also switch the road plane off.
 MV_BOUND = 12.0
 TEXTURE_OFF = ["frontend.texture_tau=0", *ROAD_OFF]

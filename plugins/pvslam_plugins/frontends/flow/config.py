@@ -134,7 +134,8 @@ class FlowFrontendConfig(PluginConfig):
         description="Replace DIS's flow on the ground ahead of a car camera by the flow of the road plane's "
         "homography where that explains the image better (road_plane.py): a direct search of the plane's motion "
         "with the map's rotation, for the near road at speed that DIS cannot follow. Off for a hand-held camera "
-        "that walks over a floor (the road's depth prior assumes a constant camera height) or to save ~20 % CPU.",
+        "that walks over a floor (the road's depth prior assumes a constant camera height) or to save CPU (~20 % a "
+        "frame on the driving loop).",
     )
     road_region: float = Field(
         0.15, gt=0.0, lt=0.5,
@@ -159,7 +160,8 @@ class FlowFrontendConfig(PluginConfig):
     )
     road_depth_weight: float = Field(
         1.0, ge=0.0,
-        description="With road_plane and road_verify (without either it does nothing; both on by default): weight alpha0 of a BA prior on each keyframe's inverse depth d at its verified "
+        description="With road_plane and road_verify (without either it does nothing; both on by default): "
+        "weight alpha0 of a BA prior on each keyframe's inverse depth d at its verified "
         "plane pixels, alpha0 (d - dp)^2 / dp^2 with dp = (y - cy) / (fy h), the road's at one camera height h for "
         "the whole run, set once the map's road depth and its motion agree on it (road_frontend.py); 0: off.",
     )

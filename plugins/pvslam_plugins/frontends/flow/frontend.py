@@ -35,7 +35,7 @@ of a car camera takes the flow of its homography, found by a direct search, wher
 speed (tracking flows and keyframe pairs up to ``road_max_gap`` frames apart), and once the map's road depth and its
 motion agree on a camera height, the road pixels' inverse depth gets a BA prior at that height
 (``road_depth_weight``: the scale of a car camera's map cannot drift). Without a road (indoors) the search finds no
-plane and nothing changes.
+plane and nothing changes (and after a few misses in a row it is tried only every few frames).
 
 Rounds per new keyframe (``rounds``, default 1).  On an edge's first ``observe`` the weight is the
 confidence only; on its next ``dynamic_updates`` calls (after at least one BA round) pixels whose observed target
