@@ -67,13 +67,20 @@ class RoadFlows:
         self._road_skip = 0  # frames whose tracking search is still to be skipped (the back-off)
 
     def _road_flows(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, R: Optional[np.ndarray],
-                    prior: Optional[np.ndarray] = None):
+                    prior: Optional[np.ndarray] = None, lanes: bool = False):
         """A pair's DIS flows with the road plane's flow merged in, the plane motion ``v`` and per direction
         ``(mask, weight)`` of the plane's pixels for ``_direction``; unchanged and Nones without ``road_plane``, a
-        rotation or an accepted plane."""
+        rotation or an accepted plane.  ``lanes``: the verification's two DIS calls run on both lanes (only from
+        the pipeline thread: an edge job already runs on a lane, and a nested ``DisLanes.map`` there would wait on
+        the worker it occupies); each lane's DIS objects give the same flow, so the result does not depend on it."""
         if self._road is None or self._K_flow is None or R is None:
             return fwd, bwd, None, None, None
-        verify = (lambda a, c: self._lanes.flow(("edge", a, c, None))[0]) if self.cfg.road_verify else None
+        verify = None
+        if self.cfg.road_verify:
+            def verify(pairs):
+                calls = [("edge", a, c, None) for a, c in pairs]
+                out = self._lanes.map(self._lanes.flow, calls) if lanes else [self._lanes.flow(c) for c in calls]
+                return [f for f, _ in out]
         f, b, use_f, use_b, v, res_f, res_b = self._road.apply(g0, g1, fwd, bwd, self._K_flow, R, prior, verify)
         if v is None or res_f is None:  # (without road_verify the texture term weighs the plane's pixels too)
             return f, b, v, None, None
@@ -99,9 +106,10 @@ class RoadFlows:
             return fwd, bwd, (None, None), (None, None)  # no plane motion: the keyframe chain starts anew
         R = self._predicted_rotation(last_sid, frame.index)
         gap = frame.index - last_index
-        fwd, bwd, v, *plane = self._road_flows(g_last, gray, fwd, bwd, R, None if vel is None else vel[1] * gap)
+        fwd, bwd, v, *plane = self._road_flows(g_last, gray, fwd, bwd, R, None if vel is None else vel[1] * gap,
+                                               lanes=True)
         if v is None and vel is not None:  # the velocity's start did not hold: search from scratch
-            fwd, bwd, v, *plane = self._road_flows(g_last, gray, fwd, bwd, R)
+            fwd, bwd, v, *plane = self._road_flows(g_last, gray, fwd, bwd, R, lanes=True)
         self._road_misses = 0 if v is not None else self._road_misses + 1
         if self._road_misses >= ROAD_BACKOFF_AFTER:
             self._road_skip = min(2 ** (self._road_misses - ROAD_BACKOFF_AFTER), ROAD_BACKOFF_MAX)

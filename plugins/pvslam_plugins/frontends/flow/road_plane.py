@@ -195,7 +195,8 @@ class RoadPlane:
         res_b)``; the flows unchanged and the rest None when no plane was found or it explains its rows worse
         than DIS's flow does (its mean brightness residual over the searched rows that stay in view).
 
-        ``verify(i0, i1) -> flow``: a DIS call.  The two directions of the plane's flow come from one homography,
+        ``verify([(i0, i1), ...]) -> [flow, ...]``: DIS calls (both directions at once: the caller may run them in
+        parallel).  The two directions of the plane's flow come from one homography,
         so a forward-backward check cannot tell a wrong plane pixel (a curb, a parked car's flank, a plane from
         a poor prior); instead DIS runs between ``g0`` and ``g1`` warped into ``g0``'s view by the merged flow:
         where that flow is right, the views agree and DIS finds ~0.  ``res_f`` / ``res_b`` are the lengths of
@@ -223,8 +224,8 @@ class RoadPlane:
         self.stats["accepted"] += 1
         res_f = res_b = None
         if verify is not None:
-            res_f = np.linalg.norm(verify(g0, _warp(g1, fwd2)), axis=-1)
-            res_b = np.linalg.norm(verify(g1, _warp(g0, bwd2)), axis=-1)
+            rf, rb = verify([(g0, _warp(g1, fwd2)), (g1, _warp(g0, bwd2))])
+            res_f, res_b = np.linalg.norm(rf, axis=-1), np.linalg.norm(rb, axis=-1)
         return fwd2, bwd2, use_f, use_b, v, res_f, res_b
 
 

@@ -116,15 +116,19 @@ def test_prior_is_refined_and_a_result_far_from_it_rejected(road_pair):
     assert v_bad is None and use_f is None and not fwd.any() and strict.stats["left_prior"] == 1
 
 
+def _verify(pairs):
+    return [S_dis(a, c) for a, c in pairs]
+
+
 def test_verification_residual_tells_a_wrong_plane(road_pair):
     """DIS between the first view and the second warped back by the merged flow: ~0 where the plane is right, about
     a pixel where it is 15 % off (a plane accepted from a poor prior)."""
     K, g0, g1, v_true, _ = road_pair
     z = np.zeros(g0.shape + (2,), np.float32)
     loose = RoadPlane(prior_tol=10.0)
-    right = loose.apply(g0, g1, z, z, K, np.eye(3), verify=S_dis)
+    right = loose.apply(g0, g1, z, z, K, np.eye(3), verify=_verify)
     loose._pattern = lambda g1f, K_, v, level, step0: (v, 0.0)  # keep the prior as it is
-    wrong = loose.apply(g0, g1, z, z, K, np.eye(3), prior=v_true * 1.15, verify=S_dis)
+    wrong = loose.apply(g0, g1, z, z, K, np.eye(3), prior=v_true * 1.15, verify=_verify)
     use_r, res_r = right[2], right[5]
     use_w, res_w = wrong[2], wrong[5]
     # (the residual follows the true error, 1.34 px median at 15 % off, somewhat below it)
