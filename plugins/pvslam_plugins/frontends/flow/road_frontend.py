@@ -2,14 +2,13 @@
 
 Where the plane's flow goes in: the tracking flow of every frame (rotation predicted at the rate of the last two
 keyframes, the plane motion started from the last frame's at constant velocity, else searched from scratch; after
-``ROAD_BACKOFF_AFTER`` misses in a row, as indoors, only on every few frames), and the edge flows of keyframe
-pairs at most ``road_max_gap`` frames apart (the map's rotation; pairs further apart than two frames start from the
-chain of tracked plane motions, :class:`~.road_plane.RoadChain`).  A plane pixel's
-confidence is its verification weight ``exp(-r^2 / 2 sigma^2)`` (``r``: DIS's residual between the views aligned
-by the merged flow; ``sigma`` as the forward-backward check's) in place of the texture term: the plane's two
-directions come from one homography, so the forward-backward check passes them all, and the texture term was made
-for DIS's mistakes on weak texture - the road's own (``road_verify = false``: no verification, the texture term
-on every pixel).
+``ROAD_BACKOFF_AFTER`` misses in a row, as indoors, only on every few frames), and the edge flows of keyframe pairs
+at most ``road_max_gap`` frames apart (the map's rotation; pairs further apart than two frames start from the chain
+of tracked plane motions, :class:`~.road_plane.RoadChain`). A plane pixel's confidence is its verification weight
+``exp(-r^2 / 2 sigma^2)`` (``r``: DIS's residual between the views aligned by the merged flow; ``sigma`` as the
+forward-backward check's) in place of the texture term: the plane's two directions come from one homography, so the
+forward-backward check passes them all, and the texture term was made for DIS's mistakes on weak texture - the
+road's own (``road_verify = false``: no verification, the texture term on every pixel).
 
 The road's depth (``road_depth_weight``, default 1; with ``road_plane`` and ``road_verify``, both default): a
 keyframe's verified plane pixels (those of its tracking flow) lie on the road, whose inverse depth at BA row ``y``
