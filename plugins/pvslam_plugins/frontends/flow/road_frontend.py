@@ -145,13 +145,22 @@ class RoadFlows:
         and accepted only when the two agree within ``ROAD_H_AGREE``: where DIS misjudges the near road, the map's
         road depth and its motion disagree, and a prior at either height would pull the map apart."""
         n = len(ids)
-        motion = {k: self._road_chain.prior(ids[k - 1], ids[k]) for k in range(1, n - ROAD_H_SETTLE)
-                  if ids[k] in self._road_w}  # the road's translation k-1 -> k, in camera heights
-        ks = [k for k, v in motion.items() if v is not None][-ROAD_H_KEYFRAMES:]
-        if len(ks) < ROAD_H_KEYFRAMES:
+        # the road's translation k-1 -> k (camera heights), from the newest settled keyframe back: this runs on every
+        # BA call while the gate is closed, so it does not walk the whole map
+        motion: dict[int, np.ndarray] = {}
+        for k in range(n - ROAD_H_SETTLE - 1, 0, -1):
+            if ids[k] in self._road_w:
+                mk = self._road_chain.prior(ids[k - 1], ids[k])
+                if mk is not None:
+                    motion[k] = mk
+                    if len(motion) == ROAD_H_KEYFRAMES:
+                        break
+        if len(motion) < ROAD_H_KEYFRAMES:
             return None
-        t = edge_transforms(graph.poses.detach().double().cpu(), torch.tensor([k - 1 for k in ks]),
-                            torch.tensor(ks))[1].norm(dim=-1).numpy()
+        ks = sorted(motion)
+        pairs = graph.poses[[k - 1 for k in ks] + ks].detach().double().cpu()  # only these (not every pose)
+        m = len(ks)
+        t = edge_transforms(pairs, torch.arange(m), torch.arange(m, 2 * m))[1].norm(dim=-1).numpy()
         v = np.array([np.linalg.norm(motion[k]) for k in ks])
         by_depth = []
         for k in ks:
