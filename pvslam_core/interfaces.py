@@ -144,6 +144,13 @@ class Frontend(GraphListener, ABC):
         The mapper asks for the depth sources of every BA call (``EdgeObservations.disp_prior``)."""
         return None
 
+    def distance_prior(self, graph: "FrameGraph", idx: torch.Tensor) -> Optional[tuple[torch.Tensor, ...]]:
+        """A prior on the distance between the camera centres of pairs of graph keyframes among ``idx`` (int64
+        ``[m]``): ``(ii [k], jj [k] int64 graph indices, dist [k] float64 map units > 0, weight [k] float64)``, or
+        None (the flow frontend's road motion).  The mapper asks for the keyframes of every BA call's edges
+        (``EdgeObservations.dist_prior``)."""
+        return None
+
 
 class LoopDetector(GraphListener, ABC):
     """Keyframe -> global descriptor; proposes loop candidates ``(i, j, score)`` with temporal exclusion.

@@ -255,6 +255,14 @@ class EdgeObservations:
     disp_prior_ids: Optional[torch.Tensor] = None
     disp_prior: Optional[torch.Tensor] = None
     disp_prior_weight: Optional[torch.Tensor] = None
+    # a prior on the distance between the camera centres of graph keyframes ``dist_prior_ii[m]`` and
+    # ``dist_prior_jj[m]`` (int64 [m]): ``dist_prior`` float64 [m] in map units (> 0), ``dist_prior_weight``
+    # float64 [m] (alpha in flow-cost units of the relative error; geometry/ba_distance.py), e.g. the flow
+    # frontend's road motion in camera heights times the camera height; None -> none.
+    dist_prior_ii: Optional[torch.Tensor] = None
+    dist_prior_jj: Optional[torch.Tensor] = None
+    dist_prior: Optional[torch.Tensor] = None
+    dist_prior_weight: Optional[torch.Tensor] = None
 
     def __post_init__(self) -> None:
         e = int(self.ii.shape[0])
@@ -267,6 +275,13 @@ class EdgeObservations:
         if any(given) and not all(given):
             raise ValueError("EdgeObservations: disp_prior_ids, disp_prior and disp_prior_weight come together (all "
                              "three or none)")
+        dist = [t is not None for t in (self.dist_prior_ii, self.dist_prior_jj, self.dist_prior,
+                                        self.dist_prior_weight)]
+        if any(dist) and not (all(dist) and self.dist_prior_ii.shape == self.dist_prior_jj.shape
+                              == self.dist_prior.shape == self.dist_prior_weight.shape
+                              and self.dist_prior.dim() == 1):
+            raise ValueError("EdgeObservations: dist_prior_ii, dist_prior_jj, dist_prior and dist_prior_weight come "
+                             "together (all four or none), each [m]")
         if all(given) and not (tuple(self.disp_prior.shape) == tuple(self.disp_prior_weight.shape)
                                and self.disp_prior.dim() == 3
                                and tuple(self.disp_prior_ids.shape) == (self.disp_prior.shape[0],)):

@@ -37,6 +37,10 @@ pixel to the objective: ``C += alpha``, ``w += alpha (d_prior - d)`` (DROID's ke
 Being diagonal in the depths it changes nothing else of the Schur step; a prior at a constant scale also fixes the
 monocular gauge.
 
+Distance prior. ``obs.dist_prior`` (``[m]`` pairs ``obs.dist_prior_ii`` / ``dist_prior_jj``) adds ``alpha ((L -
+|c_i - c_j|) / L)^2`` per pair of camera centres to the objective (in flow-cost units): its 6x6 blocks join the
+reduced pose system directly (:mod:`.ba_distance`, which says why and derives the Jacobian).
+
 Gauge.  Poses with ``free = False`` do not enter the system.  The caller fixes at least one pose (keyframe 0);
 for monocular problems the remaining scale direction (all free translations and all depths scaled together) is
 *not* fixed explicitly: it is held by the LM damping (``ep``, ``lm``) and by the depth damping ``eta``, so it
@@ -58,6 +62,7 @@ from typing import TYPE_CHECKING, Optional
 import torch
 
 from ..types import EdgeObservations, OptimizerReport
+from .ba_distance import distance_prior_terms
 from .ba_schur import rowvec, assemble_chunk, backsub_chunk, depth_rows, plan_chunks
 from .lie import quat_to_rotmat, se3_exp, se3_inv, se3_mul
 from .projective import project_points
@@ -304,6 +309,15 @@ def dense_ba(
             return _report_reject(report, "dense_ba: non-finite disparity prior or negative prior weight; "
                                           "estimate left unchanged")
 
+    if obs.dist_prior is not None:
+        dpi, dpj = obs.dist_prior_ii.reshape(-1), obs.dist_prior_jj.reshape(-1)
+        if dpi.numel() and (int(torch.minimum(dpi, dpj).min()) < 0 or int(torch.maximum(dpi, dpj).max()) >= N):
+            raise IndexError(f"obs.dist_prior_ii / dist_prior_jj out of range for {N} keyframes")
+        if not (_all_finite(obs.dist_prior) and _all_finite(obs.dist_prior_weight)) \
+                or bool((obs.dist_prior <= 0).any()) or bool((obs.dist_prior_weight < 0).any()):
+            return _report_reject(report, "dense_ba: non-finite or non-positive distance prior, or a negative "
+                                          "weight; estimate left unchanged")
+
     free_idx = torch.nonzero(free).squeeze(1)
     F = int(free_idx.shape[0])
     pose_map = torch.full((N,), -1, dtype=torch.int64, device=dev)
@@ -355,11 +369,21 @@ def dense_ba(
     n_max = max(n_iters, int(max_iters)) if max_iters is not None else n_iters
     adaptive = n_max > n_iters
 
+    def dist_terms():
+        """The distance prior's Gauss-Newton terms at the current poses (:mod:`.ba_distance`), or None."""
+        if obs.dist_prior is None or obs.dist_prior.numel() == 0:
+            return None
+        return distance_prior_terms(G, pose_map, obs.dist_prior_ii, obs.dist_prior_jj, obs.dist_prior,
+                                    obs.dist_prior_weight, weight_scale, F)
+
     def prior_cost() -> float:
-        """The disparity prior's part of the objective, in the units of the flow cost (alpha / weight_scale)."""
+        """The priors' part of the objective, in the units of the flow cost (the disparity prior's alpha /
+        weight_scale; the distance prior's alpha)."""
+        dist = dist_terms()
+        total = 0.0 if dist is None else dist[4]
         if prior is None:
-            return 0.0
-        return float((prior[1] * (d[src] - prior[0]) ** 2).sum()) / weight_scale
+            return total
+        return total + float((prior[1] * (d[src] - prior[0]) ** 2).sum()) / weight_scale
 
     def current_cost(with_robust: bool) -> tuple[float, float]:
         """(the reported plain cost, the robust objective if ``with_robust`` else 0) at the current state; the
@@ -415,6 +439,14 @@ def dense_ba(
             del blocks, q, Ad, B
         if cost0 is None:
             cost0 = cost_it
+        dist = dist_terms() if F > 0 else None
+        if dist is not None:  # the distance prior's blocks join the reduced pose system (ba_distance.py)
+            v.index_add_(0, dist[2], dist[3])
+            if sparse:
+                sp_dest.append(dist[0])
+                sp_vals.append(dist[1])
+            else:
+                H.index_add_(0, dist[0], dist[1].reshape(-1, 36))
         dxi = torch.zeros(F, 6, dtype=torch.float64, device=dev)
         if F > 0:
             b = v.reshape(-1)

@@ -119,14 +119,19 @@ class Mapper(GraphListener):
         return obs
 
     def _with_prior(self, obs: EdgeObservations) -> EdgeObservations:
-        """``obs`` with the frontend's inverse-depth prior (:meth:`Frontend.depth_prior`) for its depth sources."""
+        """``obs`` with the frontend's inverse-depth prior (:meth:`Frontend.depth_prior`) for its depth sources and
+        its distance prior (:meth:`Frontend.distance_prior`) for the keyframes of its edges."""
         if obs.ii.numel() == 0:
             return obs
         src = torch.unique(obs.ii)
         prior = self.frontend.depth_prior(self.graph, src)
-        if prior is None:
-            return obs
-        return replace(obs, disp_prior_ids=src, disp_prior=prior[0], disp_prior_weight=prior[1])
+        if prior is not None:
+            obs = replace(obs, disp_prior_ids=src, disp_prior=prior[0], disp_prior_weight=prior[1])
+        dist = self.frontend.distance_prior(self.graph, torch.unique(torch.cat([obs.ii, obs.jj])))
+        if dist is not None:
+            obs = replace(obs, dist_prior_ii=dist[0], dist_prior_jj=dist[1], dist_prior=dist[2],
+                          dist_prior_weight=dist[3])
+        return obs
 
     def _release_pairs(self, ii: torch.Tensor, jj: torch.Tensor) -> None:
         """Tell the frontend that observed pairs which are not active edges (initialisation) are done with."""

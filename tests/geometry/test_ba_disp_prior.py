@@ -154,10 +154,17 @@ def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
     pr = problem
     asked = []
 
+    asked_dist = []
+
     class FE:
         def depth_prior(self, graph, idx):
             asked.append(idx.tolist())
             return None if 0 in idx.tolist() else (pr.disps[idx], torch.full_like(pr.disps[idx], 0.05))
+
+        def distance_prior(self, graph, idx):  # consecutive pairs among the edges' keyframes, 1 map unit apart
+            asked_dist.append(idx.tolist())
+            one = torch.ones(len(idx) - 1, dtype=torch.float64)
+            return idx[:-1], idx[1:], one, 5 * one
 
     m = Mapper.__new__(Mapper)
     m.frontend, m.graph = FE(), pr.graph()
@@ -168,4 +175,8 @@ def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
     assert asked[-1] == sorted(set(o.ii[sel].tolist()))
     assert got.disp_prior_ids.tolist() == asked[-1] and got.disp_prior.shape == (len(asked[-1]), *pr.shape)
     torch.testing.assert_close(got.disp_prior, pr.disps[got.disp_prior_ids])
+    # the distance prior: asked for the keyframes at either end of the edges, attached as given
+    assert asked_dist[-1] == sorted(set(o.ii[sel].tolist()) | set(o.jj[sel].tolist()))
+    assert got.dist_prior_ii.tolist() == asked_dist[-1][:-1] and got.dist_prior_jj.tolist() == asked_dist[-1][1:]
+    assert got.dist_prior_weight.tolist() == [5.0] * (len(asked_dist[-1]) - 1)
     assert m._with_prior(o).disp_prior is None  # keyframe 0 among the sources: this frontend gives none

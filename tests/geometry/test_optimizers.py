@@ -138,8 +138,16 @@ def test_no_sim3_pose_graph_where_a_depth_prior_observes_the_scale(loop_problem,
     drifted = scale_drifted(pr, rate=0.96, yaw_drift=0.01)
     g = pr.graph(*drifted)
     rep = make("online_ba").loop(g, prior, [_loop(n - 1, 0)])
-    assert not calls and "skipped (the observations carry a depth prior" in rep.message and not rep.rejected
+    assert not calls and "skipped (the observations carry a depth or distance prior" in rep.message \
+        and not rep.rejected
     assert not torch.equal(g.poses, drifted[0])  # the loop BA ran
+    # a distance prior (geometry/ba_distance.py) observes the scale as well
+    one = torch.ones(1, dtype=torch.float64)
+    dist = EdgeObservations(o.ii, o.jj, o.target, o.weight, dist_prior_ii=torch.tensor([0]),
+                            dist_prior_jj=torch.tensor([1]), dist_prior=(pr.poses[0, :3] - pr.poses[1, :3]).norm() * one,
+                            dist_prior_weight=one)
+    rep = make("online_ba").loop(pr.graph(*drifted), dist, [_loop(n - 1, 0)])
+    assert not calls and "skipped" in rep.message and not rep.rejected
     make("online_ba", sim3_pgo_with_depth_prior=True).loop(pr.graph(*drifted), prior, [_loop(n - 1, 0)])
     make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
     assert len(calls) == 2

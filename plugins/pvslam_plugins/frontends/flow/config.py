@@ -165,6 +165,13 @@ class FlowFrontendConfig(PluginConfig):
         "plane pixels, alpha0 (d - dp)^2 / dp^2 with dp = (y - cy) / (fy h), the road's at one camera height h for "
         "the whole run, set once the map's road depth and its motion agree on it (road_frontend.py); 0: off.",
     )
+    road_distance_weight: float = Field(
+        100.0, ge=0.0,
+        description="With road_plane: weight (flow-cost units of the relative error) of a BA prior on the distance "
+        "between consecutive keyframes, the road's translation between them in camera heights (chained from the "
+        "tracking's plane motions) times one camera height in map units, measured once from the map's motion over "
+        "the road's (road_frontend.py, pvslam_core/geometry/ba_distance.py); 0: off.",
+    )
     track_predict_recover: bool = Field(
         True,
         description="When the corners' homography does not recover a failing track, DIS also starts from the image "

@@ -21,6 +21,13 @@ prior. The prior's weight is relative, ``alpha0 (d - d_prior)^2 / d_prior^2``: t
 the squared baseline, so an absolute weight would be strong or negligible by the map's scale. The plane's normal is
 taken as the camera's y axis, as the search does.
 
+The road's distance (``road_distance_weight``): consecutive keyframes whose tracking chained plane motions between
+them are ``h |v|`` apart (``v``: the road's translation in camera heights; ``h`` here measured once from the map's
+motion over the road's alone, :meth:`RoadFlows.distance_prior`), a BA prior on the distance between their camera
+centres (``EdgeObservations.dist_prior``). On a highway the keyframes are several metres apart and the near road,
+whose flow tells the speed, has left the view by the next keyframe: no keyframe edge holds the scale there, and the
+road depth never agrees with the motion (the gate above stays closed), but the frame-to-frame plane motions do.
+
 A mixin of :class:`~.frontend.FlowFrontend` (like :class:`~.dynamic_masking.DynamicMasking`): it reads ``cfg``,
 ``_graph``, ``_kfs``, ``_lanes`` and ``_sigma``.
 """
@@ -43,6 +50,10 @@ LOG = logging.getLogger("pvslam")
 ROAD_H_KEYFRAMES = 3  # consecutive keyframes whose road and motion measure the camera height (_camera_height)
 ROAD_H_SETTLE = 2  # ... the newest of them at least this many keyframes older than the newest keyframe
 ROAD_H_AGREE = 1.25  # the largest ratio between the two measurements that counts as agreement
+# The distance prior (road_distance_weight): its camera height only from three pairs whose heights (map translation /
+# road translation) agree within this ratio, and a pair only while its road distance and the map's agree within this
+ROAD_DIST_CONSISTENT = 1.5
+ROAD_DIST_AGREE = 2.0
 # Without a road (indoors) the search from scratch never finds a plane, at ~a fifth of the frame's CPU: after
 # this many consecutive misses the tracking search skips 1, 2, 4, ... frames between tries (a found plane resets it)
 ROAD_BACKOFF_AFTER = 8
@@ -62,6 +73,9 @@ class RoadFlows:
         # the gate's measurements (keyframes, by motion, by depth), the newest 64; and how many there were
         self.road_height_tries: deque[tuple[int, float, float]] = deque(maxlen=64)
         self._road_height_n = 0
+        # the camera height in map units from the map's motion over the road's alone, measured once (the
+        # distance prior's, road_distance_weight)
+        self.road_height_motion: Optional[float] = None
         self._road_misses = 0  # consecutive tracking searches from scratch without a plane
         self._road_skip = 0  # frames whose tracking search is still to be skipped (the back-off)
 
@@ -144,12 +158,42 @@ class RoadFlows:
         (``(y - cy) / (fy d)``) and from the map's translation over the road's (in camera heights) between them -
         and accepted only when the two agree within ``ROAD_H_AGREE``: where DIS misjudges the near road, the map's
         road depth and its motion disagree, and a prior at either height would pull the map apart."""
+        got = self._road_motion(graph, ids, road_pixels=True)
+        if got is None:
+            return None
+        ks, t, v = got
+        by_depth = []
+        for k in ks:
+            m = (self._road_w[ids[k]] > 0.5) & (ray > 0)
+            d = graph.disps[k].detach().float().cpu()[m]
+            ok = torch.isfinite(d) & (d > 0)
+            if int(ok.sum()) >= 8:
+                by_depth.append(float((ray[m][ok] / d[ok]).median()))
+        if len(by_depth) < len(ks) or not (np.isfinite(t).all() and np.isfinite(v).all()) or t.sum() <= 0 \
+                or v.sum() <= 0:
+            return None
+        h_motion, h_depth = float(t.sum() / v.sum()), float(np.median(by_depth))
+        self.road_height_tries.append((len(ids), h_motion, h_depth))
+        self._road_height_n += 1
+        if not abs(np.log(h_motion / h_depth)) <= np.log(ROAD_H_AGREE):
+            return None
+        hgt = float(np.sqrt(h_motion * h_depth))
+        LOG.info("road plane: camera height %.4g map units (keyframes %s: %.4g from the motion, %.4g from the road "
+                 "depth; %d tries)", hgt, ks, h_motion, h_depth, self._road_height_n)
+        return hgt
+
+    def _road_motion(self, graph, ids: list[int], road_pixels: bool) -> Optional[tuple[list[int], np.ndarray,
+                                                                                      np.ndarray]]:
+        """The newest ``ROAD_H_KEYFRAMES`` keyframes ``k`` (graph indices, at least ``ROAD_H_SETTLE`` older than the
+        newest; with ``road_pixels`` only those with verified road pixels) with a plane motion from keyframe
+        ``k - 1``: ``(ks, |t| [m] the map's translation k-1 -> k, |v| [m] the road's in camera heights)``, or None
+        while there are not that many."""
         n = len(ids)
-        # the road's translation k-1 -> k (camera heights), from the newest settled keyframe back: this runs on every
-        # BA call while the gate is closed, so it does not walk the whole map
+        # from the newest settled keyframe back: this runs on every BA call while unmeasured, so it does not walk
+        # the whole map
         motion: dict[int, np.ndarray] = {}
         for k in range(n - ROAD_H_SETTLE - 1, 0, -1):
-            if ids[k] in self._road_w:
+            if not road_pixels or ids[k] in self._road_w:
                 mk = self._road_chain.prior(ids[k - 1], ids[k])
                 if mk is not None:
                     motion[k] = mk
@@ -162,25 +206,49 @@ class RoadFlows:
         m = len(ks)
         t = edge_transforms(pairs, torch.arange(m), torch.arange(m, 2 * m))[1].norm(dim=-1).numpy()
         v = np.array([np.linalg.norm(motion[k]) for k in ks])
-        by_depth = []
-        for k in ks:
-            m = (self._road_w[ids[k]] > 0.5) & (ray > 0)
-            d = graph.disps[k].detach().float().cpu()[m]
-            ok = torch.isfinite(d) & (d > 0)
-            if int(ok.sum()) >= 8:
-                by_depth.append(float((ray[m][ok] / d[ok]).median()))
-        if len(by_depth) < len(ks) or not (np.isfinite(t).all() and np.isfinite(v).all()) or t.sum() <= 0 \
-                or v.sum() <= 0:
+        return ks, t, v
+
+    def distance_prior(self, graph, idx: torch.Tensor) -> Optional[tuple[torch.Tensor, ...]]:
+        """:meth:`Frontend.distance_prior`: consecutive keyframes among ``idx`` tracked over the road get the
+        distance ``h |v|`` (``v``: the road's translation between them in camera heights, chained from the
+        tracking's plane motions; ``h``: the camera height in map units from the map's motion over the road's,
+        measured once, :meth:`_road_motion`) with weight ``road_distance_weight``.  On a highway the near road,
+        whose flow tells the speed, has left the view by the next keyframe: the BA's edges cannot hold the scale
+        there, the frame-to-frame plane motions can (pvslam_core/geometry/ba_distance.py)."""
+        if self.cfg.road_distance_weight <= 0 or self._road is None:
             return None
-        h_motion, h_depth = float(t.sum() / v.sum()), float(np.median(by_depth))
-        self.road_height_tries.append((n, h_motion, h_depth))
-        self._road_height_n += 1
-        if not abs(np.log(h_motion / h_depth)) <= np.log(ROAD_H_AGREE):
+        ids = graph.ids.tolist()
+        if self.road_height_motion is None:
+            got = self._road_motion(graph, ids, road_pixels=False)
+            if got is None:
+                return None
+            ratio = got[1] / np.maximum(got[2], 1e-12)  # each pair's height: map translation / road translation
+            if not (np.isfinite(ratio).all() and ratio.min() > 0) or ratio.max() / ratio.min() > ROAD_DIST_CONSISTENT:
+                return None  # the three pairs do not tell one height (a turn on the spot, a wrong plane): not yet
+            self.road_height_motion = float(got[1].sum() / got[2].sum())
+            LOG.info("road plane: distance prior at a camera height of %.4g map units (keyframes %s)",
+                     self.road_height_motion, got[0])
+        ks = sorted(set(idx.tolist()))
+        pairs, dist = [], []
+        for a, b in zip(ks[:-1], ks[1:]):
+            v = self._road_chain.prior(ids[a], ids[b]) if b == a + 1 else None
+            if v is not None and float(np.linalg.norm(v)) > 1e-9:
+                pairs.append((a, b))
+                dist.append(self.road_height_motion * float(np.linalg.norm(v)))
+        if not pairs:
             return None
-        hgt = float(np.sqrt(h_motion * h_depth))
-        LOG.info("road plane: camera height %.4g map units (keyframes %s: %.4g from the motion, %.4g from the road "
-                 "depth; %d tries)", hgt, ks, h_motion, h_depth, self._road_height_n)
-        return hgt
+        ii = torch.tensor([p[0] for p in pairs], dtype=torch.int64)
+        jj = torch.tensor([p[1] for p in pairs], dtype=torch.int64)
+        L = torch.tensor(dist, dtype=torch.float64)
+        # a pair whose road distance and the map's current one disagree beyond ROAD_DIST_AGREE is left out: the
+        # plane's motion is wrong there (a head camera's floor during a fast turn), not the map by that much
+        c = graph.poses.detach()[torch.cat([ii, jj]).to(graph.poses.device), :3].double().cpu()  # camera centres
+        now = (c[: len(pairs)] - c[len(pairs):]).norm(dim=-1)
+        keep = (now > 0) & ((now / L).log().abs() <= float(np.log(ROAD_DIST_AGREE)))
+        if not bool(keep.any()):
+            return None
+        L = L[keep]
+        return ii[keep], jj[keep], L, torch.full_like(L, self.cfg.road_distance_weight)
 
     def depth_prior(self, graph, idx: torch.Tensor) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
         """:meth:`Frontend.depth_prior`: the road's inverse depth ``(y - cy) / (fy h)`` and its weight

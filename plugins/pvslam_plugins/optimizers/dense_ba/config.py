@@ -56,7 +56,8 @@ class BAConfigBase(PluginConfig):
     sim3_pgo: bool = Field(True, description="run a Sim(3) pose-graph correction before the loop BA")
     sim3_pgo_with_depth_prior: bool = Field(
         False, description="run the Sim(3) pose graph also for a loop whose observations carry an inverse-depth "
-        "prior (EdgeObservations.disp_prior, e.g. the flow frontend's road depth prior): the prior observes the "
+        "prior (EdgeObservations.disp_prior, e.g. the flow frontend's road depth prior) or a distance prior "
+        "(EdgeObservations.dist_prior, the road's distance between keyframes): the prior observes the "
         "scale, so a scale correction only fights it (ORB-SLAM closes stereo / RGB-D loops in SE(3)); without the "
         "pose graph the loop BA alone corrects the loop")
     pgo_iters: int = Field(25, ge=1, description="Levenberg-Marquardt iterations of the Sim(3) pose graph")

@@ -112,11 +112,12 @@ class DenseBAOptimizer(Optimizer):
         if n < 2 or obs.ii.numel() == 0:
             return OptimizerReport(message="nothing to optimise")
         pairs = [(int(graph.index_of(l.kf_i)), int(graph.index_of(l.kf_j))) for l in loops]  # graph indices
-        # a depth prior observes the scale: a Sim(3) correction would move it against the prior (config description)
-        pgo = c.sim3_pgo and (obs.disp_prior is None or c.sim3_pgo_with_depth_prior)
+        # a depth or distance prior observes the scale: a Sim(3) correction would move it against the prior (config
+        # description)
+        pgo = c.sim3_pgo and ((obs.disp_prior is None and obs.dist_prior is None) or c.sim3_pgo_with_depth_prior)
         msg = self.sim3_correction(graph, obs, pairs) if pgo and pairs else ""
         if c.sim3_pgo and not pgo and pairs:
-            msg = "sim3 pgo skipped (the observations carry a depth prior: the scale is observed)"
+            msg = "sim3 pgo skipped (the observations carry a depth or distance prior: the scale is observed)"
         oldest = min((min(i, j) for i, j in pairs), default=max(0, n - c.window))
         t0 = max(1, n - c.loop_window) if c.loop_window > 0 else max(1, oldest)
         touched = torch.zeros(n, dtype=torch.bool, device=graph.device)
