@@ -31,6 +31,20 @@ class SyntheticBAProblem:
     def shape(self) -> tuple[int, int]:
         return int(self.disps.shape[-2]), int(self.disps.shape[-1])
 
+    def observed(self) -> torch.Tensor:
+        """bool ``[N, h, w]``: pixels that some edge observes (weight > 0) from their keyframe."""
+        seen = torch.zeros_like(self.disps, dtype=torch.bool)
+        for e in range(len(self.ii)):
+            seen[self.ii[e]] |= self.weight[e, 0] > 0
+        return seen
+
+    def baseline_ratio(self, poses_wc: torch.Tensor) -> float:
+        """Median ratio of the distances from keyframe 0 under ``poses_wc [N, 7]`` to the ground truth's (the
+        estimate's scale against the truth's, with keyframe 0 fixed)."""
+        est = (poses_wc[1:, :3] - poses_wc[0, :3]).norm(dim=-1)
+        true = (self.poses[1:, :3] - self.poses[0, :3]).norm(dim=-1)
+        return float((est / true).median())
+
     def obs(self, ii: Optional[torch.Tensor] = None, jj: Optional[torch.Tensor] = None) -> EdgeObservations:
         if ii is None:
             return EdgeObservations(self.ii.clone(), self.jj.clone(), self.target.clone(), self.weight.clone())

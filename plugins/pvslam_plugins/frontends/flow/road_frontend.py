@@ -54,6 +54,7 @@ ROAD_H_AGREE = 1.25  # the largest ratio between the two measurements that count
 # road translation) agree within this ratio, and a pair only while its road distance and the map's agree within this
 ROAD_DIST_CONSISTENT = 1.5
 ROAD_DIST_AGREE = 2.0
+ROAD_DIST_LOOKBACK = 64  # ... its three pairs among this many newest keyframes (no road: not a walk of the whole map)
 # Without a road (indoors) the search from scratch never finds a plane, at ~a fifth of the frame's CPU: after
 # this many consecutive misses the tracking search skips 1, 2, 4, ... frames between tries (a found plane resets it)
 ROAD_BACKOFF_AFTER = 8
@@ -182,17 +183,18 @@ class RoadFlows:
                  "depth; %d tries)", hgt, ks, h_motion, h_depth, self._road_height_n)
         return hgt
 
-    def _road_motion(self, graph, ids: list[int], road_pixels: bool) -> Optional[tuple[list[int], np.ndarray,
-                                                                                      np.ndarray]]:
+    def _road_motion(self, graph, ids: list[int], road_pixels: bool,
+                     lookback: Optional[int] = None) -> Optional[tuple[list[int], np.ndarray, np.ndarray]]:
         """The newest ``ROAD_H_KEYFRAMES`` keyframes ``k`` (graph indices, at least ``ROAD_H_SETTLE`` older than the
-        newest; with ``road_pixels`` only those with verified road pixels) with a plane motion from keyframe
-        ``k - 1``: ``(ks, |t| [m] the map's translation k-1 -> k, |v| [m] the road's in camera heights)``, or None
-        while there are not that many."""
+        newest, and with ``lookback`` among that many newest; with ``road_pixels`` only those with verified road
+        pixels) with a plane motion from keyframe ``k - 1``: ``(ks, |t| [m] the map's translation k-1 -> k, |v| [m]
+        the road's in camera heights)``, or None while there are not that many."""
         n = len(ids)
         # from the newest settled keyframe back: this runs on every BA call while unmeasured, so it does not walk
         # the whole map
         motion: dict[int, np.ndarray] = {}
-        for k in range(n - ROAD_H_SETTLE - 1, 0, -1):
+        stop = 0 if lookback is None else max(0, n - lookback)
+        for k in range(n - ROAD_H_SETTLE - 1, stop, -1):
             if not road_pixels or ids[k] in self._road_w:
                 mk = self._road_chain.prior(ids[k - 1], ids[k])
                 if mk is not None:
@@ -219,7 +221,7 @@ class RoadFlows:
             return None
         ids = graph.ids.tolist()
         if self.road_height_motion is None:
-            got = self._road_motion(graph, ids, road_pixels=False)
+            got = self._road_motion(graph, ids, road_pixels=False, lookback=ROAD_DIST_LOOKBACK)
             if got is None:
                 return None
             ratio = got[1] / np.maximum(got[2], 1e-12)  # each pair's height: map translation / road translation
