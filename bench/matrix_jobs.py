@@ -118,11 +118,16 @@ def run_pvslam(overrides: list[str], out: Path, name: str) -> dict:
     base = [f'run.output_dir="{out.as_posix()}"', f'run.name="{name}"', "run.progress=false", "outputs.ply=false",
             "outputs.plots=false", "outputs.panoptic_png=false"]
     record: list[tuple[int, bool, bool]] = []
+    first_map: dict = {}  # the keyframes (timestamps, T_wc) when the map first initialised
     original = pl.Pipeline.step
 
     def step(self, frame):
         r = original(self, frame)
         record.append((int(r.frame_index), bool(r.initialized), bool(r.failed)))
+        if r.initialized and not first_map and self.mapper is not None:
+            g = self.mapper.graph
+            first_map.update(timestamps=g.timestamps.double().cpu().numpy().copy(),
+                             poses=g.poses.double().cpu().numpy().copy())
         return r
 
     pl.Pipeline.step = step
@@ -142,7 +147,34 @@ def run_pvslam(overrides: list[str], out: Path, name: str) -> dict:
         "fps": float(timing.get("fps", math.nan)), "seconds": float(timing.get("seconds", math.nan)),
         "keyframes": int(timing.get("keyframes", 0)), "loops": len(res.loops), "run_dir": res.run_dir,
         "own_ate_pct": float(res.metrics.get("ate", {}).get("rmse_percent_of_path", math.nan)),
+        "first_map": first_map or None,
     }
+
+
+def init_errors(kf_ts: np.ndarray, kf_poses: np.ndarray, gt_ts: np.ndarray, gt: np.ndarray) -> dict:
+    """How right the map was when it first initialised: the motion from its first keyframe to its last (``kf_ts``
+    [K], ``kf_poses`` [K, 7] T_wc) against the ground truth's (TUM rows [N, 7], nearest timestamps within 20 ms):
+    the rotation error and the angle between the translation directions (degrees; the scale is free), both in the
+    first keyframe's frame.  A wrong two-view motion (the rotation / translation ambiguity of a narrow or forward
+    view) shows here before the window BA's later drift hides where it came from."""
+    from scipy.spatial.transform import Rotation
+
+    def at(t):
+        k = int(np.argmin(np.abs(gt_ts - t)))
+        return gt[k] if abs(gt_ts[k] - t) <= 0.02 else None
+
+    a, b = at(kf_ts[0]), at(kf_ts[-1])
+    if len(kf_ts) < 2 or a is None or b is None:
+        return {"init_rot_err_deg": None, "init_t_err_deg": None}
+    rel = {}
+    for key, (pa, pb) in (("est", (kf_poses[0], kf_poses[-1])), ("gt", (a, b))):
+        Ra, Rb = Rotation.from_quat(pa[3:7]), Rotation.from_quat(pb[3:7])
+        rel[key] = (Ra.inv() * Rb, Ra.inv().apply(pb[:3] - pa[:3]))  # b in a's frame: rotation, centre
+    rot = float(np.degrees((rel["gt"][0].inv() * rel["est"][0]).magnitude()))
+    te, tg = rel["est"][1], rel["gt"][1]
+    n = float(np.linalg.norm(te) * np.linalg.norm(tg))
+    t_err = float(np.degrees(np.arccos(np.clip(te @ tg / n, -1.0, 1.0)))) if n > 0 else None
+    return {"init_rot_err_deg": rot, "init_t_err_deg": t_err}
 
 
 def posed_frames(initialized: np.ndarray, failed: np.ndarray) -> np.ndarray:
@@ -220,6 +252,9 @@ def run_cell(job: dict) -> dict:
                            out / "runs",
                            f"{scenario}-s{seed}-{key}")
             r.update(ate_pct(r.pop("timestamps"), r.pop("poses"), gt_ts, gt))
+            fm = r.pop("first_map")
+            if fm is not None:
+                r.update(init_errors(fm["timestamps"], fm["poses"], gt_ts, gt))
             i = r["init_frame"]
             r["init_s"] = None if i is None else float(gt_ts[min(i, len(gt_ts) - 1)] - t_motion)
             row[key] = r

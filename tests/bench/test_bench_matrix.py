@@ -1,6 +1,6 @@
 """Tests of the benchmark matrix (bench/bench_matrix.py, bench/matrix_jobs.py): the seed split, which frames count
 as posed, the straight-line baseline against an independent Sim(3) alignment, the KITTI excerpt as a TUM folder,
-the target verdicts, and (slow) one real cell end to end."""
+the target verdicts, the map at initialisation against the ground truth, and (slow) one real cell end to end."""
 from __future__ import annotations
 
 import sys
@@ -114,6 +114,51 @@ def test_one_cell_end_to_end(tmp_path, monkeypatch):
     assert "error" not in pv and pv["frames"] == 25 and 0 <= pv["posed"] <= 25
     assert pv["init_frame"] is None or pv["init_s"] == pytest.approx(pv["init_frame"] / 12.0, abs=1e-6)
     assert np.isfinite(pv["ate_pct"]) and np.isfinite(row["vo"]["ate_pct"]) and row["line"]["ate_pct"] < 1.0
+    if pv["init_frame"] is not None:  # the first map against the ground truth (a straight drive: both small)
+        assert pv["init_rot_err_deg"] < 3.0 and pv["init_t_err_deg"] < 20.0
+
+
+def _tum(positions, yaws_deg):
+    """TUM rows [N, 7] (T_wc) of camera centres ``positions`` [N, 3] turned by ``yaws_deg`` about the camera y."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_euler("y", np.asarray(yaws_deg, float)[:, None], degrees=True).as_quat()
+    return np.concatenate([np.asarray(positions, float), q], 1)
+
+
+def test_init_errors_measure_the_first_maps_motion_against_the_ground_truth():
+    gt_ts = np.arange(20) / 10.0
+    gt = _tum(np.stack([np.zeros(20), np.zeros(20), 0.5 * np.arange(20)], 1), np.zeros(20))
+    # the first map: keyframes at 0.0, 0.4, 0.9 s; the last one 2 deg too far turned and moved sideways by
+    # tan(10 deg) of its forward motion, in a map of another scale (x 0.1)
+    fwd = 0.5 * 9 * 0.1
+    est = _tum([[0, 0, 0], [0, 0, 0.2 * 0.1], [fwd * np.tan(np.radians(10.0)), 0, fwd]], [0.0, 0.0, 2.0])
+    got = matrix_jobs.init_errors(np.array([0.0, 0.4, 0.9]), est, gt_ts, gt)
+    assert got["init_rot_err_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert got["init_t_err_deg"] == pytest.approx(10.0, abs=1e-6)
+    # the same map in a world frame turned and shifted (W T_wc), only its first and last keyframes: the same errors
+    from scipy.spatial.transform import Rotation
+
+    W = Rotation.from_euler("xyz", [10.0, -40.0, 25.0], degrees=True)
+    moved = np.concatenate([W.apply(est[:, :3]) + [3.0, -1.0, 2.0], (W * Rotation.from_quat(est[:, 3:])).as_quat()], 1)
+    assert matrix_jobs.init_errors(np.array([0.0, 0.9]), moved[[0, 2]], gt_ts, gt) == pytest.approx(got)
+    # a first map whose last keyframe has no ground truth within 20 ms has no errors, not wrong ones
+    none = matrix_jobs.init_errors(np.array([0.0, 0.95]), est[[0, 2]], gt_ts, gt)
+    assert none == {"init_rot_err_deg": None, "init_t_err_deg": None}
+
+
+def test_summary_names_the_cells_whose_map_started_wrong():
+    rows = [_row("driving_loop", 3, 0.4, 2.0), _row("busy_street", 70, 3.5, 3.8), _row("kitti_06", None, 0.1, 1.0)]
+    for r, (a, b) in zip(rows, [(0.1, 1.0), (7.0, 87.0), (0.2, 25.0)]):
+        r["pvslam"].update(init_rot_err_deg=a, init_t_err_deg=b)
+    lines, out = bench_matrix.summary(rows)
+    assert out["init_wrong"] == ["busy_street/70 (R 7.0, t 87)", "kitti_06 (R 0.2, t 25)"]
+    assert out["init_rot_err_median_deg"] == pytest.approx(0.2) and out["init_t_err_median_deg"] == pytest.approx(25)
+    assert any(line.startswith("  map at initialisation (3 sequences)") for line in lines)
+    for r in rows:  # a saved run from before the measurement: no line, no keys
+        del r["pvslam"]["init_rot_err_deg"], r["pvslam"]["init_t_err_deg"]
+    lines, out = bench_matrix.summary(rows)
+    assert "init_wrong" not in out and not any("initialisation" in line for line in lines)
 
 
 def test_reprint_shows_a_saved_run(tmp_path, capsys):
