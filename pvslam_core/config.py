@@ -124,6 +124,12 @@ class GraphSection(PluginConfig):
         "90th-percentile weight (at most 0.5, at least initializer.RELATIVE_FLOOR = 0.05) instead of above 0.5 "
         "(false): a frontend whose weights sit lower, such as the flow frontend with its texture term, would "
         "otherwise start the map seconds late")
+    init_chain_tol: float = Field(
+        0.0, ge=0, description="two-view initialisation keeps a correspondence of its pair (a, m) only where the "
+        "flows of the keyframes between, chained a -> a+1 -> ... -> m, stay in view and land within this many BA "
+        "px of it (0: off; 1.0 is the value measured). On a fast forward drive the near road leaves the view "
+        "within the pair, yet its flow passes the forward-backward check; the check can leave too few "
+        "correspondences there and delay the start (pvslam_core/slam/bootstrap.py, bench/RESULTS.md)")
     init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe, all ending "
                             "at the newest: from the window's first keyframe, from the middle, from two back (fast "
                             "motion breaks the flow of the farthest pair; pvslam_core/slam/bootstrap.py)")

@@ -133,6 +133,11 @@ class Frontend(GraphListener, ABC):
         """Targets and weights for edges ``ii[e] -> jj[e]`` (graph indices) given the graph's current poses and
         depths.  See the class docstring for when it is called."""
 
+    def discard_pairs(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
+        """Forget what observing pairs ``src_ids[e] -> dst_ids[e]`` (stable ids) computed and cached, without them
+        leaving the graph: the mapper looked at them before the map existed (the initialisation's chain check),
+        with no poses to start a flow from; the next :meth:`observe` computes them afresh.  Default: nothing."""
+
     def initial_depth(self, graph: "FrameGraph", kf_id: int) -> Optional[torch.Tensor]:
         """An inverse-depth guess ``[h, w]`` for new keyframe ``kf_id`` (not yet in ``graph``), or None for the
         mapper's default (the previous keyframe's depth moved into the new pose)."""

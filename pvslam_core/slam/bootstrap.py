@@ -51,6 +51,39 @@ def init_pairs(first: int, k: int, window: int, tries: int) -> list[tuple[int, i
     return out[:tries]
 
 
+def chain_checked(target: torch.Tensor, weight: torch.Tensor, chain_target: torch.Tensor, chain_weight: torch.Tensor,
+                  tol: float, relative_weight: bool) -> torch.Tensor:
+    """``weight`` ``[2, h, w]`` of a pair's correspondences ``target`` (view-``a`` pixels in view ``m``, BA px) with 0
+    where the pairs between, chained (``chain_target`` / ``chain_weight`` ``[E, 2, h, w]``: a -> a+1, ..., m-1 -> m),
+    leave the view, pass a pixel they are not confident about (initializer.confidence_threshold) or land more than
+    ``tol`` BA px from it.
+
+    Why: a direct flow between views far apart matches what has left the view too.  On a fast forward drive
+    (highway, 23 m/s, frames 0-5) the near road is behind the camera by the pair's second view, yet DIS matches it to
+    the road still in view, forward-backward consistent: 255 of the 321 confident correspondences of the highway's
+    init pair (unseen seed 69) had no true match, and the cheirality test then favoured sideways or reversed motions
+    (bench/RESULTS.md, 12-03 g).  Each short link keeps most of its pixels in view and the chain follows them out."""
+    from .initializer import confidence_threshold
+
+    h, w = target.shape[-2:]
+    ys, xs = torch.meshgrid(torch.arange(h, device=target.device), torch.arange(w, device=target.device),
+                            indexing="ij")
+    pos = torch.stack([xs, ys]).float()  # [2, h, w] where each view-a pixel is, link by link
+    ok = torch.ones(h, w, dtype=torch.bool, device=target.device)
+    scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], device=target.device)
+    for t_e, w_e in zip(chain_target, chain_weight):
+        ok &= (pos[0] >= -1e-3) & (pos[0] <= w - 1 + 1e-3) & (pos[1] >= -1e-3) & (pos[1] <= h - 1 + 1e-3)
+        grid = (pos.permute(1, 2, 0) * scale - 1.0)[None]  # [1, h, w, 2] in grid_sample's [-1, 1]
+        w_min = w_e.min(0).values.float()  # [h, w]
+        thr = confidence_threshold(w_min.cpu().numpy(), relative_weight)
+        w_at = torch.nn.functional.grid_sample(w_min[None, None], grid, align_corners=True)[0, 0]
+        t_at = torch.nn.functional.grid_sample(t_e[None].float(), grid, align_corners=True)[0]
+        ok &= (w_at > thr) & torch.isfinite(t_at).all(0)
+        pos = torch.where(ok[None], t_at, pos)
+    ok &= (target.float() - pos).norm(dim=0) <= tol
+    return weight * ok[None].to(weight.dtype)
+
+
 class Bootstrap:
     """Initialises the mapper's current fragment (``Mapper._try_initialise`` delegates here)."""
 
@@ -68,7 +101,16 @@ class Bootstrap:
         for a, m in init_pairs(first, k, self.cfg.init_window, self.cfg.init_tries):
             obs = mapper._observe(torch.tensor([a]), torch.tensor([m]))
             mapper._release_pairs(torch.tensor([a]), torch.tensor([m]))  # not an edge: not observed again
-            init, why = two_view_init_why(obs.target[0], obs.weight[0], g.intrinsics,
+            weight = obs.weight[0]
+            if self.cfg.init_chain_tol > 0 and m - a > 1:
+                # the pairs between are odometry edges: observed now, before the map exists, their flows must not
+                # stay cached (the window BA's first observation starts them from the map's poses)
+                ii, jj = torch.arange(a, m), torch.arange(a + 1, m + 1)
+                chain = mapper.frontend.observe(g, ii.to(g.device), jj.to(g.device))
+                mapper.frontend.discard_pairs(g.ids[ii.to(g.device)], g.ids[jj.to(g.device)])
+                weight = chain_checked(obs.target[0], weight, chain.target, chain.weight, self.cfg.init_chain_tol,
+                                       self.cfg.init_relative_confidence)
+            init, why = two_view_init_why(obs.target[0], weight, g.intrinsics,
                                           min_parallax_deg=self.cfg.init_min_parallax_deg,
                                           relative_weight=self.cfg.init_relative_confidence)
             if init is not None:

@@ -63,6 +63,21 @@ def two_view_init(
 RELATIVE_FLOOR = 0.05  # the lowest weight that counts as a confident correspondence under ``relative_weight``
 
 
+def confidence_threshold(w_min: np.ndarray, relative_weight: bool) -> float:
+    """The weight above which a correspondence (``w_min``: the smaller of its two weights, any shape) counts as
+    confident: 0.5, or with ``relative_weight`` half of the pair's 90th-percentile weight within
+    ``[RELATIVE_FLOOR, 0.5]``."""
+    if not relative_weight:
+        return 0.5
+    # "confident": above half of the pair's own high weights (90th percentile), at most 0.5.  A frontend whose
+    # confidences carry a texture term (flow frontend, texture_tau) keeps most weights of a textured street
+    # below 0.5, and the map then waited 3-9 s for enough pixels above 0.5 (bench/RESULTS.md, 12-02 f)
+    # ... but never below RELATIVE_FLOOR: where the flow failed almost everywhere the 90th percentile is ~0 and
+    # any pixel with a trace of weight would count (real KITTI 01 at 5 Hz, pair 0-4: 26 of 7285 pixels above
+    # 0.02, yet 747 "confident" ones above a threshold of 0; the map started on them at 4.4 % ATE)
+    return max(RELATIVE_FLOOR, min(0.5, 0.5 * float(np.quantile(w_min, 0.9))))
+
+
 def two_view_init_why(
     target: torch.Tensor,
     weight: torch.Tensor,
@@ -86,16 +101,7 @@ def two_view_init_why(
     p0 = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)  # [P, 2]
     p1 = target.detach().cpu().double().numpy().reshape(2, -1).T  # [P, 2]
     w_min = weight.detach().cpu().numpy().reshape(2, -1).min(0)  # [P]
-    thresh = 0.5
-    if relative_weight:
-        # "confident": above half of the pair's own high weights (90th percentile), at most 0.5.  A frontend whose
-        # confidences carry a texture term (flow frontend, texture_tau) keeps most weights of a textured street
-        # below 0.5, and the map then waited 3-9 s for enough pixels above 0.5 (bench/RESULTS.md, 12-02 f)
-        # ... but never below RELATIVE_FLOOR: where the flow failed almost everywhere the 90th percentile is ~0 and
-        # any pixel with a trace of weight would count (real KITTI 01 at 5 Hz, pair 0-4: 26 of 7285 pixels above
-        # 0.02, yet 747 "confident" ones above a threshold of 0; the map started on them at 4.4 % ATE)
-        thresh = max(RELATIVE_FLOOR, min(0.5, 0.5 * float(np.quantile(w_min, 0.9))))
-    good = (w_min > thresh) & np.isfinite(p1).all(1)
+    good = (w_min > confidence_threshold(w_min, relative_weight)) & np.isfinite(p1).all(1)
     if good.sum() < min_inliers:
         return None, f"{int(good.sum())} confident correspondences < {min_inliers} (the views do not overlap)"
     p0g, p1g = p0[good], p1[good]

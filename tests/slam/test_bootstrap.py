@@ -52,7 +52,7 @@ def test_initialises_on_a_later_pair_and_places_the_earlier_keyframes(monkeypatc
     real_observe = Mapper._observe
 
     def observe(self, ii, jj):  # the bootstrap observes exactly the pair it then hands to two_view_init_why
-        if not self.initialized:
+        if not self.initialized and len(ii) == 1:  # a pair, not a chain check
             tried.append((int(ii[0]), int(jj[0])))
         return real_observe(self, ii, jj)
 
@@ -86,7 +86,7 @@ def test_earlier_keyframe_without_a_pose_keeps_its_neighbours(monkeypatch):
     real_observe = Mapper._observe
 
     def observe(self, ii, jj):
-        if not self.initialized:
+        if not self.initialized and len(ii) == 1:  # a pair, not a chain check
             tried.append((int(ii[0]), int(jj[0])))
         return real_observe(self, ii, jj)
 
@@ -122,7 +122,7 @@ def test_warmup_ends_at_warmup_keyframes_or_three_spanning_warmup_seconds(monkey
         tried: list[int] = []
 
         def observe(self, ii, jj):
-            if not self.initialized:
+            if not self.initialized and len(ii) == 1:  # a pair, not a chain check
                 tried.append(int(jj[0]))
             return real_observe(self, ii, jj)
 
@@ -137,3 +137,43 @@ def test_warmup_ends_at_warmup_keyframes_or_three_spanning_warmup_seconds(monkey
     assert first_try(warmup_seconds=0.4) == 2  # 3 keyframes (0, 0.2, 0.4 s) already span 0.4 s
     assert first_try(warmup_seconds=0.5) == 3  # 4 keyframes span 0.6 s
     assert first_try(warmup_seconds=5.0) == 4  # never before the count
+
+
+def test_with_the_chain_check_the_pairs_between_are_observed_then_discarded_and_the_map_initialises(monkeypatch):
+    """graph.init_chain_tol > 0: each pair tried is followed by one observation of its consecutive keyframe pairs
+    (bootstrap.chain_checked), which the frontend is then told to discard (observed before the map existed); on
+    exact flow the map initialises as without it, at the same frame, and its trajectory is right up to scale."""
+    def run(tol):
+        m, ds = _build(init_chain_tol=tol)
+        fe = m.frontend
+        chains, discarded = [], []
+        real_observe, real_discard = fe.observe, fe.discard_pairs
+
+        def observe(graph, ii, jj):
+            if not m.initialized and len(ii) > 1:
+                chains.append((ii.tolist(), jj.tolist()))
+            return real_observe(graph, ii, jj)
+
+        def discard(src, dst):
+            discarded.append((src.tolist(), dst.tolist()))
+            return real_discard(src, dst)
+
+        monkeypatch.setattr(fe, "observe", observe)
+        monkeypatch.setattr(fe, "discard_pairs", discard)
+        results = [m.process(f, None) for f in ds]
+        m.finalize()
+        return m, chains, discarded, next(i for i, r in enumerate(results) if r.initialized)
+
+    m, chains, discarded, first = run(1.0)
+    assert chains and len(discarded) == len(chains)
+    for ii, jj in chains:  # consecutive keyframes a -> a+1 -> ... -> m
+        assert jj == [i + 1 for i in ii] and len(ii) >= 2
+    ids = m.graph.ids.tolist()
+    assert discarded[0] == ([ids[i] for i in chains[0][0]], [ids[j] for j in chains[0][1]])
+    m0, chains0, _, first0 = run(0.0)
+    assert not chains0 and first0 == first
+    _, ds = _build()
+    gt = torch.stack([f.gt_pose for f in ds])
+    for mm in (m, m0):  # right up to scale both (the chain drops what leaves the view: another median depth)
+        ate = umeyama_ate(mm.trajectory()[1][:, :3], gt[:, :3])
+        assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate

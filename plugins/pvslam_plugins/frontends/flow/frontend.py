@@ -390,6 +390,13 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
             if rev is not None and not rev.requested:  # computed only alongside the retired direction
                 del self._edges[(b, a)]
 
+    def discard_pairs(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
+        # both directions: a pair's flows are computed together, from the poses of the moment (reprojection init,
+        # the road plane's rotation); observed before the map existed they would stay cached that way
+        for a, b in zip(src_ids.tolist(), dst_ids.tolist()):
+            self._edges.pop((a, b), None)
+            self._edges.pop((b, a), None)
+
     def initial_depth(self, graph, kf_id: int) -> Optional[torch.Tensor]:
         """The newest keyframe's median inverse depth everywhere (:func:`pvslam_core.slam.graph.median_disp_map`)."""
         return median_disp_map(graph)

@@ -316,6 +316,11 @@ class RaftGruFrontend(Frontend):
         for key in zip(src_ids.tolist(), dst_ids.tolist()):
             self._edges.pop(key, None)
 
+    def discard_pairs(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
+        # the next observe starts these edges afresh (DROID's add_factors: reprojection target, the source's net0)
+        for key in zip(src_ids.tolist(), dst_ids.tolist()):
+            self._edges.pop(key, None)
+
     def initial_depth(self, graph, kf_id: int) -> Optional[torch.Tensor]:
         """The newest keyframe's median inverse depth everywhere (:func:`pvslam_core.slam.graph.median_disp_map`)."""
         return median_disp_map(graph)

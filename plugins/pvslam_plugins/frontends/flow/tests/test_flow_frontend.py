@@ -220,6 +220,35 @@ def test_reprojection_init_for_long_baseline_edge():
     assert err_zero > 1.0, err_zero
 
 
+def test_discarded_pairs_are_computed_afresh_from_the_next_observes_poses():
+    """A pair observed before the map knew the motion (identity poses: the initialisation's chain check) keeps no
+    cached flow after ``discard_pairs``: the next observe starts it from the map's poses (reprojection init)."""
+    big = S.texture("astronaut")
+    shifts = [0.0, 130.0]  # 16 BA px: DIS needs the reprojection init here (the test above)
+    xs, ys = _grid()
+    ok = xs + shifts[1] / 8 < BA_W - 1  # pixels that stay in view
+    fe = _frontend(dynamic_masking=False)
+    for k, dx in enumerate(shifts):
+        fe.add_keyframe(k, S.frame(S.shifted(big, dx), k), None)
+    ii, jj = torch.tensor([0]), torch.tensor([1])
+
+    def err(obs):
+        return float((obs.target[0, 0] - xs - shifts[1] / 8).abs()[ok].median())
+
+    blind = fe.observe(_graph([0.0, 0.0]), ii, jj)  # no motion known yet
+    per_pair = fe.stats["edges_computed"]  # (both directions of the pair)
+    assert err(blind) > 1.0 and per_pair > 0
+    known = _graph(shifts)
+    assert err(fe.observe(known, ii, jj)) == err(blind)  # cached: the blind flow would stay
+    assert fe.stats["edges_computed"] == per_pair
+    fe.discard_pairs(ii, jj)
+    fresh = fe.observe(known, ii, jj)
+    assert fe.stats["edges_computed"] == 2 * per_pair and err(fresh) < 0.1
+    fe.discard_pairs(jj, ii)  # either direction forgets the pair
+    fe.observe(known, ii, jj)
+    assert fe.stats["edges_computed"] == 3 * per_pair
+
+
 def test_initial_depth_median_of_previous_keyframe():
     big = S.texture("astronaut")
     g = _graph([0.0, 16.0])

@@ -155,6 +155,14 @@ def test_state_dropped_on_retirement_and_removal(net, rgb):
     assert fe.edge_ids() == [(0, 1), (1, 0), (1, 2), (2, 1)]
     g.retire_edges(torch.tensor([True, False, False, False]))
     assert fe.edge_ids() == [(1, 0), (1, 2), (2, 1)]
+    old = fe._edges[(1, 2)]
+    fe.observe(g, torch.tensor([1]), torch.tensor([2]))
+    assert fe._edges[(1, 2)] is old and old.updates == 2
+    fe.discard_pairs(torch.tensor([1]), torch.tensor([2]))  # still an edge of the graph, its state forgotten
+    assert fe.edge_ids() == [(1, 0), (2, 1)]
+    fe.observe(g, torch.tensor([1]), torch.tensor([2]))  # a fresh state, updated once
+    assert fe._edges[(1, 2)] is not old and fe._edges[(1, 2)].updates == 1
+    assert fe.edge_ids() == [(1, 0), (1, 2), (2, 1)]
     g.remove_keyframe(1)  # ids 0, 2 remain; every edge touched keyframe id 1
     assert fe.edge_ids() == [] and fe.num_keyframes == 2
     obs = fe.observe(g, torch.tensor([0]), torch.tensor([1]))  # a fresh edge 0 -> id 2 (index 1)
