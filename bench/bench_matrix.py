@@ -32,7 +32,9 @@ Columns: ``posed`` frames with a pose estimate (not a placeholder: tracking did 
 initialised), ``init`` the frame where the map first initialised and the seconds of camera motion before it,
 ``reinit`` re-initialisations, ``fps`` pvslam's frames per second (one torch thread; wall time, so a loaded machine
 lowers it), ``VO %`` with ``*`` when the textbook VO never initialised (identity poses), ``VO/pv`` textbook VO ATE /
-pvslam ATE (the issue's target is >= 3), ``line`` the straight line.
+pvslam ATE (the issue's target is >= 3), ``line`` the straight line.  Below the table, the summary's "map at
+initialisation" line: the median rotation and translation-direction errors of each run's first map against the
+ground truth (``matrix_jobs.init_errors``) and the cells whose map started wrong (R > 3 deg or t > 20 deg).
 """
 from __future__ import annotations
 
