@@ -159,13 +159,13 @@ def init_errors(kf_ts: np.ndarray, kf_poses: np.ndarray, gt_ts: np.ndarray, gt: 
     view) shows here before the window BA's later drift hides where it came from."""
     from scipy.spatial.transform import Rotation
 
-    def at(t):
-        k = int(np.argmin(np.abs(gt_ts - t)))
-        return gt[k] if abs(gt_ts[k] - t) <= 0.02 else None
+    from bench.peers.common import _associate
 
-    a, b = at(kf_ts[0]), at(kf_ts[-1])
-    if len(kf_ts) < 2 or a is None or b is None:
+    ends = np.asarray([kf_ts[0], kf_ts[-1]], dtype=np.float64) if len(kf_ts) >= 2 else np.zeros(0)
+    found, at = _associate(ends, gt_ts, max_diff=0.02)
+    if len(found) < 2:
         return {"init_rot_err_deg": None, "init_t_err_deg": None}
+    a, b = gt[at[0]], gt[at[1]]
     rel = {}
     for key, (pa, pb) in (("est", (kf_poses[0], kf_poses[-1])), ("gt", (a, b))):
         Ra, Rb = Rotation.from_quat(pa[3:7]), Rotation.from_quat(pb[3:7])

@@ -63,12 +63,11 @@ def chain_checked(target: torch.Tensor, weight: torch.Tensor, chain_target: torc
     the road still in view, forward-backward consistent: 255 of the 321 confident correspondences of the highway's
     init pair (unseen seed 69) had no true match, and the cheirality test then favoured sideways or reversed motions
     (bench/RESULTS.md, 12-03 g).  Each short link keeps most of its pixels in view and the chain follows them out."""
+    from ..geometry.projective import pixel_grid
     from .initializer import confidence_threshold
 
     h, w = target.shape[-2:]
-    ys, xs = torch.meshgrid(torch.arange(h, device=target.device), torch.arange(w, device=target.device),
-                            indexing="ij")
-    pos = torch.stack([xs, ys]).float()  # [2, h, w] where each view-a pixel is, link by link
+    pos = pixel_grid(h, w, target.device).permute(2, 0, 1)  # [2, h, w] where each view-a pixel is, link by link
     ok = torch.ones(h, w, dtype=torch.bool, device=target.device)
     scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], device=target.device)
     for t_e, w_e in zip(chain_target, chain_weight):
@@ -76,8 +75,9 @@ def chain_checked(target: torch.Tensor, weight: torch.Tensor, chain_target: torc
         grid = (pos.permute(1, 2, 0) * scale - 1.0)[None]  # [1, h, w, 2] in grid_sample's [-1, 1]
         w_min = w_e.min(0).values.float()  # [h, w]
         thr = confidence_threshold(w_min.cpu().numpy(), relative_weight)
-        w_at = torch.nn.functional.grid_sample(w_min[None, None], grid, align_corners=True)[0, 0]
-        t_at = torch.nn.functional.grid_sample(t_e[None].float(), grid, align_corners=True)[0]
+        # the link's target (x, y) and confidence at each pixel's current position, one bilinear sample
+        at = torch.nn.functional.grid_sample(torch.cat([t_e.float(), w_min[None]])[None], grid, align_corners=True)[0]
+        t_at, w_at = at[:2], at[2]
         ok &= (w_at > thr) & torch.isfinite(t_at).all(0)
         pos = torch.where(ok[None], t_at, pos)
     ok &= (target.float() - pos).norm(dim=0) <= tol
@@ -105,9 +105,9 @@ class Bootstrap:
             if self.cfg.init_chain_tol > 0 and m - a > 1:
                 # the pairs between are odometry edges: observed now, before the map exists, their flows must not
                 # stay cached (the window BA's first observation starts them from the map's poses)
-                ii, jj = torch.arange(a, m), torch.arange(a + 1, m + 1)
-                chain = mapper.frontend.observe(g, ii.to(g.device), jj.to(g.device))
-                mapper.frontend.discard_pairs(g.ids[ii.to(g.device)], g.ids[jj.to(g.device)])
+                ii, jj = torch.arange(a, m, device=g.device), torch.arange(a + 1, m + 1, device=g.device)
+                chain = mapper.frontend.observe(g, ii, jj)
+                mapper.frontend.discard_pairs(g.ids[ii], g.ids[jj])
                 weight = chain_checked(obs.target[0], weight, chain.target, chain.weight, self.cfg.init_chain_tol,
                                        self.cfg.init_relative_confidence)
             init, why = two_view_init_why(obs.target[0], weight, g.intrinsics,

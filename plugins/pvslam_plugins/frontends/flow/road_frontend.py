@@ -234,9 +234,10 @@ class RoadFlows:
         pairs, dist = [], []
         for a, b in zip(ks[:-1], ks[1:]):
             v = self._road_chain.prior(ids[a], ids[b]) if b == a + 1 else None
-            if v is not None and float(np.linalg.norm(v)) > 1e-9:
+            size = 0.0 if v is None else float(np.linalg.norm(v))  # camera heights
+            if size > 1e-9:
                 pairs.append((a, b))
-                dist.append(self.road_height_motion * float(np.linalg.norm(v)))
+                dist.append(self.road_height_motion * size)
         if not pairs:
             return None
         ii = torch.tensor([p[0] for p in pairs], dtype=torch.int64)

@@ -317,9 +317,9 @@ class RaftGruFrontend(Frontend):
             self._edges.pop(key, None)
 
     def discard_pairs(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
-        # the next observe starts these edges afresh (DROID's add_factors: reprojection target, the source's net0)
-        for key in zip(src_ids.tolist(), dst_ids.tolist()):
-            self._edges.pop(key, None)
+        # the same per-edge state as a retirement drops: the next observe starts these edges afresh (DROID's
+        # add_factors: reprojection target, the source's net0)
+        self.on_edges_retired(src_ids, dst_ids)
 
     def initial_depth(self, graph, kf_id: int) -> Optional[torch.Tensor]:
         """The newest keyframe's median inverse depth everywhere (:func:`pvslam_core.slam.graph.median_disp_map`)."""
