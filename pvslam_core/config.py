@@ -117,19 +117,25 @@ class GraphSection(PluginConfig):
         "camera over a textureless room made its 5th keyframe only 1.4-2.1 s into the motion; on the 10-12 frames/s "
         "driving sequences (a keyframe every ~2 frames) 5 keyframes come first (pvslam_core/slam/bootstrap.py)")
     init_min_parallax_deg: float = Field(
-        0.5, gt=0, description="two-view initialisation needs at least this median parallax (degrees); KITTI 01's "
+        0.5, gt=0, description="two-view initialisation needs at least this parallax (degrees, at "
+        "graph.init_parallax_quantile of its points); KITTI 01's "
         "highway frames give 0.7-0.8 deg between nearby keyframes (far, forward-looking points)")
+    init_parallax_quantile: float = Field(
+        0.75, gt=0, lt=1, description="...at this quantile of the pair's triangulated points' parallax (0.5: the "
+        "median). With graph.init_chain_tol the near road of a fast forward drive, which gave the pair its "
+        "parallax, is removed as unmatched, and the far field and the focus of expansion hold the median down "
+        "(pvslam_core/slam/initializer.py, bench/RESULTS.md)")
     init_relative_confidence: bool = Field(
         True, description="two-view initialisation counts a correspondence as confident above half of the pair's "
         "90th-percentile weight (at most 0.5, at least initializer.RELATIVE_FLOOR = 0.05) instead of above 0.5 "
         "(false): a frontend whose weights sit lower, such as the flow frontend with its texture term, would "
         "otherwise start the map seconds late")
     init_chain_tol: float = Field(
-        0.0, ge=0, description="two-view initialisation keeps a correspondence of its pair (a, m) only where the "
+        1.0, ge=0, description="two-view initialisation keeps a correspondence of its pair (a, m) only where the "
         "flows of the keyframes between, chained a -> a+1 -> ... -> m, stay in view and land within this many BA "
-        "px of it (0: off; 1.0 is the value measured). On a fast forward drive the near road leaves the view "
-        "within the pair, yet its flow passes the forward-backward check; the check can leave too few "
-        "correspondences there and delay the start (pvslam_core/slam/bootstrap.py, bench/RESULTS.md)")
+        "px of it (0: off). On a fast forward drive the near road leaves the view within the pair, yet its flow "
+        "passes the forward-backward check and corrupts the two-view choice; with the check the parallax is read "
+        "at graph.init_parallax_quantile (pvslam_core/slam/bootstrap.py, bench/RESULTS.md)")
     init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe, all ending "
                             "at the newest: from the window's first keyframe, from the middle, from two back (fast "
                             "motion breaks the flow of the farthest pair; pvslam_core/slam/bootstrap.py)")
@@ -150,6 +156,10 @@ class GraphSection(PluginConfig):
         "(BA px; 0: the mean alone): where most of the image is far (a wide street, a highway) the mean stays small "
         "while the near field moves several BA px, and keyframes 13 m apart were judged redundant "
         "(pvslam_core/slam/keyframing.py)")
+    fill_row_min_frac: float = Field(
+        0.25, ge=0, le=1, description="a new keyframe's depth is the previous one's moved into it; a row with at "
+        "least this fraction of its pixels known fills its holes with its own median, the others with the image's "
+        "(0: the image's median everywhere; pvslam_core/geometry/projective.py fill_holes)")
     max_keyframe_gap_s: float = Field(
         0.5, gt=0, description="a keyframe whose removal would leave more than this many seconds between the "
         "keyframes around it is never redundant, whatever the estimate says (ORB-SLAM keeps one at least every "

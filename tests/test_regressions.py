@@ -268,11 +268,13 @@ def test_loop_closure_keeps_the_default_map(block_on, block_off):
     assert _loop_gap(block_on) < _loop_gap(block_off)
 
 
-def test_loop_test_catches_loop_closure_off(block_off):
-    """Test of the test: without loop closure, the loop test fails, on the loop gap as well as on detection."""
+def test_loop_test_catches_loop_closure_off(block_off, drift_off):
+    """Test of the test: without loop closure, the loop test fails, on detection (the default map) and on the loop
+    gap (the drifting map: since the chain-checked initialisation, 12-03 h, the default block drive without loops
+    drifts so little that its gap, 0.34, is within the bound)."""
     with pytest.raises(AssertionError):
         _closes_loop(block_off)
-    gap = _loop_gap(block_off)
+    gap = _loop_gap(drift_off)
     assert not gap < LOOP_GAP_BOUND, gap
 
 
@@ -290,7 +292,10 @@ MV_FRAMES = 120  # busy_street: buses and cars up to a third of the image crossi
 # switches the texture term off to see the masking alone (it must hold with masking on, and fail with it off).
 # Since the road plane's depth prior became the default (sessions 12-03 d, e) it holds the busy street's scale on
 # its own too (masking off and texture term off: ~0.1 %), so the masking's variants also switch the road plane off.
-MV_BOUND = 12.0
+# Since the chain-checked initialisation became the default (12-03 h) the seed-0 street starts right without the
+# masking too: masking on (texture and road off) 1.78 %, off 11.33 % (was above 12): the bound sits between, 2.5x
+# from each.
+MV_BOUND = 4.5
 TEXTURE_OFF = ["frontend.texture_tau=0", *ROAD_OFF]
 
 

@@ -88,12 +88,14 @@ def two_view_init_why(
     refine: bool = True,
     front_frac: float = 0.65,
     relative_weight: bool = False,
+    parallax_quantile: float = 0.5,
 ) -> tuple[Optional[TwoViewInit], str]:
     """``(init or None, reason)``: the reason says why the pair was declined ("" on success).  ``refine=False``
     skips the Sampson refinement (hypotheses: RANSAC's essential matrix and the homography's decompositions only);
     ``front_frac``: see the module docstring.  A correspondence is confident above a weight of 0.5 or, with
     ``relative_weight``, above half of the pair's 90th-percentile weight (at most 0.5, at least
-    ``RELATIVE_FLOOR``)."""
+    ``RELATIVE_FLOOR``).  The pair must show ``min_parallax_deg`` at the ``parallax_quantile`` of its triangulated
+    points' parallax (0.5: the median)."""
     import cv2
 
     h, w = target.shape[-2:]
@@ -162,10 +164,11 @@ def two_view_init_why(
         LOG.debug("two-view hypotheses (model, in front, cost px^2, t): %s", "; ".join(
             f"{c[7]} {c[0]} {c[1] * px * px:.4f} {np.round(c[3].ravel(), 2).tolist()}" for c in scored))
     _, _, R, t, inl, X, ok, model = best
-    med_par = float(np.median(_parallax_deg(X, R, t)[ok]))
-    if med_par < min_parallax_deg:
+    par = float(np.quantile(_parallax_deg(X, R, t)[ok], parallax_quantile))
+    if par < min_parallax_deg:
         what = "mostly a rotation or a far scene" if model == "H" else "too short a baseline"
-        return None, f"median parallax {med_par:.2f} deg < {min_parallax_deg:.2f} ({what}; R_H {r_h:.2f})"
+        which = "median" if parallax_quantile == 0.5 else f"{100 * parallax_quantile:.0f}th-percentile"
+        return None, f"{which} parallax {par:.2f} deg < {min_parallax_deg:.2f} ({what}; R_H {r_h:.2f})"
     z = X[:, 2]
     disp_pts = 1.0 / z[ok]
     scale = float(np.median(disp_pts))  # make the median inverse depth 1
@@ -179,9 +182,9 @@ def two_view_init_why(
     T_c1_c0[:3, 3] = t.ravel() * scale  # inverse depths were divided by `scale`, so depths and translation grow by it
     T_wc1 = np.linalg.inv(T_c1_c0)
     pose = se3_from_matrix(torch.from_numpy(T_wc1))
-    LOG.info("two-view initialisation (%s model, R_H %.2f): %d inliers, median parallax %.2f deg", model, r_h,
-             int(ok.sum()), med_par)
-    return TwoViewInit(pose, torch.from_numpy(disp0.reshape(h, w)).float(), int(ok.sum()), med_par, model), ""
+    LOG.info("two-view initialisation (%s model, R_H %.2f): %d inliers, parallax %.2f deg at quantile %.2f", model,
+             r_h, int(ok.sum()), par, parallax_quantile)
+    return TwoViewInit(pose, torch.from_numpy(disp0.reshape(h, w)).float(), int(ok.sum()), par, model), ""
 
 
 def _parallax_deg(X: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:

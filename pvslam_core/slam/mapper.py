@@ -37,7 +37,7 @@ import torch
 
 from ..config import PipelineConfig
 from ..geometry.lie import se3_interpolate, se3_inv, se3_mul
-from ..geometry.projective import edge_transforms, frame_distance, project_points
+from ..geometry.projective import edge_transforms, fill_holes, frame_distance, project_points
 from ..interfaces import GraphListener
 from ..types import EdgeObservations, Frame, FrameResult, LoopClosure, PanopticSegmentation, SequenceInfo, TrackResult
 from .edges import active_edges, frozen_edges, loop_edges, neighbour_edges, proximity_edges, retirement_mask
@@ -294,7 +294,7 @@ class Mapper(GraphListener):
 
     def _warped_depth(self, a: int, pose_k: torch.Tensor) -> Optional[torch.Tensor]:
         """Inverse depth of a new keyframe at ``pose_k``: keyframe ``a``'s depth map moved into it (z-buffered
-        splat at the BA resolution, holes filled with the median). A far better start for the BA than a constant."""
+        splat at the BA resolution, holes filled by :func:`~..geometry.projective.fill_holes`). A far better start for the BA than a constant."""
         h, w = self.ba_shape
         g = self.graph
         poses = torch.stack([g.poses[a].double(), pose_k.to(g.device).double()])
@@ -309,9 +309,8 @@ class Mapper(GraphListener):
         idx = (v[ok] * w + u[ok]).long()
         disp_k = d_a[0, ok] / out["z"][0, ok]
         disp = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, disp_k, reduce="amax")
-        hole = disp <= 0
-        disp[hole] = disp[~hole].median()
-        return disp.reshape(h, w)
+        disp = disp.reshape(h, w)
+        return fill_holes(disp, disp <= 0, self.cfg.fill_row_min_frac)
 
     def _add_keyframe(self, frame: Frame, seg, pose: torch.Tensor, disp: Optional[torch.Tensor],
                       provisional: bool = False) -> int:

@@ -106,3 +106,48 @@ def test_reprojection_matches_opencv_projectpoints():
     ok = valid[0].reshape(-1).numpy()
     assert ok.mean() > 0.9
     np.testing.assert_allclose(coords[0].reshape(-1, 2).numpy()[ok], uv.reshape(-1, 2)[ok], atol=1e-8)
+
+
+def _floor_disparity(h, w, fy, cy, height=1.5, pitch=0.0):
+    """Inverse depth of a horizontal floor ``height`` below a camera (y down) pitched down by ``pitch`` rad: a
+    function of the row alone; rows at or above the horizon see no floor (0)."""
+    v = torch.arange(h, dtype=torch.float64)[:, None].expand(h, w)
+    ray_y = (v - cy) / fy  # normalised ray (x, ray_y, 1); in a level frame its downward part:
+    down = ray_y * torch.cos(torch.tensor(pitch)) + torch.sin(torch.tensor(pitch))
+    return (down / height).clamp(min=0)
+
+
+def test_fill_holes_by_row_recovers_a_floor_the_image_median_does_not():
+    from pvslam_core.geometry.projective import fill_holes
+
+    h, w = 12, 16
+    disp = _floor_disparity(h, w, fy=14.0, cy=2.5, pitch=0.25)  # the floor fills the view
+    assert float(disp.min()) > 0
+    hole = torch.zeros(h, w, dtype=torch.bool)
+    hole[:, 11:] = True  # a turn brought 5 new columns in
+    by_row = fill_holes(disp, hole, row_min_frac=0.25)
+    assert torch.allclose(by_row, disp)  # each row's known part is the row's depth
+    whole = fill_holes(disp, hole, row_min_frac=0.0)
+    assert torch.equal(whole[~hole], disp[~hole])
+    assert torch.equal(whole[hole], disp[~hole].median().expand(int(hole.sum())))  # the old rule
+    assert float((whole - disp).abs().max()) > 0.1 * float(disp.max())
+
+
+def test_fill_holes_falls_back_to_the_image_median_on_rows_with_too_few_known_pixels():
+    from pvslam_core.geometry.projective import fill_holes
+
+    g = torch.Generator().manual_seed(3)
+    disp = 0.2 + torch.rand(6, 10, generator=g, dtype=torch.float64)
+    hole = torch.zeros(6, 10, dtype=torch.bool)
+    hole[0, :8] = True  # row 0: 2 of 10 known (< 0.25)
+    hole[1, :7] = True  # row 1: 3 of 10 known (>= 0.25)
+    hole[2:, 9] = True
+    out = fill_holes(disp, hole, row_min_frac=0.25)
+    whole = disp[~hole].median()
+    assert torch.equal(out[0, :8], whole.expand(8))
+    assert torch.equal(out[1, :7], disp[1, 7:].median().expand(7))
+    for r in range(2, 6):
+        assert out[r, 9] == disp[r, :9].median()
+    assert torch.equal(out[~hole], disp[~hole])
+    assert not torch.isnan(out).any()
+    assert torch.equal(fill_holes(disp, torch.zeros_like(hole)), disp)  # nothing to fill
