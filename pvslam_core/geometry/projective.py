@@ -233,7 +233,6 @@ def fill_holes(disp: torch.Tensor, hole: torch.Tensor, row_min_frac: float = 0.0
     on the spot the median of the previous view walked the map's scale off by e^-0.4 on the synthetic head
     camera (handheld_fast, seed 72; bench/RESULTS.md, 12-03 h)."""
     known = ~hole
-    out = disp.clone()
     whole = disp[known].median()
     if row_min_frac > 0:
         rows = torch.where(known, disp, torch.full_like(disp, float("nan"))).nanmedian(dim=1).values  # [h]
@@ -241,4 +240,4 @@ def fill_holes(disp: torch.Tensor, hole: torch.Tensor, row_min_frac: float = 0.0
         fill = torch.where(use, rows, whole)[:, None].expand_as(disp)
     else:
         fill = whole.expand_as(disp)
-    return torch.where(hole, fill, out)
+    return torch.where(hole, fill, disp)

@@ -294,7 +294,8 @@ class Mapper(GraphListener):
 
     def _warped_depth(self, a: int, pose_k: torch.Tensor) -> Optional[torch.Tensor]:
         """Inverse depth of a new keyframe at ``pose_k``: keyframe ``a``'s depth map moved into it (z-buffered
-        splat at the BA resolution, holes filled by :func:`~..geometry.projective.fill_holes`). A far better start for the BA than a constant."""
+        splat at the BA resolution, holes filled by :func:`~..geometry.projective.fill_holes`). A far better start
+        for the BA than a constant."""
         h, w = self.ba_shape
         g = self.graph
         poses = torch.stack([g.poses[a].double(), pose_k.to(g.device).double()])
