@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Optional
 import torch
 
 from ..geometry.ba import motion_only_ba
-from ..geometry.lie import quat_mul, quat_rotate, se3_exp, se3_interpolate, se3_inv, se3_mul
+from ..geometry.lie import quat_mul, quat_rotate, se3_exp, se3_interpolate, se3_mul
 from ..geometry.projective import edge_transforms, project_points
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -216,7 +216,6 @@ def replace_gap_frames(mapper: "Mapper", first: int) -> int:
     t_a, t_b = g.poses[first - 1].double().cpu(), g.poses[first].double().cpu()
     alpha = torch.tensor([(e.timestamp - ts_a) / (ts_b - ts_a) for e in gap], dtype=torch.float64)
     poses = se3_interpolate(t_a.expand(len(gap), 7), t_b.expand(len(gap), 7), alpha)
-    rel = se3_mul(se3_inv(t_b).expand(len(gap), 7), poses)
-    for e, r in zip(gap, rel):
-        e.anchor, e.rel, e.target, e.weight = b_id, r, None, None
+    for e, pose in zip(gap, poses):  # held between the two from now on: they follow both
+        mapper.frames.hold_between(e, a_id, b_id, pose)
     return len(gap)

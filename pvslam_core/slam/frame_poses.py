@@ -8,6 +8,16 @@ final (:meth:`FramePoses.refill`; the mapper's per-keyframe fill runs on a backg
 :meth:`FramePoses.refine_many_later`).  When an anchor keyframe is removed, its frames re-anchor to the keyframe
 before it (the graph tells, see :meth:`on_keyframe_removed`).  Poses are T_wc ``[t, q_xyzw]``
 (:mod:`pvslam_core.types`).
+
+A frame whose anchor was removed has lost its correspondences (they referred to the removed keyframe's pixels), so
+no refill re-estimates it.  Held rigidly to the keyframe before, it would not follow the map's scale, which moves
+after it is placed (window BAs, the loop pose graph's Sim(3)): on indoor_handheld/78 (used seed) such frames, placed
+at a map scale of 0.31 (est / true) and read at the final 0.45, sat 40-100 mm off a track within 8-15 mm.  Such a
+frame is therefore held *between* the keyframes around it (``FrameEntry.upto``): its pose is the time interpolation
+of the two (:func:`~..geometry.lie.se3_interpolate`) composed with the small relative pose it had from that
+interpolation when it lost its correspondences, and it follows whatever moves or rescales the two.  (Tried first and
+not kept: reading ``rel``'s translation in its anchor's median inverse depth; on the highway that median is the far
+field's, which moves without the scale, and the frames between keyframes went 1.4 -> 6.8 m off, see RESULTS.md.)
 """
 from __future__ import annotations
 
@@ -17,7 +27,7 @@ from typing import TYPE_CHECKING, Optional
 import torch
 
 from ..background import BackgroundWriter
-from ..geometry.lie import se3_inv, se3_mul
+from ..geometry.lie import se3_interpolate, se3_inv, se3_mul
 
 if TYPE_CHECKING:  # pragma: no cover
     from .graph import FrameGraph
@@ -33,6 +43,7 @@ class FrameEntry:
     weight: Optional[torch.Tensor] = None
     is_keyframe: bool = False
     failed: bool = False
+    upto: Optional[int] = None  # stable id of the keyframe after it: rel is then from the interpolation of the two
 
 
 IDENTITY = torch.tensor([0, 0, 0, 0, 0, 0, 1], dtype=torch.float64)
@@ -87,26 +98,60 @@ class FramePoses:
     def last_rel(self) -> torch.Tensor:
         if not self._entries:
             return IDENTITY.clone()
-        if id(self._entries[-1]) in self._busy:
+        e = self._entries[-1]
+        if id(e) in self._busy:
             self.sync()
-        return self._entries[-1].rel.clone()
+        if e.upto is None:
+            return e.rel.clone()
+        return se3_mul(se3_inv(self.graph.poses[self.graph.index_of(e.anchor)].double().cpu()), self.pose_of(e))
+
+    def hold_between(self, e: FrameEntry, anchor: int, upto: Optional[int], pose_wc: torch.Tensor) -> None:
+        """Hold entry ``e`` at ``pose_wc`` (float64 [7] T_wc, under the current keyframe poses) between keyframe ids
+        ``anchor`` and ``upto`` (None: rigidly to ``anchor``); its correspondences are dropped."""
+        e.anchor, e.upto, e.target, e.weight = anchor, upto, None, None
+        e.is_keyframe = False
+        e.rel = se3_mul(se3_inv(self._base(e)), pose_wc.double().cpu())
+
+    def bracket(self, anchor: int, upto: int) -> int:
+        """Hold the frames rigidly anchored to keyframe id ``anchor`` without correspondences (re-anchored there by a
+        removal when no keyframe followed yet) between it and the new keyframe ``upto``, at their poses now.  Returns
+        how many."""
+        g = self.graph
+        ts_a, ts_b = float(g.timestamps[g.index_of(anchor)]), float(g.timestamps[g.index_of(upto)])
+        todo = [e for e in self.entries if e.anchor == anchor and e.upto is None and e.target is None
+                and not e.is_keyframe and not e.failed and ts_a < e.timestamp < ts_b]
+        for e in todo:
+            self.hold_between(e, anchor, upto, self.pose_of(e))
+        return len(todo)
+
+    def _base(self, e: FrameEntry) -> torch.Tensor:
+        """float64 [7] T_wc that ``e.rel`` is relative to: its anchor, or the interpolation to ``e.upto``."""
+        g = self.graph
+        a = g.index_of(e.anchor)
+        t_a = g.poses[a].double().cpu()
+        if e.upto is None:
+            return t_a
+        b = g.index_of(e.upto)
+        return se3_interpolate(t_a, g.poses[b].double().cpu(),
+                               _alpha(e.timestamp, float(g.timestamps[a]), float(g.timestamps[b])))
 
     # ------------------------------------------------------------------------------------ GraphListener --
     def on_keyframe_removed(self, kf_id: int) -> None:
-        """Frames anchored to ``kf_id`` re-anchor to the keyframe before it (poses unchanged)."""
+        """Frames anchored to ``kf_id`` (and its own entry) are held, at their poses now, between the keyframes
+        before and after it (rigidly to the one before when it is the newest); frames held up to it, up to the one
+        after it."""
         self.sync()  # the refinements of its frames finish before they move
         g = self.graph
         k = g.index_of(kf_id)
         if k == 0:
             raise ValueError("the first keyframe cannot be removed (it anchors the map)")
         prev_id = g.id_of(k - 1)
-        t_prev_k = se3_mul(se3_inv(g.poses[k - 1].double().cpu()), g.poses[k].double().cpu())  # T_{k-1}^-1 T_k
+        next_id = g.id_of(k + 1) if k + 1 < g.n else None
         for e in self.entries:
-            if e.anchor == kf_id:
-                e.rel = se3_mul(t_prev_k, e.rel)
-                e.anchor = prev_id
-                e.is_keyframe = False
-                e.target = e.weight = None  # correspondences referred to the removed keyframe's pixels
+            if e.anchor == kf_id:  # its correspondences referred to the removed keyframe's pixels
+                self.hold_between(e, prev_id, next_id, self.pose_of(e))
+            elif e.upto == kf_id:
+                self.hold_between(e, e.anchor, next_id, self.pose_of(e))
 
     def on_edges_retired(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
         pass
@@ -121,17 +166,29 @@ class FramePoses:
         if not self.entries:
             return torch.zeros(0, dtype=torch.float64), torch.zeros(0, 7, dtype=torch.float64)
         ts = torch.tensor([e.timestamp for e in self.entries], dtype=torch.float64)
-        anchors = self.graph.indices_of(torch.tensor([e.anchor for e in self.entries], dtype=torch.int64)).cpu()
+        g = self.graph
+        anchors = g.indices_of(torch.tensor([e.anchor for e in self.entries], dtype=torch.int64)).cpu()
         if bool((anchors < 0).any()):
             raise RuntimeError("a frame is anchored to a keyframe that is no longer in the graph")
-        rel = torch.stack([e.rel for e in self.entries])
-        return ts, se3_mul(self.graph.poses.double().cpu()[anchors], rel)
+        rel = torch.stack([e.rel for e in self.entries])  # [T, 7]
+        kf_poses = g.poses.double().cpu()
+        base = kf_poses[anchors]  # [T, 7]
+        held = torch.tensor([n for n, e in enumerate(self.entries) if e.upto is not None], dtype=torch.int64)
+        if held.numel():  # frames held between two keyframes: [H] rows
+            upto = g.indices_of(torch.tensor([self.entries[n].upto for n in held.tolist()], dtype=torch.int64)).cpu()
+            if bool((upto < 0).any()):
+                raise RuntimeError("a frame is held up to a keyframe that is no longer in the graph")
+            kf_ts = g.timestamps.double().cpu()
+            ts_a, ts_b = kf_ts[anchors[held]], kf_ts[upto]
+            alpha = torch.where(ts_b > ts_a, (ts[held] - ts_a) / (ts_b - ts_a).clamp(min=1e-12), torch.zeros_like(ts_a))
+            base[held] = se3_interpolate(base[held], kf_poses[upto], alpha)
+        return ts, se3_mul(base, rel)
 
     def pose_of(self, e: FrameEntry) -> torch.Tensor:
         """float64 [7] T_wc of one entry under the current keyframe poses."""
         if id(e) in self._busy:
             self.sync()
-        return se3_mul(self.graph.poses[self.graph.index_of(e.anchor)].double().cpu(), e.rel)
+        return se3_mul(self._base(e), e.rel)
 
     # ---------------------------------------------------------------------------------- motion-only BA --
     def motion_only(self, init_wc: torch.Tensor, kf_pose: torch.Tensor, kf_disp: torch.Tensor, intr: torch.Tensor,
@@ -198,7 +255,7 @@ class FramePoses:
             rel = se3_mul(inv_a.expand(len(rows), 7), poses.double().cpu())
             for m, n in enumerate(rows):
                 if ok[m]:
-                    entries[n].rel = rel[m]
+                    entries[n].rel, entries[n].upto = rel[m], None  # solved against the anchor alone
                     done += 1
         return done
 
@@ -210,3 +267,8 @@ class FramePoses:
         _, poses = self.poses()
         index = {id(e): n for n, e in enumerate(self.entries)}
         return self.refine_many(todo, poses[[index[id(e)] for e in todo]], iters)
+
+
+def _alpha(ts: float, ts_a: float, ts_b: float) -> float:
+    """Fraction of the way from ``ts_a`` to ``ts_b`` at ``ts`` (0 when the two coincide)."""
+    return (ts - ts_a) / (ts_b - ts_a) if ts_b > ts_a else 0.0

@@ -212,6 +212,8 @@ class Mapper(GraphListener):
         # alone thinned the map (90 instead of ~120 keyframes on the driving loop, and a higher ATE)
         provisional = not removed and self._predict_redundant(pose, frame.timestamp)
         kf_id = self._add_keyframe(frame, seg, pose, disp=None, provisional=provisional)
+        if removed:  # the removed one's frames, held to a_id alone so far, are held between it and this keyframe
+            self.frames.bracket(a_id, kf_id)
         entry = self.frames.entries[-1]
         k = self.graph.n - 1
         if provisional:

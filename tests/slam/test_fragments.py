@@ -149,4 +149,9 @@ def test_gap_frames_are_interpolated_between_the_merged_fragments():
         assert torch.allclose(poses[row], se3_interpolate(p0, p1, alpha), atol=1e-9)
     assert 1.5 < float(poses[1, 0]) < 2.5 and 4.5 < float(poses[2, 0]) < 5.5
     assert poses[3, 0] == pytest.approx(0.5)  # the tracked frame kept its pose
-    assert st.frames.entries[1].anchor == g.id_of(1)
+    e = st.frames.entries[1]
+    assert (e.anchor, e.upto) == (g.id_of(0), g.id_of(1))  # held between the two: they follow both from now on
+    p1_moved = pose([12.0, 1.0, 0], [0, 0.5, 0])
+    g.set_poses(torch.tensor([1]), p1_moved[None])
+    _, poses = st.frames.poses()
+    assert torch.allclose(poses[1], se3_interpolate(p0, p1_moved, 0.2), atol=1e-9)
