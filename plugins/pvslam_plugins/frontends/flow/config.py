@@ -178,6 +178,12 @@ class FlowFrontendConfig(PluginConfig):
         "motion predicted at constant rate (each tracked frame's flow summarised by a homography and chained; "
         "recover.MotionPredictor): a fast turn over a scene with few corners.",
     )
+    track_predict_init: bool = Field(
+        True,
+        description="On a frame without a velocity init (the first after a keyframe, mostly), DIS also starts from "
+        "the motion predicted at constant rate when it is at least track_init_min_flow, and the flow with fewer "
+        "forward-backward failures is kept: a fast pan that DIS from zero finds only in part.",
+    )
     min_texture_std: float = Field(
         2.0, ge=0.0,
         description="Tracking failure when the grayscale intensity std of a frame is below this (black/blank frame).",

@@ -28,7 +28,9 @@ than ``track_recover_fail_fraction`` of the pixels fail, DIS runs again from the
 on the synthetic head camera (``handheld_fast``, tune seeds 1-2) this took 8-15 lost frames and 2-3 map
 re-initialisations per sequence to none.  When the corners give no homography or one that leaves too many failures
 (a fast turn over a bare wall), DIS also starts from the motion predicted at constant rate
-(``track_predict_recover``, :class:`.recover.MotionPredictor`).
+(``track_predict_recover``, :class:`.recover.MotionPredictor`).  The first frame after a keyframe has no velocity
+init (its reference is new); where a frame has none and the predicted motion is large, DIS also starts from that
+motion and the more consistent flow is kept (``track_predict_init``, :meth:`FlowFrontend._predicted_start`).
 
 With ``road_plane`` (default; :mod:`.road_frontend`, :mod:`.road_plane`) the ground ahead
 of a car camera takes the flow of its homography, found by a direct search, where DIS cannot follow the near road at
@@ -145,7 +147,8 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
         self._texture = F.TextureTerm(self.cfg.texture_tau, self.cfg.texture_quantile)  # per source image
         self._road_setup()  # the road plane's flow (road_frontend.py, opt-in)
         self.stats = {"track_calls": 0, "track_s": 0.0, "dis_calls": 0, "dis_s": 0.0, "edges_computed": 0,
-                      "reprojection_init_used": 0, "track_recoveries": 0, "track_recovered": 0}
+                      "reprojection_init_used": 0, "track_recoveries": 0, "track_recovered": 0,
+                      "track_predicted_starts": 0, "track_predicted_used": 0}
 
     # ----------------------------------------------------------------------------------------- helpers --
     @property
@@ -264,6 +267,8 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
         # frame becomes a keyframe (add_keyframe): most frames do not
         init_f, init_b = self._velocity_init(last_track, last.frame_index, frame.index)
         fwd, bwd = self._flows(self._pair_calls(last.gray, gray, init_f, init_b, kind="track"))
+        if init_f is None and self.cfg.track_predict_init:  # no velocity init (e.g. the first frame after a keyframe)
+            fwd, bwd = self._predicted_start(last.gray, gray, last.frame_index, frame.index, fwd, bwd)
         fwd, bwd, road, plane = self._road_track(last_sid, last.gray, last.frame_index, gray, frame, fwd, bwd)
         tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w, plane[0])
         fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
@@ -309,7 +314,7 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
                                message=f"flow inconsistent: {fail_frac:.0%} of pixels fail the forward-backward "
                                        f"check (> {self.cfg.max_fb_fail_fraction:.0%}); sudden jump or cut?")
         self._last_track = (last.frame_index, frame.index, fwd, bwd)
-        if self.cfg.track_predict_recover:
+        if self.cfg.track_predict_recover or self.cfg.track_predict_init:
             self._observing = self._lanes.submit(self._predictor_ready().observe, last.frame_index, frame.index, fwd,
                                                  fb_f <= fail_px)
         coverage = 1.0 - fail_frac
@@ -319,6 +324,32 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
                          **({} if cue is None else {"cue": cue})}
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
+
+    def _predicted_start(self, g0: np.ndarray, g1: np.ndarray, ref_index: int, index: int, fwd: np.ndarray,
+                         bwd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The flows ``(fwd, bwd)`` found from zero, or those found from the motion predicted at constant rate when
+        that motion is at least ``track_init_min_flow`` BA px and they fail the forward-backward check on fewer
+        pixels.  Why: the first frame after a keyframe has no velocity init, and in a fast pan DIS from zero finds
+        part of the motion while most pixels still pass the check (handheld_fast/82, a 280 deg/s pan: half the
+        motion, 36 % failing, under the recovery's 50 %; that keyframe's pose came out 14 deg off and the run
+        11.3 %)."""
+        pred = self._predictor_ready().flows(ref_index, index, *g0.shape)
+        if pred is None:
+            return fwd, bwd
+        mean_ba = float(np.sqrt((pred[0] * pred[0]).sum(-1)).mean()) / self.cfg.flow_scale / self.ba_downsample
+        if mean_ba < self.cfg.track_init_min_flow:
+            return fwd, bwd
+        self.stats["track_predicted_starts"] += 1
+        fwd2, bwd2 = self._flows(self._pair_calls(g0, g1, pred[0], pred[1], kind="track"))
+        if self._fb_fail_fraction(fwd2, bwd2) < self._fb_fail_fraction(fwd, bwd):
+            self.stats["track_predicted_used"] += 1
+            return fwd2, bwd2
+        return fwd, bwd
+
+    def _fb_fail_fraction(self, fwd: np.ndarray, bwd: np.ndarray) -> float:
+        """Fraction of the pixels whose forward-backward error exceeds ``fb_fail_px`` (or that leave the image)."""
+        _, fb = F.fb_consistency(fwd, bwd, self._sigma())
+        return float(np.mean(~(fb <= self.cfg.fb_fail_px * self.cfg.flow_scale)))
 
     def _predictor_ready(self) -> MotionPredictor:
         """The motion predictor once its last observation (on a flow worker) has finished: the same state as with the
