@@ -113,7 +113,8 @@ class Bootstrap:
             init, why = two_view_init_why(obs.target[0], weight, g.intrinsics,
                                           min_parallax_deg=self.cfg.init_min_parallax_deg,
                                           relative_weight=self.cfg.init_relative_confidence,
-                                          parallax_quantile=self.cfg.init_parallax_quantile)
+                                          parallax_quantile=self.cfg.init_parallax_quantile,
+                                          ambiguity_ratio=self.cfg.init_ambiguity_ratio or None)
             if init is not None:
                 pair = (a, m)
                 break
