@@ -20,8 +20,9 @@ all nine as an unseen report of it, 72-74 on all nine (the initialisation's chai
 all nine (the row fill of a new keyframe's depth made the default), 78-80 on all nine (the chain check with the
 parallax quantile), 81-83 on all nine (frames that lost their anchor held between keyframes), 84-86 on all nine (the
 predicted start of a frame without a velocity init), 87-89 on all nine (the initialisation's ambiguity decline);
-they are seen now, so the next decision takes fresh seeds from 90 up (``--seeds``).  The KITTI excerpts (06 and 01, 51 frames each) have no seeds: they are in every set, so whoever
-tunes sees them too.  The printout and the JSON say which set ran.
+they are seen now, so the next decision takes fresh seeds from 90 up (``--seeds``).  The KITTI excerpts (06 and 01,
+51 frames each) have no seeds: they are in every set, so whoever tunes sees them too.  The printout and the JSON say
+which set ran.
 
 **What runs per cell** (see :mod:`bench.matrix_jobs`): the synthetic folder is generated (cached); pvslam runs
 with the default config and the ``images`` reader (no labels: ``segmenter.plugin = "none"``, ``vps.plugin =
