@@ -139,9 +139,9 @@ class GraphSection(PluginConfig):
     init_ambiguity_ratio: float = Field(
         3.0, ge=0, description="two-view initialisation declines a pair (and waits for the next) when the chosen "
         "motion, the best fit among those with most points in front, fits this many times worse (truncated Sampson "
-        "cost) than another with enough points in front (the initialiser's min_inliers, 60): with little parallax a forward drive's "
-        "points near the focus of expansion fall behind by noise, and a sideways motion wins (0: off; "
-        "pvslam_core/slam/initializer.py, bench/RESULTS.md)")
+        "cost) than another with enough points in front (the initialiser's min_inliers, 60): with little parallax "
+        "a forward drive's points near the focus of expansion fall behind by noise, and a sideways motion wins "
+        "(0: off; pvslam_core/slam/initializer.py, bench/RESULTS.md)")
     init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe, all ending "
                             "at the newest: from the window's first keyframe, from the middle, from two back (fast "
                             "motion breaks the flow of the farthest pair; pvslam_core/slam/bootstrap.py)")

@@ -15,9 +15,8 @@ after it is placed (window BAs, the loop pose graph's Sim(3)): on indoor_handhel
 at a map scale of 0.31 (est / true) and read at the final 0.45, sat 40-100 mm off a track within 8-15 mm.  Such a
 frame is therefore held *between* the keyframes around it (``FrameEntry.upto``): its pose is the time interpolation
 of the two (:func:`~..geometry.lie.se3_interpolate`) composed with the small relative pose it had from that
-interpolation when it lost its correspondences, and it follows whatever moves or rescales the two.  (Tried first and
-not kept: reading ``rel``'s translation in its anchor's median inverse depth; on the highway that median is the far
-field's, which moves without the scale, and the frames between keyframes went 1.4 -> 6.8 m off, see RESULTS.md.)
+interpolation when it lost its correspondences, and it follows whatever moves or rescales the two (bench/RESULTS.md,
+session 2026-12-04, also for what was tried first).
 """
 from __future__ import annotations
 

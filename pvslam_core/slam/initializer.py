@@ -102,8 +102,7 @@ def two_view_init_why(
     drive's points near the focus of expansion fall behind from noise: on busy_street/86 (fresh in session
     2026-12-04) the true forward motion had 72 of 111 points in front, under the 65 % bar by a fraction of a point,
     and a sideways motion fitting 11x worse started the map 89 deg off.  Declined, the pair is tried again with
-    more motion; replayed on the captured first tries of 108 used sequences, ratios 2-5 declined only wrong ones
-    (5-7 of 14), none of the 94 right ones."""
+    more motion (how the ratio was chosen: bench/RESULTS.md)."""
     import cv2
 
     h, w = target.shape[-2:]
