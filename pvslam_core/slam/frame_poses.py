@@ -109,7 +109,7 @@ class FramePoses:
         ``anchor`` and ``upto`` (None: rigidly to ``anchor``); its correspondences are dropped."""
         e.anchor, e.upto, e.target, e.weight = anchor, upto, None, None
         e.is_keyframe = False
-        e.rel = se3_mul(se3_inv(self._base(e)), pose_wc.double().cpu())
+        e.rel = se3_mul(se3_inv(self._bases([e])[0]), pose_wc.double().cpu())
 
     def bracket(self, anchor: int, upto: int) -> int:
         """Hold the frames rigidly anchored to keyframe id ``anchor`` without correspondences (re-anchored there by a
@@ -123,16 +123,26 @@ class FramePoses:
             self.hold_between(e, anchor, upto, self.pose_of(e))
         return len(todo)
 
-    def _base(self, e: FrameEntry) -> torch.Tensor:
-        """float64 [7] T_wc that ``e.rel`` is relative to: its anchor, or the interpolation to ``e.upto``."""
+    def _bases(self, entries: list[FrameEntry]) -> torch.Tensor:
+        """float64 ``[N, 7]`` T_wc that each entry's ``rel`` is relative to: its anchor keyframe, or for a frame held
+        up to ``upto`` the interpolation of the two at its timestamp."""
         g = self.graph
-        a = g.index_of(e.anchor)
-        t_a = g.poses[a].double().cpu()
-        if e.upto is None:
-            return t_a
-        b = g.index_of(e.upto)
-        return se3_interpolate(t_a, g.poses[b].double().cpu(),
-                               _alpha(e.timestamp, float(g.timestamps[a]), float(g.timestamps[b])))
+        anchors = g.indices_of(torch.tensor([e.anchor for e in entries], dtype=torch.int64)).cpu()
+        if bool((anchors < 0).any()):
+            raise RuntimeError("a frame is anchored to a keyframe that is no longer in the graph")
+        kf_poses = g.poses.double().cpu()
+        base = kf_poses[anchors]  # [N, 7]
+        held = torch.tensor([n for n, e in enumerate(entries) if e.upto is not None], dtype=torch.int64)
+        if held.numel():  # frames held between two keyframes: [H] rows
+            upto = g.indices_of(torch.tensor([entries[n].upto for n in held.tolist()], dtype=torch.int64)).cpu()
+            if bool((upto < 0).any()):
+                raise RuntimeError("a frame is held up to a keyframe that is no longer in the graph")
+            kf_ts = g.timestamps.double().cpu()
+            ts = torch.tensor([entries[n].timestamp for n in held.tolist()], dtype=torch.float64)
+            ts_a, ts_b = kf_ts[anchors[held]], kf_ts[upto]
+            alpha = torch.where(ts_b > ts_a, (ts - ts_a) / (ts_b - ts_a).clamp(min=1e-12), torch.zeros_like(ts_a))
+            base[held] = se3_interpolate(base[held], kf_poses[upto], alpha)
+        return base
 
     # ------------------------------------------------------------------------------------ GraphListener --
     def on_keyframe_removed(self, kf_id: int) -> None:
@@ -165,29 +175,14 @@ class FramePoses:
         if not self.entries:
             return torch.zeros(0, dtype=torch.float64), torch.zeros(0, 7, dtype=torch.float64)
         ts = torch.tensor([e.timestamp for e in self.entries], dtype=torch.float64)
-        g = self.graph
-        anchors = g.indices_of(torch.tensor([e.anchor for e in self.entries], dtype=torch.int64)).cpu()
-        if bool((anchors < 0).any()):
-            raise RuntimeError("a frame is anchored to a keyframe that is no longer in the graph")
         rel = torch.stack([e.rel for e in self.entries])  # [T, 7]
-        kf_poses = g.poses.double().cpu()
-        base = kf_poses[anchors]  # [T, 7]
-        held = torch.tensor([n for n, e in enumerate(self.entries) if e.upto is not None], dtype=torch.int64)
-        if held.numel():  # frames held between two keyframes: [H] rows
-            upto = g.indices_of(torch.tensor([self.entries[n].upto for n in held.tolist()], dtype=torch.int64)).cpu()
-            if bool((upto < 0).any()):
-                raise RuntimeError("a frame is held up to a keyframe that is no longer in the graph")
-            kf_ts = g.timestamps.double().cpu()
-            ts_a, ts_b = kf_ts[anchors[held]], kf_ts[upto]
-            alpha = torch.where(ts_b > ts_a, (ts[held] - ts_a) / (ts_b - ts_a).clamp(min=1e-12), torch.zeros_like(ts_a))
-            base[held] = se3_interpolate(base[held], kf_poses[upto], alpha)
-        return ts, se3_mul(base, rel)
+        return ts, se3_mul(self._bases(self.entries), rel)
 
     def pose_of(self, e: FrameEntry) -> torch.Tensor:
         """float64 [7] T_wc of one entry under the current keyframe poses."""
         if id(e) in self._busy:
             self.sync()
-        return se3_mul(self._base(e), e.rel)
+        return se3_mul(self._bases([e])[0], e.rel)
 
     # ---------------------------------------------------------------------------------- motion-only BA --
     def motion_only(self, init_wc: torch.Tensor, kf_pose: torch.Tensor, kf_disp: torch.Tensor, intr: torch.Tensor,
@@ -266,8 +261,3 @@ class FramePoses:
         _, poses = self.poses()
         index = {id(e): n for n, e in enumerate(self.entries)}
         return self.refine_many(todo, poses[[index[id(e)] for e in todo]], iters)
-
-
-def _alpha(ts: float, ts_a: float, ts_b: float) -> float:
-    """Fraction of the way from ``ts_a`` to ``ts_b`` at ``ts`` (0 when the two coincide)."""
-    return (ts - ts_a) / (ts_b - ts_a) if ts_b > ts_a else 0.0

@@ -167,10 +167,12 @@ def two_view_init_why(
     ok_front = [c for c in scored if c[0] >= front_frac * n_max]
     c_min = min(c[1] for c in ok_front)
     best = max((c for c in ok_front if c[1] <= 1.05 * c_min), key=lambda c: (c[0], -c[1]))
-    rival = min((c for c in scored if c[0] >= min_inliers), key=lambda c: c[1])
-    if ambiguity_ratio is not None and best[1] > ambiguity_ratio * max(rival[1], 1e-30):
-        return None, (f"ambiguous: a motion with fewer points in front ({rival[0]} of {n_max}) fits "
-                      f"{best[1] / max(rival[1], 1e-30):.0f}x better (R_H {r_h:.2f})")
+    if ambiguity_ratio is not None:
+        rival = min((c for c in scored if c[0] >= min_inliers), key=lambda c: c[1])  # n_max >= min_inliers: one
+        worse = best[1] / max(rival[1], 1e-30)
+        if worse > ambiguity_ratio:
+            return None, (f"ambiguous: a motion with fewer points in front ({rival[0]} of {n_max}) fits "
+                          f"{worse:.0f}x better (R_H {r_h:.2f})")
     if LOG.isEnabledFor(logging.DEBUG):
         LOG.debug("two-view hypotheses (model, in front, cost px^2, t): %s", "; ".join(
             f"{c[7]} {c[0]} {c[1] * px * px:.4f} {np.round(c[3].ravel(), 2).tolist()}" for c in scored))

@@ -272,7 +272,7 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
         fwd, bwd, road, plane = self._road_track(last_sid, last.gray, last.frame_index, gray, frame, fwd, bwd)
         tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w, plane[0])
         fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
-        fail_frac = float(np.mean(~(fb_f <= fail_px)))  # inf (left the image) counts as failed
+        fail_frac = self._fail_fraction(fb_f)
         if fail_frac > self.cfg.track_recover_fail_fraction:
             # a fast turn: start DIS again from the homography of LK-tracked corners (recover.py), and if that does
             # not bring the failures under the threshold, from the motion predicted at constant rate; keep the best
@@ -287,7 +287,7 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
                     continue
                 fwd2, bwd2 = self._flows(self._pair_calls(last.gray, gray, hf[0], hf[1], kind="track"))
                 tf2, wf2, fb2 = self._direction(last.gray, gray, fwd2, bwd2, h, w)
-                frac2 = float(np.mean(~(fb2 <= fail_px)))
+                frac2 = self._fail_fraction(fb2)
                 self.stats["track_recoveries"] += 1
                 if frac2 < fail_frac:
                     self.stats["track_recovered"] += 1
@@ -336,20 +336,25 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
         pred = self._predictor_ready().flows(ref_index, index, *g0.shape)
         if pred is None:
             return fwd, bwd
-        mean_ba = float(np.sqrt((pred[0] * pred[0]).sum(-1)).mean()) / self.cfg.flow_scale / self.ba_downsample
-        if mean_ba < self.cfg.track_init_min_flow:
+        if self._mean_flow_ba(pred[0]) < self.cfg.track_init_min_flow:
             return fwd, bwd
         self.stats["track_predicted_starts"] += 1
         fwd2, bwd2 = self._flows(self._pair_calls(g0, g1, pred[0], pred[1], kind="track"))
-        if self._fb_fail_fraction(fwd2, bwd2) < self._fb_fail_fraction(fwd, bwd):
+        sigma = self._sigma()
+        if (self._fail_fraction(F.fb_consistency(fwd2, bwd2, sigma)[1])
+                < self._fail_fraction(F.fb_consistency(fwd, bwd, sigma)[1])):
             self.stats["track_predicted_used"] += 1
             return fwd2, bwd2
         return fwd, bwd
 
-    def _fb_fail_fraction(self, fwd: np.ndarray, bwd: np.ndarray) -> float:
-        """Fraction of the pixels whose forward-backward error exceeds ``fb_fail_px`` (or that leave the image)."""
-        _, fb = F.fb_consistency(fwd, bwd, self._sigma())
+    def _fail_fraction(self, fb: np.ndarray) -> float:
+        """Fraction of the pixels whose forward-backward error ``fb`` exceeds ``fb_fail_px`` (inf: left the image,
+        failed too)."""
         return float(np.mean(~(fb <= self.cfg.fb_fail_px * self.cfg.flow_scale)))
+
+    def _mean_flow_ba(self, flow: np.ndarray) -> float:
+        """Mean length of a flow-resolution flow ``[H, W, 2]``, in BA px."""
+        return float(np.sqrt((flow * flow).sum(-1)).mean()) / self.cfg.flow_scale / self.ba_downsample
 
     def _predictor_ready(self) -> MotionPredictor:
         """The motion predictor once its last observation (on a flow worker) has finished: the same state as with the
@@ -374,8 +379,7 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
         init_f = p[2] * s
         # a small predicted motion is what DIS finds from zero anyway; there the prediction only adds the previous
         # flow's noise (on a 160x120 video it lowered the forward-backward consistency)
-        mean_ba = float(np.sqrt((init_f * init_f).sum(-1)).mean()) / self.cfg.flow_scale / self.ba_downsample
-        if mean_ba < self.cfg.track_init_min_flow:
+        if self._mean_flow_ba(init_f) < self.cfg.track_init_min_flow:
             return None, None
         return init_f, p[3] * s
 
