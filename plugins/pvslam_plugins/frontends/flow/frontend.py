@@ -26,11 +26,7 @@ the forward-backward check (sudden jump).  A repeated frame is not a failure (ze
 than ``track_recover_fail_fraction`` of the pixels fail, DIS runs again from the homography of LK-tracked corners
 (:mod:`.recover`: a fast turn moves the image beyond DIS's coarsest level) and the more consistent flow is kept;
 on the synthetic head camera (``handheld_fast``, tune seeds 1-2) this took 8-15 lost frames and 2-3 map
-re-initialisations per sequence to none.  When the corners give no homography or one that leaves too many failures
-(a fast turn over a bare wall), DIS also starts from the motion predicted at constant rate
-(``track_predict_recover``, :class:`.recover.MotionPredictor`).  The first frame after a keyframe has no velocity
-init (its reference is new); where a frame has none and the predicted motion is large, DIS also starts from that
-motion and the more consistent flow is kept (``track_predict_init``, :meth:`FlowFrontend._predicted_start`).
+re-initialisations per sequence to none.  Where DIS starts and the recovery: :mod:`.track_starts`.
 
 With ``road_plane`` (default; :mod:`.road_frontend`, :mod:`.road_plane`) the ground ahead
 of a car camera takes the flow of its homography, found by a direct search, where DIS cannot follow the near road at
@@ -72,7 +68,8 @@ from pvslam_core.slam.graph import median_disp_map
 
 from . import dynamic as D
 from .dynamic_masking import DynamicMasking
-from .recover import MotionPredictor, homography_flow
+from .recover import MotionPredictor
+from .track_starts import TrackStarts
 from .road_frontend import RoadFlows
 from . import flow_ops as F
 from .lanes import DisLanes
@@ -108,7 +105,7 @@ def _default_reproject():
     return reproject
 
 
-class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
+class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
     """DIS optical-flow frontend (see the module docstring)."""
 
     def __init__(self, config: Optional[FlowFrontendConfig] = None, device: Any = "cpu", reproject_fn=None,
@@ -273,26 +270,11 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
         tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w, plane[0])
         fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
         fail_frac = self._fail_fraction(fb_f)
-        if fail_frac > self.cfg.track_recover_fail_fraction:
-            # a fast turn: start DIS again from the homography of LK-tracked corners (recover.py), and if that does
-            # not bring the failures under the threshold, from the motion predicted at constant rate; keep the best
-            starts = [lambda: homography_flow(last.gray, gray)]
-            if self.cfg.track_predict_recover:
-                starts.append(lambda: self._predictor_ready().flows(last.frame_index, frame.index, *gray.shape))
-            for start in starts:
-                if fail_frac <= self.cfg.track_recover_fail_fraction:
-                    break
-                hf = start()
-                if hf is None:
-                    continue
-                fwd2, bwd2 = self._flows(self._pair_calls(last.gray, gray, hf[0], hf[1], kind="track"))
-                tf2, wf2, fb2 = self._direction(last.gray, gray, fwd2, bwd2, h, w)
-                frac2 = self._fail_fraction(fb2)
-                self.stats["track_recoveries"] += 1
-                if frac2 < fail_frac:
-                    self.stats["track_recovered"] += 1
-                    fwd, bwd, tf, wf, fb_f, fail_frac = fwd2, bwd2, tf2, wf2, fb2, frac2
-                    plane = (None, None)
+        if fail_frac > self.cfg.track_recover_fail_fraction:  # a fast turn (track_starts.py)
+            found = self._recover(last.gray, gray, last.frame_index, frame.index, h, w, fail_frac)
+            if found is not None:
+                fwd, bwd, tf, wf, fb_f, fail_frac = found
+                plane = (None, None)
         xs, ys = F.pixel_grid_np(h, w)
         mean_flow = float(np.sqrt((tf[0] - xs) ** 2 + (tf[1] - ys) ** 2).mean())
         target = torch.from_numpy(tf)
@@ -324,64 +306,6 @@ class FlowFrontend(DynamicMasking, RoadFlows, Frontend):
                          **({} if cue is None else {"cue": cue})}
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
-
-    def _predicted_start(self, g0: np.ndarray, g1: np.ndarray, ref_index: int, index: int, fwd: np.ndarray,
-                         bwd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The flows ``(fwd, bwd)`` found from zero, or those found from the motion predicted at constant rate when
-        that motion is at least ``track_init_min_flow`` BA px and they fail the forward-backward check on fewer
-        pixels.  Why: the first frame after a keyframe has no velocity init, and in a fast pan DIS from zero finds
-        part of the motion while most pixels still pass the check (handheld_fast/82, a 280 deg/s pan: half the
-        motion, 36 % failing, under the recovery's 50 %; that keyframe's pose came out 14 deg off and the run
-        11.3 %)."""
-        pred = self._predictor_ready().flows(ref_index, index, *g0.shape)
-        if pred is None:
-            return fwd, bwd
-        if self._mean_flow_ba(pred[0]) < self.cfg.track_init_min_flow:
-            return fwd, bwd
-        self.stats["track_predicted_starts"] += 1
-        fwd2, bwd2 = self._flows(self._pair_calls(g0, g1, pred[0], pred[1], kind="track"))
-        sigma = self._sigma()
-        if (self._fail_fraction(F.fb_consistency(fwd2, bwd2, sigma)[1])
-                < self._fail_fraction(F.fb_consistency(fwd, bwd, sigma)[1])):
-            self.stats["track_predicted_used"] += 1
-            return fwd2, bwd2
-        return fwd, bwd
-
-    def _fail_fraction(self, fb: np.ndarray) -> float:
-        """Fraction of the pixels whose forward-backward error ``fb`` exceeds ``fb_fail_px`` (inf: left the image,
-        failed too)."""
-        return float(np.mean(~(fb <= self.cfg.fb_fail_px * self.cfg.flow_scale)))
-
-    def _mean_flow_ba(self, flow: np.ndarray) -> float:
-        """Mean length of a flow-resolution flow ``[H, W, 2]``, in BA px."""
-        return float(np.sqrt((flow * flow).sum(-1)).mean()) / self.cfg.flow_scale / self.ba_downsample
-
-    def _predictor_ready(self) -> MotionPredictor:
-        """The motion predictor once its last observation (on a flow worker) has finished: the same state as with the
-        observation made in place, in the same order."""
-        if self._observing is not None:
-            fut, self._observing = self._observing, None
-            fut.result()
-        return self._predictor
-
-    def _velocity_init(self, p: Optional[tuple], ref_index: int,
-                       index: int) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
-        """Initial flows (reference -> frame, frame -> reference) predicted from the previous frame's tracking
-        against the same reference at constant velocity: its flows scaled by the ratio of the frame gaps.  ``p``: the
-        previous track's ``(reference index, frame index, fwd, bwd)``.  None when there is no such track (first frame
-        after a keyframe, a failure, a gap in the stream) or the predicted motion is small (track_init_min_flow)."""
-        if not self.cfg.track_velocity_init or p is None or p[1] != index - 1 or p[0] != ref_index:
-            return None, None
-        gap, gap_p = index - ref_index, p[1] - p[0]
-        if gap <= 0 or gap_p <= 0:
-            return None, None
-        s = min(gap / gap_p, 3.0)
-        init_f = p[2] * s
-        # a small predicted motion is what DIS finds from zero anyway; there the prediction only adds the previous
-        # flow's noise (on a 160x120 video it lowered the forward-backward consistency)
-        if self._mean_flow_ba(init_f) < self.cfg.track_init_min_flow:
-            return None, None
-        return init_f, p[3] * s
 
     # ------------------------------------------------------------------------------------- keyframes --
     def add_keyframe(self, kf_id: int, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:

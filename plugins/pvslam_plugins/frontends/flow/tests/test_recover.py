@@ -106,20 +106,20 @@ def test_fast_pan_without_corners_tracks_from_the_predicted_motion(monkeypatch):
     """A pan of 64 px per frame (32 flow px: beyond DIS from zero): the first frames recover from the corners'
     homography; once the corners give none (a bare wall), the motion predicted at constant rate starts DIS and the
     frame tracks with its true targets; without the prediction most of its pixels fail."""
-    import pvslam_plugins.frontends.flow.frontend as frontend_module
+    import pvslam_plugins.frontends.flow.track_starts as starts_module
 
     big = S.texture("astronaut", size=(S.H + 2 * S.PAD + 200, S.W + 2 * S.PAD + 400))
     dx, dy = -64.0, -16.0
     results = {}
     for predict in (True, False):
-        monkeypatch.setattr(frontend_module, "homography_flow", homography_flow)
+        monkeypatch.setattr(starts_module, "homography_flow", homography_flow)
         # the first frame after a keyframe would start from the prediction anyway (track_predict_init): off here,
         # this is the recovery's test
         fe = FlowFrontend(FlowFrontendConfig(track_predict_recover=predict, track_predict_init=False, texture_tau=0.0))
         fe.add_keyframe(0, S.frame(S.shifted(big, 0, 0), 0), None)
         for k in range(1, 4):
             if k == 3:  # no corners from here on
-                monkeypatch.setattr(frontend_module, "homography_flow", lambda *a, **kw: None)
+                monkeypatch.setattr(starts_module, "homography_flow", lambda *a, **kw: None)
             f = S.frame(S.shifted(big, k * dx, k * dy), k)
             r = fe.track(f, None)
             if k < 3:
@@ -139,18 +139,18 @@ def test_fast_pan_without_corners_tracks_from_the_predicted_motion(monkeypatch):
 def test_the_predictor_observing_on_a_flow_worker_changes_nothing(monkeypatch):
     """With two flow threads each frame's predictor observation runs on the worker while the pipeline goes on; the
     recovery that reads it waits for it: targets, weights and the predictor's chain equal those of one thread."""
-    import pvslam_plugins.frontends.flow.frontend as frontend_module
+    import pvslam_plugins.frontends.flow.track_starts as starts_module
 
     big = S.texture("astronaut", size=(S.H + 2 * S.PAD + 200, S.W + 2 * S.PAD + 400))
     out = {}
     for threads in (1, 2):
-        monkeypatch.setattr(frontend_module, "homography_flow", homography_flow)
+        monkeypatch.setattr(starts_module, "homography_flow", homography_flow)
         fe = FlowFrontend(FlowFrontendConfig(flow_threads=threads, track_predict_init=False, texture_tau=0.0))
         fe.add_keyframe(0, S.frame(S.shifted(big, 0, 0), 0), None)
         tracks = []
         for k in range(1, 5):
             if k == 3:  # no corners from here on: frames 3 and 4 recover from the prediction
-                monkeypatch.setattr(frontend_module, "homography_flow", lambda *a, **kw: None)
+                monkeypatch.setattr(starts_module, "homography_flow", lambda *a, **kw: None)
             f = S.frame(S.shifted(big, k * -64.0, k * -16.0), k)
             r = fe.track(f, None)
             tracks.append((r.failed, r.target, r.weight))
