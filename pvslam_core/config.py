@@ -136,6 +136,17 @@ class GraphSection(PluginConfig):
         "px of it (0: off). On a fast forward drive the near road leaves the view within the pair, yet its flow "
         "passes the forward-backward check and corrupts the two-view choice; with the check the parallax is read "
         "at graph.init_parallax_quantile (pvslam_core/slam/bootstrap.py, bench/RESULTS.md)")
+    unobserved_weight: float = Field(
+        0.3, gt=0, le=1, description="confidence factor, in the window BA (and a new keyframe's motion-only pose "
+        "guess when it keeps every pixel), of the depth pixels no edge with parallax has measured yet (a new "
+        "keyframe's filled holes; 1: off; pvslam_core/slam/observed.py, bench/RESULTS.md)")
+    guess_min_measured: float = Field(
+        0.5, ge=0, le=1, description="a new keyframe's motion-only pose guess uses only the measured depth pixels of "
+        "its reference (graph.unobserved_weight) when they are at least this fraction of its tracked pixels (1: "
+        "never)")
+    observed_parallax: float = Field(
+        1.0, ge=0, description="translation-only flow (BA px) an edge must give a pixel of its source keyframe to "
+        "count its depth as measured (graph.unobserved_weight)")
     init_ambiguity_ratio: float = Field(
         3.0, ge=0, description="two-view initialisation declines a pair (and waits for the next) when the chosen "
         "motion, the best fit among those with most points in front, fits this many times worse (truncated Sampson "

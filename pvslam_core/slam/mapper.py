@@ -47,6 +47,7 @@ from .bootstrap import Bootstrap
 from .keyframing import keyframe_distance, pair_flow_quantile
 from .fragments import Fragments, align_fragment, fragment_indices, relocalise, replace_gap_frames
 from .loops import LoopPolicy
+from .observed import ObservedMasks
 
 LOG = logging.getLogger("pvslam")
 
@@ -82,11 +83,14 @@ class Mapper(GraphListener):
         # CPU seconds of this thread per part of the mapping (track, pose_guess, edges, ba, loops, fill, ...)
         self.cpu: dict[str, float] = defaultdict(float)
         self.provisional_removed = 0  # provisional keyframes removed without ever being optimised
+        self.observed = ObservedMasks(self.cfg.unobserved_weight, self.cfg.observed_parallax,
+                                      self.cfg.guess_min_measured)  # see .observed
 
     # ----------------------------------------------------------------------------------- GraphListener --
     def on_keyframe_removed(self, kf_id: int) -> None:
         self.kf_images.pop(kf_id, None)
         self.kf_segs.pop(kf_id, None)
+        self.observed.forget(kf_id)
 
     @property
     def loops(self) -> list[LoopClosure]:
@@ -149,6 +153,10 @@ class Mapper(GraphListener):
                 return
             t0 = thread_time()
             obs = self._with_prior(self._with_frozen(self._observe_edges(ii, jj), k))
+            seen = obs
+            if self.observed.weight < 1.0:
+                f = self.observed.factor(self.graph.ids[obs.ii].tolist(), self.ba_shape, obs.weight.device)
+                obs = replace(obs, weight=obs.weight * f)
             t1 = thread_time()
             report = self.optimizer.step(self.graph, obs)
             self.cpu["edges"] += t1 - t0
@@ -156,6 +164,9 @@ class Mapper(GraphListener):
             self.graph.age_edges(ii, jj)
             if report.rejected:
                 LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
+        if self.observed.active:
+            g = self.graph
+            self.observed.mark(g.poses, g.disps, g.intrinsics, g.ids.tolist(), seen.ii, seen.jj, seen.weight)
 
     def _with_frozen(self, obs: EdgeObservations, k: int) -> EdgeObservations:
         """``obs`` plus the stored observations of the retired edges :func:`.edges.frozen_edges` selects (no depth
@@ -290,14 +301,17 @@ class Mapper(GraphListener):
         if not self.initialized or track.target is None:
             return t_a.cpu().clone()
         init = se3_mul(t_a.cpu(), self.frames.last_rel())
-        pose = self.frames.motion_only(init, t_a, self.graph.disps[a], self.graph.intrinsics, track.target,
-                                       track.weight)
+        weight = track.weight
+        if self.observed.active:
+            weight = self.observed.guess_weight(self.graph.id_of(a), weight)
+        pose = self.frames.motion_only(init, t_a, self.graph.disps[a], self.graph.intrinsics, track.target, weight)
         return pose if pose is not None else t_a.cpu().clone()
 
-    def _warped_depth(self, a: int, pose_k: torch.Tensor) -> Optional[torch.Tensor]:
+    def _warped_depth(self, a: int, pose_k: torch.Tensor) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
         """Inverse depth of a new keyframe at ``pose_k``: keyframe ``a``'s depth map moved into it (z-buffered
         splat at the BA resolution, holes filled by :func:`~..geometry.projective.fill_holes`). A far better start
-        for the BA than a constant."""
+        for the BA than a constant.  With it, the pixels that are measured (:mod:`.observed`): those a measured
+        pixel of ``a`` lands on."""
         h, w = self.ba_shape
         g = self.graph
         poses = torch.stack([g.poses[a].double(), pose_k.to(g.device).double()])
@@ -313,7 +327,10 @@ class Mapper(GraphListener):
         disp_k = d_a[0, ok] / out["z"][0, ok]
         disp = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, disp_k, reduce="amax")
         disp = disp.reshape(h, w)
-        return fill_holes(disp, disp <= 0, self.cfg.fill_row_min_frac)
+        known_a = self.observed.masks.get(g.id_of(a))
+        src = known_a.reshape(-1)[ok].float() if known_a is not None else torch.ones(idx.numel())
+        known = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, src.to(g.device), reduce="amax")
+        return fill_holes(disp, disp <= 0, self.cfg.fill_row_min_frac), known.reshape(h, w) > 0
 
     def _add_keyframe(self, frame: Frame, seg, pose: torch.Tensor, disp: Optional[torch.Tensor],
                       provisional: bool = False) -> int:
@@ -322,8 +339,11 @@ class Mapper(GraphListener):
         h, w = self.ba_shape
         g = self.graph
         k_new = g.n
+        known = None
         if disp is None and self.initialized and k_new > self.fragment_start:
-            disp = self._warped_depth(k_new - 1, pose)
+            warped = self._warped_depth(k_new - 1, pose)
+            if warped is not None:
+                disp, known = warped
         if disp is None:
             guess = self.frontend.initial_depth(g, g.next_id) if k_new > 0 else None
             if guess is not None:
@@ -334,6 +354,7 @@ class Mapper(GraphListener):
                 disp = torch.ones(h, w)
         k = g.add_keyframe(frame.index, frame.timestamp, pose.to(g.device), disp.to(g.device))
         kf_id = g.id_of(k)
+        self.observed.set(kf_id, known if known is not None else torch.zeros(h, w, dtype=torch.bool))
         self.frontend.add_keyframe(kf_id, frame, seg)
         self.frames.add_keyframe(frame.index, frame.timestamp, kf_id)
         self.kf_images[kf_id], self.kf_segs[kf_id] = self._small(frame, seg)
@@ -386,6 +407,8 @@ class Mapper(GraphListener):
         if not self.bootstrap.try_initialise(self, k):
             return
         self.initialized = True
+        for a in range(first, k + 1):  # the triangulation measured them (.observed)
+            self.observed.set(self.graph.id_of(a), torch.ones(self.ba_shape, dtype=torch.bool))
         self._optimize_window(k, max(3, 2 * self.frontend.rounds))
         for a in range(first, k):
             self._fill_pending(self.graph.id_of(a))

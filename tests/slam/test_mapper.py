@@ -1,16 +1,22 @@
 """The mapper (Algorithm 1's per-frame driver) with the framework's exact fake plugins: per-frame results,
-initialisation, online BA accuracy, loop handling, keyframe removal, and the motion cue for the VPS head."""
+initialisation, online BA accuracy, loop handling, keyframe removal, the motion cue for the VPS head, and the
+measured / guessed depth pixels (pvslam_core/slam/observed.py) in a keyframe's pose guess."""
+import math
+
 import pytest
 import torch
 
 import fakes
 from pvslam_core.config import validate_pipeline
+from pvslam_core.geometry.lie import se3_exp, se3_inv, se3_mul
+from pvslam_core.geometry.projective import edge_transforms, project_points
 from pvslam_core.geometry.testing import umeyama_ate
 from pvslam_core.interfaces import BuildContext
 from pvslam_core.registry import get_registry
 from pvslam_core.slam.graph import EDGE_LOOP
 from pvslam_core.slam.mapper import Mapper
 from pvslam_core.slam.motion_cue import motion_cue
+from pvslam_core.types import TrackResult
 
 
 SPEED = 0.4  # m per frame: 2.5 / 1.25 BA px between keyframes on the near / far plane (enough parallax)
@@ -230,7 +236,6 @@ def test_a_new_keyframe_turned_on_the_spot_gets_its_floor_from_the_rows(frac):
     """Mapper._warped_depth moves the previous keyframe's depth into the new one; the columns a turn on the spot
     brings in are holes.  With graph.fill_row_min_frac they take their row's depth, which is exact for a floor
     seen by a level camera; with 0 the image's median (the old rule), which is not."""
-    from pvslam_core.geometry.lie import se3_exp, se3_mul
 
     m, ds, fe = build(frames=4, fill_row_min_frac=frac)
     for f in ds:
@@ -247,7 +252,7 @@ def test_a_new_keyframe_turned_on_the_spot_gets_its_floor_from_the_rows(frac):
     g.set_poses(torch.tensor([0]), torch.tensor([[0, 0, 0, 0, 0, 0, 1.0]], dtype=g.poses.dtype))
     turn = torch.cat([torch.zeros(3), 0.15 * down]).double()[None]  # a turn about the world's vertical
     yaw = se3_exp(turn)[0]
-    disp = m._warped_depth(0, se3_mul(g.poses[0].double().cpu(), yaw))
+    disp, _known = m._warped_depth(0, se3_mul(g.poses[0].double().cpu(), yaw))
     # a turn about the vertical keeps the floor's depth a function of the row: the truth in the new view is `floor`
     err = (disp - floor).abs() / floor
     new_cols = err[:, -3:] if float(err[:, -3:].mean()) > float(err[:, :3].mean()) else err[:, :3]
@@ -255,3 +260,81 @@ def test_a_new_keyframe_turned_on_the_spot_gets_its_floor_from_the_rows(frac):
         assert float(new_cols.max()) < 0.1 and float(err.mean()) < 0.03  # the splat's rounding (measured 0.08)
     else:
         assert float(new_cols.mean()) > 0.2  # the median is far from the near rows and the far ones (measured 0.33)
+
+
+def test_a_turned_keyframe_inherits_the_measured_pixels_and_not_the_new_columns():
+    m, ds, fe = build(frames=8, unobserved_weight=0.1)
+    for f in ds:
+        m.process(f, None)
+    g = m.graph
+    h, w = g.ba_shape
+    a_id = g.id_of(g.n - 1)
+    assert bool(m.observed.masks[a_id].all())  # initialised: the triangulation measured every pixel
+    half = torch.ones(h, w, dtype=torch.bool)
+    half[: h // 2] = False  # the upper half only guessed
+    m.observed.set(a_id, half)
+    yaw = se3_exp(torch.tensor([[0, 0, 0, 0, 0.2, 0]], dtype=torch.float64))[0]  # about the camera's y axis
+    disp, known = m._warped_depth(g.n - 1, se3_mul(g.poses[-1].double().cpu(), yaw))
+    assert float(disp.min()) > 0  # the holes are filled ...
+    new_cols = known[:, -3:] if not bool(known[:, -3:].any()) else known[:, :3]
+    assert not bool(new_cols.any())  # ... but the columns the turn brings in are not measured
+    assert not bool(known[: h // 2].any())  # the guessed half stays guessed where it lands
+    assert float(known[h // 2 + 1:].float().mean()) > 0.6  # the measured half stays measured (less the new columns)
+
+
+@pytest.mark.parametrize("guess_min, weight, off", [(1.0, 1.0, True),  # all pixels at full weight
+                                                     (1.0, 0.1, True),  # down-weighted: still dragged
+                                                     (0.3, 1.0, False),  # half measured >= 0.3: those only
+                                                     (0.6, 0.1, True)])  # too few measured: all, weighted
+def test_guessed_pixels_are_left_out_of_the_keyframe_pose_guess(guess_min, weight, off):
+    """The newest keyframe's upper half is guessed 3x too near (a filled hole) and not measured; the next frame's
+    flow is exact (the true depth).  With the depth fixed any weight on those pixels pulls the pose guess degrees
+    off (rotation traded for translation); left out, the measured half alone gives the pose."""
+    m, ds, fe = build(frames=8, guess_min_measured=guess_min, unobserved_weight=weight)
+    for f in ds:
+        m.process(f, None)
+    g = m.graph
+    h, w = g.ba_shape
+    a = g.n - 1
+    true_disp = g.disps[a].clone()
+    rel = se3_exp(torch.tensor([[0.3 / float(true_disp.mean()) / 4, 0.05, 0, 0, 0.03, 0.01]],
+                               dtype=torch.float64))[0]  # a step sideways and a small turn
+    pose_true = se3_mul(g.poses[a].double().cpu(), rel)
+    R, t = edge_transforms(torch.stack([g.poses[a].double().cpu(), pose_true]), torch.tensor([0]), torch.tensor([1]))
+    out = project_points(R.float(), t.float(), true_disp.reshape(1, -1), g.intrinsics, h, w)
+    target = torch.stack([out["u"][0], out["v"][0]]).reshape(2, h, w)
+    wrong = true_disp.clone()
+    wrong[: h // 2] *= 3.0
+    g.set_disps(torch.tensor([a]), wrong[None])
+    measured = torch.ones(h, w, dtype=torch.bool)
+    measured[: h // 2] = False
+    m.observed.set(g.id_of(a), measured)
+    track = TrackResult(is_keyframe=True, mean_flow=2.0, target=target, weight=torch.ones(2, h, w))
+    pose = m._keyframe_pose_guess(a, track)
+    err = se3_mul(se3_inv(pose_true[None]), pose[None])[0]
+    rot_err = 2 * math.degrees(math.acos(min(1.0, abs(float(err[6])))))
+    if off:
+        assert rot_err > 1.0, rot_err  # measured 3.98 / 4.05 / 4.05 deg
+    else:
+        assert rot_err < 0.1, rot_err  # measured 0.025 (exact flow on the measured half; 4 iterations)
+
+
+def test_the_window_ba_marks_the_pixels_its_edges_measure():
+    """A camera stepping sideways (2.5 / 1.25 BA px of parallax a keyframe): a new keyframe's columns nothing of
+    the previous one lands on start as guesses, and the next window BA's edges measure them."""
+    m, ds, fe = build(frames=16, unobserved_weight=0.3)
+    at_add = []
+    add = m._add_keyframe
+
+    def recording_add(*args, **kw):
+        kf_id = add(*args, **kw)
+        if m.initialized:
+            at_add.append(float(m.observed.masks[kf_id].float().mean()))
+        return kf_id
+
+    m._add_keyframe = recording_add
+    for f in ds:
+        m.process(f, None)
+    assert at_add and max(at_add) < 1.0  # each new keyframe had guessed columns ...
+    fracs = [float(m.observed.masks[i].float().mean()) for i in m.graph.ids.tolist()]
+    assert min(fracs) == 1.0, fracs  # ... which the window BA's edges measured

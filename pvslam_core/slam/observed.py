@@ -1,0 +1,101 @@
+"""Which pixels of a keyframe's depth have been measured, and how much they count before they are.
+
+A new keyframe's inverse depth starts as the previous keyframe's moved into it (:meth:`.mapper.Mapper._warped_depth`);
+the pixels nothing lands on are *filled* (:func:`~pvslam_core.geometry.projective.fill_holes`), a guess.  Only an
+edge with parallax (translation-induced flow) measures a pixel's depth; through a fast pan or a turn on the spot
+there is none, so a run of keyframes can be mostly filled guesses.  When the camera then moves again, the
+motion-only pose guess and the window BA fit the pose to those guesses: on the synthetic head camera the rotation
+came out wrong by about the true rotation and the depth followed it (handheld_fast seeds 82, 88; bench/RESULTS.md,
+12-04).
+
+:class:`ObservedMasks` keeps one bool map ``[h, w]`` per keyframe id (BA resolution): ``True`` = measured.  A warped
+keyframe inherits the flag of the pixels that land on it; after each window BA a pixel of an edge's source keyframe
+becomes measured when that edge moves it by at least ``parallax`` BA px of translation-only flow (current estimate)
+with a confidence above ``min_weight``.  Keyframes of a fresh two-view initialisation are measured everywhere
+(their depth is the triangulation's).  Two uses, each off at 1:
+
+* the window BA (and the pose guess below when it keeps every pixel) multiplies the confidence of a source pixel
+  not measured yet by ``weight`` (``graph.unobserved_weight``).  A weight, not a mask: the pixel's depth is a BA
+  variable, and its update must still come from the first edge with parallax while the measured pixels hold the
+  poses;
+* the motion-only guess of a new keyframe's pose (depth fixed) uses the measured pixels only when they are at least
+  ``guess_min`` of the confident ones (``graph.guess_min_measured``; :meth:`ObservedMasks.guess_weight`).
+"""
+from __future__ import annotations
+
+import torch
+
+from ..geometry.projective import edge_transforms, pixel_grid, project_points
+
+
+class ObservedMasks:
+    """The measured-pixel masks of the keyframes and the two confidence rules (see the module docstring)."""
+
+    def __init__(self, weight: float, parallax: float, guess_min: float = 1.0, min_weight: float = 0.1):
+        self.weight = float(weight)  # the confidence factor of a pixel not measured yet in the window BA
+        self.parallax = float(parallax)
+        self.guess_min = float(guess_min)
+        self.min_weight = float(min_weight)
+        self.masks: dict[int, torch.Tensor] = {}  # keyframe id -> bool [h, w]
+
+    @property
+    def active(self) -> bool:
+        """Whether the masks change anything (else the mapper does not keep them up to date)."""
+        return self.weight < 1.0 or self.guess_min < 1.0
+
+    def guess_weight(self, kf_id: int, weight: torch.Tensor) -> torch.Tensor:
+        """The confidences ``weight [2, h, w]`` of a pose guess against keyframe ``kf_id`` (depth fixed): only its
+        measured pixels when they are at least ``guess_min`` of the confident ones, else all of them with the
+        unmeasured ones at ``self.weight``.  Why none at all: with the depth fixed, a guessed depth's residual is
+        wrong by its parallax, and a camera with a narrow field of view trades rotation for translation along an
+        almost flat direction of the cost; any weight left on those pixels moves the pose along it (a keyframe
+        whose depth is guessed 3x off on half its pixels: 4.0 deg of rotation error at weight 1 and at 0.1,
+        0.03 deg without them; tests/slam/test_mapper.py)."""
+        m = self.masks.get(int(kf_id))
+        if m is None:
+            return weight
+        m = m.to(weight.device)
+        tracked = weight.mean(dim=0) > self.min_weight
+        frac = float((m & tracked).sum()) / max(1, int(tracked.sum()))
+        if frac >= self.guess_min:
+            return weight * m
+        return weight * torch.where(m, 1.0, self.weight)
+
+    def set(self, kf_id: int, mask: torch.Tensor) -> None:
+        self.masks[int(kf_id)] = mask.bool()
+
+    def forget(self, kf_id: int) -> None:
+        self.masks.pop(int(kf_id), None)
+
+    def factor(self, kf_ids: list[int], shape: tuple[int, int], device) -> torch.Tensor:
+        """Confidence factors ``[len(kf_ids), 1, h, w]`` (one per edge source): 1 where measured, ``weight``
+        elsewhere (a keyframe with no mask on record counts as measured)."""
+        uniq = sorted(set(int(k) for k in kf_ids))
+        ones = torch.ones(shape, dtype=torch.bool, device=device)
+        masks = torch.stack([self.masks.get(k, ones).to(device) for k in uniq])  # [U, h, w]
+        pos = {k: n for n, k in enumerate(uniq)}
+        rows = torch.tensor([pos[int(k)] for k in kf_ids], dtype=torch.long, device=device)
+        return torch.where(masks, 1.0, self.weight)[rows].unsqueeze(1)
+
+    def mark(self, poses_wc: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, ids: list[int],
+             ii: torch.Tensor, jj: torch.Tensor, weight: torch.Tensor) -> None:
+        """After a BA: the pixels of each edge ``ii -> jj`` (graph indices; ``ids`` their stable ids) with at least
+        ``parallax`` BA px of translation-only flow and a confidence ``weight [E, 2, h, w]`` (mean of the two
+        coordinates) above ``min_weight`` become measured in the source keyframe."""
+        if ii.numel() == 0:
+            return
+        h, w = disps.shape[-2:]
+        R, t = edge_transforms(poses_wc.double(), ii, jj)
+        d = disps[ii].reshape(ii.numel(), -1).double()  # [E, P]
+        tr = project_points(R, t, d, intr.double(), h, w, min_depth=1e-3, translation_only=True)
+        grid = pixel_grid(h, w, d.device, torch.float64).reshape(1, -1, 2)
+        flow = torch.hypot(tr["u"] - grid[..., 0], tr["v"] - grid[..., 1])  # [E, P]
+        seen = (flow >= self.parallax) & tr["valid"] & (weight.mean(dim=1).reshape(ii.numel(), -1) > self.min_weight)
+        for src in torch.unique(ii).tolist():
+            kf_id = ids[src]
+            m = self.masks.get(kf_id)
+            if m is None:
+                continue
+            new = seen[ii == src].any(dim=0).reshape(h, w).to(m.device)
+            self.masks[kf_id] = m | new
+
