@@ -54,3 +54,19 @@ def test_parallax_on_pixels_without_confidence_marks_nothing():
     weight[..., : W // 2] = 0.0  # the left half's flow is not trusted
     obs.mark(_poses((0.5, 0, 0, 0, 0, 0)), disps, INTR, [0, 1], torch.tensor([0]), torch.tensor([1]), weight)
     assert not bool(obs.masks[0][:, : W // 2].any()) and bool(obs.masks[0][:, W // 2:].all())
+
+
+def test_a_far_pixel_is_measured_by_a_baseline_that_measures_the_median_depth():
+    """Most of the image near (inverse depth 0.25: 2.5 px for the step), the right columns 100x farther (0.025 px):
+    the step measures that they are far, so they count as measured too (at the median's parallax)."""
+    obs = ObservedMasks(weight=0.1, parallax=1.0)
+    obs.set(0, torch.zeros(H, W, dtype=torch.bool))
+    disps = torch.full((2, H, W), 0.25)
+    disps[0, :, W // 2 + 2:] = 0.0025  # 6 of 16 columns: the median is a near pixel's
+    weight = torch.ones(1, 2, H, W)
+    obs.mark(_poses((0.5, 0, 0, 0, 0, 0)), disps, INTR, [0, 1], torch.tensor([0]), torch.tensor([1]), weight)
+    assert bool(obs.masks[0].all())
+    # a baseline too short for the median depth too: nothing (0.1 step: 0.5 px at the median)
+    obs.set(0, torch.zeros(H, W, dtype=torch.bool))
+    obs.mark(_poses((0.1, 0, 0, 0, 0, 0)), disps, INTR, [0, 1], torch.tensor([0]), torch.tensor([1]), weight)
+    assert not bool(obs.masks[0].any())
