@@ -146,7 +146,8 @@ class GraphSection(PluginConfig):
         "never)")
     observed_parallax: float = Field(
         1.0, ge=0, description="translation-only flow (BA px) an edge must give a pixel of its source keyframe to "
-        "count its depth as measured (graph.unobserved_weight)")
+        "count its depth as measured (graph.unobserved_weight; a pixel farther than the keyframe's median depth is "
+        "read at the median)")
     init_ambiguity_ratio: float = Field(
         3.0, ge=0, description="two-view initialisation declines a pair (and waits for the next) when the chosen "
         "motion, the best fit among those with most points in front, fits this many times worse (truncated Sampson "

@@ -147,13 +147,13 @@ class Mapper(GraphListener):
 
     def _optimize_window(self, k: int, rounds: int) -> None:
         self.graph.retire_edges(retirement_mask(self.graph, k, self.cfg))
+        seen = None  # the last round's observations, before the measured-depth factor (.observed)
         for _ in range(rounds):
             ii, jj = active_edges(self.graph, k, self.cfg.active_window)
             if ii.numel() == 0:
                 return
             t0 = thread_time()
-            obs = self._with_prior(self._with_frozen(self._observe_edges(ii, jj), k))
-            seen = obs
+            obs = seen = self._with_prior(self._with_frozen(self._observe_edges(ii, jj), k))
             if self.observed.weight < 1.0:
                 f = self.observed.factor(self.graph.ids[obs.ii].tolist(), self.ba_shape, obs.weight.device)
                 obs = replace(obs, weight=obs.weight * f)
@@ -164,7 +164,7 @@ class Mapper(GraphListener):
             self.graph.age_edges(ii, jj)
             if report.rejected:
                 LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
-        if self.observed.active:
+        if self.observed.active and seen is not None:
             g = self.graph
             self.observed.mark(g.poses, g.disps, g.intrinsics, g.ids.tolist(), seen.ii, seen.jj, seen.weight)
 
@@ -328,8 +328,8 @@ class Mapper(GraphListener):
         disp = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, disp_k, reduce="amax")
         disp = disp.reshape(h, w)
         known_a = self.observed.masks.get(g.id_of(a))
-        src = known_a.reshape(-1)[ok].float() if known_a is not None else torch.ones(idx.numel())
-        known = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, src.to(g.device), reduce="amax")
+        src = known_a.to(g.device).reshape(-1)[ok].float() if known_a is not None else torch.ones_like(disp_k)
+        known = torch.zeros(h * w, device=g.device).scatter_reduce(0, idx, src, reduce="amax")
         return fill_holes(disp, disp <= 0, self.cfg.fill_row_min_frac), known.reshape(h, w) > 0
 
     def _add_keyframe(self, frame: Frame, seg, pose: torch.Tensor, disp: Optional[torch.Tensor],
@@ -354,7 +354,7 @@ class Mapper(GraphListener):
                 disp = torch.ones(h, w)
         k = g.add_keyframe(frame.index, frame.timestamp, pose.to(g.device), disp.to(g.device))
         kf_id = g.id_of(k)
-        self.observed.set(kf_id, known if known is not None else torch.zeros(h, w, dtype=torch.bool))
+        self.observed.set(kf_id, known if known is not None else torch.zeros(h, w, dtype=torch.bool, device=g.device))
         self.frontend.add_keyframe(kf_id, frame, seg)
         self.frames.add_keyframe(frame.index, frame.timestamp, kf_id)
         self.kf_images[kf_id], self.kf_segs[kf_id] = self._small(frame, seg)
@@ -407,8 +407,9 @@ class Mapper(GraphListener):
         if not self.bootstrap.try_initialise(self, k):
             return
         self.initialized = True
+        everywhere = torch.ones(self.ba_shape, dtype=torch.bool, device=self.graph.device)
         for a in range(first, k + 1):  # the triangulation measured them (.observed)
-            self.observed.set(self.graph.id_of(a), torch.ones(self.ba_shape, dtype=torch.bool))
+            self.observed.set(self.graph.id_of(a), everywhere)
         self._optimize_window(k, max(3, 2 * self.frontend.rounds))
         for a in range(first, k):
             self._fill_pending(self.graph.id_of(a))
