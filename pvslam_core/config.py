@@ -144,6 +144,14 @@ class GraphSection(PluginConfig):
         0.5, ge=0, le=1, description="a new keyframe's motion-only pose guess uses only the measured depth pixels of "
         "its reference (graph.unobserved_weight) when they are at least this fraction of its tracked pixels (1: "
         "never)")
+    second_start: bool = Field(
+        False, description="when a new keyframe's reference is mostly unmeasured (below graph.guess_min_measured: "
+        "after a pan), run its window BA also from its centre at constant velocity from the last measured "
+        "keyframes and keep the lower flow cost (pvslam_core/slam/motion_start.py)")
+    second_start_span: float = Field(0.25, gt=0, description="seconds between the two measured keyframes whose "
+                                     "motion graph.second_start continues")
+    second_start_horizon: float = Field(1.0, gt=0, description="graph.second_start predicts at most this many "
+                                        "seconds past the last measured keyframe")
     observed_parallax: float = Field(
         1.0, ge=0, description="translation-only flow (BA px) an edge must give a pixel of its source keyframe to "
         "count its depth as measured (graph.unobserved_weight; a pixel farther than the keyframe's median depth is "
@@ -154,6 +162,10 @@ class GraphSection(PluginConfig):
         "cost) than another with enough points in front (the initialiser's min_inliers, 60): with little parallax "
         "a forward drive's points near the focus of expansion fall behind by noise, and a sideways motion wins "
         "(0: off; pvslam_core/slam/initializer.py, bench/RESULTS.md)")
+    init_tie_ratio: float = Field(
+        0.0, ge=0, description="two-view initialisation declines a pair (and waits for the next) when another motion "
+        "with >= 90 % of the chosen one's points in front fits within this factor of its cost and heads more than "
+        "20 deg away: the pair cannot tell them apart (0: off; pvslam_core/slam/initializer.py)")
     init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe, all ending "
                             "at the newest: from the window's first keyframe, from the middle, from two back (fast "
                             "motion breaks the flow of the farthest pair; pvslam_core/slam/bootstrap.py)")

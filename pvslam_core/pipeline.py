@@ -270,6 +270,7 @@ class Pipeline:
                     "retired_edges": g.num_retired, "keyframes_added": g.next_id,
                     "keyframes_removed": g.next_id - g.n,
                     "keyframes_provisional_removed": mapper.provisional_removed,
+                    "second_starts": mapper.second_starts[0], "second_starts_kept": mapper.second_starts[1],
                     # map fragments (a re-initialisation starts one; a verified loop merges it back): "maps" is how
                     # many separate frames the trajectory ends in (1 = one trajectory in one frame)
                     "fragments": len(mapper.fragments.starts), "fragment_merges": mapper.fragments.merges,

@@ -114,7 +114,8 @@ class Bootstrap:
                                           min_parallax_deg=self.cfg.init_min_parallax_deg,
                                           relative_weight=self.cfg.init_relative_confidence,
                                           parallax_quantile=self.cfg.init_parallax_quantile,
-                                          ambiguity_ratio=self.cfg.init_ambiguity_ratio or None)
+                                          ambiguity_ratio=self.cfg.init_ambiguity_ratio or None,
+                                          tie_ratio=self.cfg.init_tie_ratio or None)
             if init is not None:
                 pair = (a, m)
                 break

@@ -36,6 +36,11 @@ from ..geometry.two_view import find_essential
 
 LOG = logging.getLogger("pvslam.init")
 
+# two_view_init_why's tie check (tie_ratio): a rival motion counts when it puts this share of the chosen one's points
+# in front and its translation direction is this far from the chosen one's
+TIE_FRONT = 0.9
+TIE_ANGLE_DEG = 20.0
+
 
 @dataclass
 class TwoViewInit:
@@ -90,6 +95,7 @@ def two_view_init_why(
     relative_weight: bool = False,
     parallax_quantile: float = 0.5,
     ambiguity_ratio: Optional[float] = None,
+    tie_ratio: Optional[float] = None,
 ) -> tuple[Optional[TwoViewInit], str]:
     """``(init or None, reason)``: the reason says why the pair was declined ("" on success).  ``refine=False``
     skips the Sampson refinement (hypotheses: RANSAC's essential matrix and the homography's decompositions only);
@@ -102,7 +108,12 @@ def two_view_init_why(
     drive's points near the focus of expansion fall behind from noise: on busy_street/86 (fresh in session
     2026-12-04) the true forward motion had 72 of 111 points in front, under the 65 % bar by a fraction of a point,
     and a sideways motion fitting 11x worse started the map 89 deg off.  Declined, the pair is tried again with
-    more motion (how the ratio was chosen: bench/RESULTS.md)."""
+    more motion (how the ratio was chosen: bench/RESULTS.md).  ``tie_ratio``: decline the pair when another motion
+    puts at least ``TIE_FRONT`` of the chosen one's points in front, fits within ``tie_ratio`` times its cost and moves
+    in a direction more than ``TIE_ANGLE_DEG`` away (None: never).  Why: with ~100 confident points the data may not
+    tell two motions apart at all: on driving_loop/102 (fresh in session 12-04 c) the forward drive fit with 109
+    points in front at cost 0.0011 px^2, a motion 50 deg to the side with 110 at 0.0010, and the map started
+    20 deg / 55 deg off (0.61 % ATE where the loop's other seeds reach 0.05-0.07 %)."""
     import cv2
 
     h, w = target.shape[-2:]
@@ -173,6 +184,14 @@ def two_view_init_why(
         if worse > ambiguity_ratio:
             return None, (f"ambiguous: a motion with fewer points in front ({rival[0]} of {n_max}) fits "
                           f"{worse:.0f}x better (R_H {r_h:.2f})")
+    if tie_ratio is not None:
+        t_best = best[3].ravel() / np.linalg.norm(best[3])
+        for c in scored:
+            t_c = c[3].ravel() / np.linalg.norm(c[3])
+            ang = float(np.degrees(np.arccos(np.clip(t_best @ t_c, -1.0, 1.0))))
+            if c[0] >= TIE_FRONT * best[0] and c[1] <= tie_ratio * best[1] and ang > TIE_ANGLE_DEG:
+                return None, (f"ambiguous: two motions {ang:.0f} deg apart fit alike ({best[0]} / {c[0]} points in "
+                              f"front, cost ratio {c[1] / max(best[1], 1e-30):.2f}; R_H {r_h:.2f})")
     if LOG.isEnabledFor(logging.DEBUG):
         LOG.debug("two-view hypotheses (model, in front, cost px^2, t): %s", "; ".join(
             f"{c[7]} {c[0]} {c[1] * px * px:.4f} {np.round(c[3].ravel(), 2).tolist()}" for c in scored))

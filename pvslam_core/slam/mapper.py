@@ -7,8 +7,9 @@ only.  Per new keyframe ``k``::
     settle the provisional keyframe, if any (below)
     graph.add_keyframe; frontend.add_keyframe(id); loop_detector.add_keyframe(id); neighbour + proximity edges
     retire edges that left the window (graph -> listeners.on_edges_retired)
-    rounds x (obs = frontend.observe(active edges); optimizer.step(obs))          # online BA
-        (every obs also carries frontend.depth_prior of its depth sources, if the frontend has one)
+    rounds x (obs = frontend.observe(active edges); optimizer.step(obs))          # online BA (.window_ba)
+        (every obs also carries frontend.depth_prior of its depth sources, if the frontend has one; after a
+         stretch without parallax the window BA also runs from a second start, .motion_start)
     candidates = loop_detector.query(id); closure = policy.decide(candidates)     # one loop owner
     if closure: loop edges (i, j-1), (i, j), (i, j+1); optimizer.loop(...) unless gated
         (a closure into an older map fragment not merged yet first relocalises k and moves the current fragment
@@ -29,32 +30,32 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
-from dataclasses import replace
 from time import thread_time
 from typing import Optional
 
 import torch
 
 from ..config import PipelineConfig
-from ..geometry.lie import se3_interpolate, se3_inv, se3_mul
-from ..geometry.projective import edge_transforms, fill_holes, frame_distance, project_points
+from ..geometry.lie import se3_interpolate, se3_mul
+from ..geometry.projective import edge_transforms, fill_holes, project_points
 from ..interfaces import GraphListener
-from ..types import EdgeObservations, Frame, FrameResult, LoopClosure, PanopticSegmentation, SequenceInfo, TrackResult
-from .edges import active_edges, frozen_edges, loop_edges, neighbour_edges, proximity_edges, retirement_mask
+from ..types import Frame, FrameResult, LoopClosure, PanopticSegmentation, SequenceInfo, TrackResult
+from .edges import active_edges, loop_edges, neighbour_edges, proximity_edges, retirement_mask
 from .frame_poses import FrameEntry, FramePoses
-from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph, _grid
+from .graph import EDGE_LOOP, EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph
 from .bootstrap import Bootstrap
 from .keyframing import keyframe_distance, pair_flow_quantile
 from .fragments import Fragments, align_fragment, fragment_indices, relocalise, replace_gap_frames
 from .loops import LoopPolicy
 from .observed import ObservedMasks
+from .window_ba import WindowBA
 
 LOG = logging.getLogger("pvslam")
 
 IDENTITY = torch.tensor([0, 0, 0, 0, 0, 0, 1.0], dtype=torch.float64)
 
 
-class Mapper(GraphListener):
+class Mapper(GraphListener, WindowBA):
     def __init__(self, pcfg: PipelineConfig, info: SequenceInfo, frontend, optimizer, loop_detector, device):
         self.cfg = pcfg.graph
         self.frontend = frontend
@@ -83,6 +84,7 @@ class Mapper(GraphListener):
         # CPU seconds of this thread per part of the mapping (track, pose_guess, edges, ba, loops, fill, ...)
         self.cpu: dict[str, float] = defaultdict(float)
         self.provisional_removed = 0  # provisional keyframes removed without ever being optimised
+        self.second_starts = [0, 0]  # window BAs also run from the constant-velocity centre, and those it won
         self.observed = ObservedMasks(self.cfg.unobserved_weight, self.cfg.observed_parallax,
                                       self.cfg.guess_min_measured)  # see .observed
 
@@ -109,73 +111,6 @@ class Mapper(GraphListener):
 
     def trajectory(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.frames.poses()
-
-    def _observe(self, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
-        """The frontend's observations of edges ``ii -> jj`` with the depth prior of their sources."""
-        return self._with_prior(self._observe_edges(ii, jj))
-
-    def _observe_edges(self, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
-        """The frontend's observations (recorded in the graph), without the depth prior: for callers that join
-        them with stored ones first and then ask for the prior of the joined sources once."""
-        dev = self.graph.device
-        obs = self.frontend.observe(self.graph, ii.to(dev), jj.to(dev))
-        self.graph.record_observations(obs)
-        return obs
-
-    def _with_prior(self, obs: EdgeObservations) -> EdgeObservations:
-        """``obs`` with the frontend's inverse-depth prior (:meth:`Frontend.depth_prior`) for its depth sources and
-        its distance prior (:meth:`Frontend.distance_prior`) for the keyframes of its edges."""
-        if obs.ii.numel() == 0:
-            return obs
-        src = torch.unique(obs.ii)
-        prior = self.frontend.depth_prior(self.graph, src)
-        if prior is not None:
-            obs = replace(obs, disp_prior_ids=src, disp_prior=prior[0], disp_prior_weight=prior[1])
-        dist = self.frontend.distance_prior(self.graph, torch.unique(torch.cat([obs.ii, obs.jj])))
-        if dist is not None:
-            obs = replace(obs, dist_prior_ii=dist[0], dist_prior_jj=dist[1], dist_prior=dist[2],
-                          dist_prior_weight=dist[3])
-        return obs
-
-    def _release_pairs(self, ii: torch.Tensor, jj: torch.Tensor) -> None:
-        """Tell the frontend that observed pairs which are not active edges (initialisation) are done with."""
-        not_edge = ~self.graph.has_edges(ii, jj)
-        if bool(not_edge.any()):
-            ids = self.graph.ids
-            dev = self.graph.device
-            self.frontend.on_edges_retired(ids[ii.to(dev)[not_edge]], ids[jj.to(dev)[not_edge]])
-
-    def _optimize_window(self, k: int, rounds: int) -> None:
-        self.graph.retire_edges(retirement_mask(self.graph, k, self.cfg))
-        seen = None  # the last round's observations, before the measured-depth factor (.observed)
-        for _ in range(rounds):
-            ii, jj = active_edges(self.graph, k, self.cfg.active_window)
-            if ii.numel() == 0:
-                return
-            t0 = thread_time()
-            obs = seen = self._with_prior(self._with_frozen(self._observe_edges(ii, jj), k))
-            if self.observed.weight < 1.0:
-                f = self.observed.factor(self.graph.ids[obs.ii].tolist(), self.ba_shape, obs.weight.device)
-                obs = replace(obs, weight=obs.weight * f)
-            t1 = thread_time()
-            report = self.optimizer.step(self.graph, obs)
-            self.cpu["edges"] += t1 - t0
-            self.cpu["ba"] += thread_time() - t1
-            self.graph.age_edges(ii, jj)
-            if report.rejected:
-                LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
-        if self.observed.active and seen is not None:
-            g = self.graph
-            self.observed.mark(g.poses, g.disps, g.intrinsics, g.ids.tolist(), seen.ii, seen.jj, seen.weight)
-
-    def _with_frozen(self, obs: EdgeObservations, k: int) -> EdgeObservations:
-        """``obs`` plus the stored observations of the retired edges :func:`.edges.frozen_edges` selects (no depth
-        prior: the caller asks for the joined sources', :meth:`_with_prior`)."""
-        ri, rj = frozen_edges(self.graph, k, self.cfg, first=self.fragment_start)
-        if ri.numel() == 0:
-            return obs
-        frozen = self.graph.retired_observations(ri, rj)
-        return _concat([obs, frozen], torch.arange(obs.ii.numel() + ri.numel()))
 
     def _reference(self, track: Optional[TrackResult]) -> dict:
         """The newest keyframe as this frame's tracking reference (captured before this frame changes the map)."""
@@ -237,7 +172,7 @@ class Mapper(GraphListener):
             self.graph.retire_edges(retirement_mask(self.graph, k, self.cfg))
             self._try_initialise(k)
             return self._result(frame, entry, ref, track, kf_id=kf_id)
-        self._optimize_window(k, self.frontend.rounds)
+        self._optimize_new(k, self.frontend.rounds)
         t0 = thread_time()
         self._close_loops(k)
         self.cpu["loops"] += thread_time() - t0
@@ -532,20 +467,6 @@ class Mapper(GraphListener):
         return self._result(frame, self.frames.entries[-1], ref, track, kf_id=kf_id)
 
     # -------------------------------------------------------------------------------------- the end --
-    def observe_any(self, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
-        """Observations of any edges: retired ones from the graph's store, the others from the frontend."""
-        g = self.graph
-        ii, jj = ii.to(g.device), jj.to(g.device)
-        retired = g.is_retired(ii, jj).to(g.device) & ~g.has_edges(ii, jj)
-        if not bool(retired.any()):
-            return self._observe(ii, jj)
-        live = torch.nonzero(~retired).squeeze(1)
-        dead = torch.nonzero(retired).squeeze(1)
-        parts = [self._observe_edges(ii[live], jj[live])] if len(live) else []
-        parts.append(g.retired_observations(ii[dead], jj[dead]))
-        order = torch.argsort(torch.cat([live, dead]))
-        return self._with_prior(_concat(parts, order))
-
     def finalize(self) -> None:
         self._settle_provisional(keep=True)  # it holds the last frames' reference; the final BA optimises it
         if self.fragments.unmerged > 1:
@@ -561,20 +482,3 @@ class Mapper(GraphListener):
         elif not self.initialized:
             LOG.warning("the map was never initialised (too little parallax); poses are identity/extrapolated")
         self.frames.close()  # the queued frame refinements are done; their worker thread stops
-
-
-def _concat(parts: list[EdgeObservations], order: torch.Tensor) -> EdgeObservations:
-    """Concatenate observations and reorder the edges by ``order`` (a permutation of the concatenated rows)."""
-    def cat(name):
-        vals = [getattr(p, name) for p in parts]
-        if any(v is None for v in vals):
-            if name != "dynamic":
-                return None
-            vals = [v if v is not None else torch.zeros(p.target.shape[0], *p.target.shape[-2:], device=p.target.device)
-                    for v, p in zip(vals, parts)]
-        return torch.cat([v.to(parts[0].target.device) for v in vals])[order.to(parts[0].target.device)]
-
-    damping = next((p.depth_damping for p in parts if p.depth_damping is not None), None)
-    # (no depth prior: it is per depth source, and the caller asks for the joined edges' sources, _with_prior)
-    return EdgeObservations(cat("ii"), cat("jj"), cat("target"), cat("weight"), dynamic=cat("dynamic"),
-                            depth_damping=damping)

@@ -62,6 +62,11 @@ class ObservedMasks:
             return weight * m
         return weight * torch.where(m, 1.0, self.weight)
 
+    def fraction(self, kf_id: int) -> float:
+        """The measured share of keyframe ``kf_id``'s pixels (1 for a keyframe with no mask on record)."""
+        m = self.masks.get(int(kf_id))
+        return 1.0 if m is None else float(m.float().mean())
+
     def set(self, kf_id: int, mask: torch.Tensor) -> None:
         self.masks[int(kf_id)] = mask.bool()
 

@@ -144,7 +144,8 @@ def test_prior_on_some_keyframes_in_any_order(problem):
 def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
     """Mapper._with_prior: the frontend's Frontend.depth_prior for the unique depth sources of the observations
     (after live and retired edges are joined), nothing when the frontend has none."""
-    from pvslam_core.slam.mapper import Mapper, _concat
+    from pvslam_core.slam.mapper import Mapper
+    from pvslam_core.slam.window_ba import _concat
 
     pr = problem
     asked = []
