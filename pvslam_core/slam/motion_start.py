@@ -28,13 +28,19 @@ from .graph import FrameGraph
 
 
 def constant_velocity_centre(graph: FrameGraph, k: int, measured: Callable[[int], float], min_measured: float,
-                             span: float, horizon: float, first: int = 0) -> Optional[torch.Tensor]:
+                             span: float, horizon: float, first: int = 0, stretch: int = 2) -> Optional[torch.Tensor]:
     """Camera centre ``[3]`` (float64, map frame) of keyframe ``k`` (graph index) at constant velocity from two earlier
     keyframes of the fragment starting at ``first``: ``b``, the newest before ``k`` whose measured fraction
     (``measured(kf_id)``) is at least ``min_measured``, and ``a``, the newest such keyframe at least ``span`` seconds
-    before ``b``.  None when ``k``'s reference (``k - 1``) is itself measured (nothing to second-guess), when ``b``
-    is more than ``horizon`` seconds before ``k`` (a long extrapolation says nothing), or without such a pair."""
-    if k - 1 < first or measured(graph.id_of(k - 1)) >= min_measured:
+    before ``b``.  None unless the ``stretch`` keyframes before ``k`` are all under ``min_measured`` (nothing to
+    second-guess), when ``b`` is more than ``horizon`` seconds before ``k`` (a long extrapolation says nothing), or
+    without such a pair.
+
+    Why a stretch of 2: a driving camera's newest keyframe has 0.35-0.49 of its pixels measured after its first window
+    BA, the one before it 0.5-0.8 (busy_street, tune seed 1); with the reference alone as the test the second start ran
+    on most keyframes of a drive, where the guess is good (bench/RESULTS.md, 12-04 c).  After a pan the last few are
+    all under (handheld_fast/88: 0.31, 0.18, 0.28 before frame 105)."""
+    if k - stretch < first or any(measured(graph.id_of(k - n)) >= min_measured for n in range(1, stretch + 1)):
         return None
     ts = graph.timestamps.tolist()
     b = a = None
