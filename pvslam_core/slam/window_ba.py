@@ -66,12 +66,11 @@ class WindowBA:
         self.graph.retire_edges(retirement_mask(self.graph, k, self.cfg))
         self._mark(self._window_rounds(k, rounds)[1])
 
-    def _window_rounds(self, k: int, rounds: int, age: bool = True
-                       ) -> tuple[Optional[EdgeObservations], Optional[EdgeObservations]]:
-        """``rounds`` x (observe the active edges of the window ending at ``k``, one optimizer step); the edges age
-        unless ``age`` is False (a second run of the same window).  Returns the first round's observations as given
-        to the optimizer and the last round's before the measured-depth factor (.observed); None without edges."""
-        first = seen = None
+    def _window_rounds(self, k: int, rounds: int) -> tuple[list[EdgeObservations], Optional[EdgeObservations]]:
+        """``rounds`` x (observe the active edges of the window ending at ``k``, one optimizer step; the edges age).
+        Returns each round's observations as given to the optimizer and the last round's before the measured-depth
+        factor (.observed; None without edges)."""
+        given, seen = [], None
         for _ in range(rounds):
             ii, jj = active_edges(self.graph, k, self.cfg.active_window)
             if ii.numel() == 0:
@@ -81,16 +80,19 @@ class WindowBA:
             if self.observed.weight < 1.0:
                 f = self.observed.factor(self.graph.ids[obs.ii].tolist(), self.ba_shape, obs.weight.device)
                 obs = replace(obs, weight=obs.weight * f)
-            first = obs if first is None else first
+            given.append(obs)
             t1 = thread_time()
-            report = self.optimizer.step(self.graph, obs)
+            self._step(k, obs)
             self.cpu["edges"] += t1 - t0
-            self.cpu["ba"] += thread_time() - t1
-            if age:
-                self.graph.age_edges(ii, jj)
-            if report.rejected:
-                LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
-        return first, seen
+            self.graph.age_edges(ii, jj)
+        return given, seen
+
+    def _step(self, k: int, obs: EdgeObservations) -> None:
+        t0 = thread_time()
+        report = self.optimizer.step(self.graph, obs)
+        self.cpu["ba"] += thread_time() - t0
+        if report.rejected:
+            LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
 
     def _mark(self, seen: Optional[EdgeObservations]) -> None:
         """After a window BA: the depth pixels its last observations ``seen`` measured (:mod:`.observed`)."""
@@ -100,8 +102,10 @@ class WindowBA:
 
     def _optimize_new(self, k: int, rounds: int) -> None:
         """The window BA of a new keyframe ``k``; after a stretch without parallax also from its constant-velocity
-        centre, keeping the result with the lower flow cost under the first round's observations from the common
-        start (:mod:`.motion_start`)."""
+        centre (:mod:`.motion_start`).  The second run reuses the first one's observations round by round (the
+        frontend is not asked again: a frontend's observations may depend on how often, and at which estimate, it was
+        asked) and the result with the lower flow cost under the first round's observations, those from the common
+        start, is kept."""
         c = self.cfg
         centre = None
         if c.second_start and self.observed.active:
@@ -113,24 +117,22 @@ class WindowBA:
         g = self.graph
         g.retire_edges(retirement_mask(g, k, c))
         start = (g.poses.clone(), g.disps.clone())
-        first, seen = self._window_rounds(k, rounds)  # from the pose guess
-        if first is None:
+        given, seen = self._window_rounds(k, rounds)  # from the pose guess
+        if not given:
             return
-        cost_guess = weighted_cost(g, first)
+        cost_guess = weighted_cost(g, given[0])
         guess_result = (g.poses.clone(), g.disps.clone())
         g.poses.copy_(start[0])
         g.disps.copy_(start[1])
         g.poses[k, :3] = centre.to(g.poses)
-        _, seen_cv = self._window_rounds(k, rounds, age=False)
-        cost_cv = weighted_cost(g, first)
+        for obs in given:
+            self._step(k, obs)
         self.second_starts[0] += 1
-        if cost_cv < cost_guess:
+        if weighted_cost(g, given[0]) < cost_guess:
             self.second_starts[1] += 1
-            seen = seen_cv
-        else:  # back to the guess's result and its observations (the second run recorded its own)
+        else:
             g.poses.copy_(guess_result[0])
             g.disps.copy_(guess_result[1])
-            g.record_observations(seen)
         self._mark(seen)
 
     def _with_frozen(self, obs: EdgeObservations, k: int) -> EdgeObservations:

@@ -98,7 +98,11 @@ def test_the_constant_velocity_start_wins_where_the_guess_is_off():
     assert float((expected - true).norm()) < 0.02 * float((g.poses[k, :3] - g.poses[k - 1, :3]).norm())
     g.poses[k, 0] += 0.5 * float((g.poses[k, :3] - g.poses[k - 1, :3]).norm())  # the guess half a step off
     age0 = g.edge_age.clone()
+    asked = []
+    observe = m.frontend.observe
+    m.frontend.observe = lambda graph, ii, jj: asked.append(1) or observe(graph, ii, jj)
     m._optimize_new(k, 2)
+    assert len(asked) == 2  # once per round: the second start reuses the observations
     assert m.second_starts == [1, 1]
     assert torch.allclose(g.poses[k, :3].double(), expected.to(g.poses), atol=1e-5)
     touched = (g.ii >= k - m.cfg.active_window + 1) | (g.jj >= k - m.cfg.active_window + 1)
