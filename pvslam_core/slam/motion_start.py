@@ -13,10 +13,10 @@ guess it settles in the wrong one (46 after the one round the mapper runs), and 
 whose depth was measured, the same BA lands in the true one (cost 42 after one round, 0.98 deg; 26 and 0.11 deg
 after two).  Probes: bench/RESULTS.md, session 12-04 c.
 
-So, when a new keyframe's reference is mostly unmeasured (below ``graph.guess_min_measured``), the mapper runs its
-window BA from both starts and keeps the result with the lower flow cost under the same observations (those of the
-first round from the common start): the prediction is only a start, and where the camera did stop (a stop-and-spin)
-the guess wins.
+So, when the two keyframes before a new one are mostly unmeasured (below ``graph.guess_min_measured``), the mapper
+(:meth:`.window_ba.WindowBA._optimize_new`) runs its window BA from both starts, the second on the first one's
+observations, and keeps the result with the lower flow cost under the observations of the first round (those from
+the common start): the prediction is only a start, and where the camera did stop (a stop-and-spin) the guess wins.
 """
 from __future__ import annotations
 
