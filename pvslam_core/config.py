@@ -145,7 +145,7 @@ class GraphSection(PluginConfig):
         "its reference (graph.unobserved_weight) when they are at least this fraction of its tracked pixels (1: "
         "never)")
     second_start: bool = Field(
-        False, description="when the two keyframes before a new one are mostly unmeasured (below "
+        True, description="when the two keyframes before a new one are mostly unmeasured (below "
         "graph.guess_min_measured: after a pan), run its window BA also from its centre at constant velocity from "
         "the last measured keyframes and keep the lower flow cost (pvslam_core/slam/motion_start.py)")
     second_start_span: float = Field(0.25, gt=0, description="seconds between the two measured keyframes whose "

@@ -122,7 +122,7 @@ def test_the_guess_stays_where_the_prediction_is_worse(monkeypatch):
     assert torch.equal(g.poses, before)
 
 
-def test_off_by_default_runs_one_window_ba():
+def test_switched_off_it_runs_one_window_ba():
     m, k = _mapper_after_a_pan()
     m.cfg = m.cfg.model_copy(update={"second_start": False})
     calls = []
