@@ -163,7 +163,7 @@ class GraphSection(PluginConfig):
         "a forward drive's points near the focus of expansion fall behind by noise, and a sideways motion wins "
         "(0: off; pvslam_core/slam/initializer.py, bench/RESULTS.md)")
     init_tie_ratio: float = Field(
-        0.0, ge=0, description="two-view initialisation declines a pair (and waits for the next) when another motion "
+        1.25, ge=0, description="two-view initialisation declines a pair (and waits for the next) when another motion "
         "with >= 90 % of the chosen one's points in front fits within this factor of its cost and heads more than "
         "20 deg away: the pair cannot tell them apart (0: off; pvslam_core/slam/initializer.py)")
     init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe, all ending "

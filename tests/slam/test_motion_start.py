@@ -69,8 +69,8 @@ class _Still:
 
 
 def _mapper_after_a_pan():
-    """A mapper after 16 frames of the exact fake (sideways camera, constant speed, keyframe every 2nd frame),
-    the two keyframes before its newest marked unmeasured (as after a pan), the optimizer replaced by :class:`_Still`."""
+    """A mapper after 16 frames of the exact fake (sideways camera, constant speed, keyframe every 2nd frame), the
+    two keyframes before its newest marked unmeasured (as after a pan), the optimizer replaced by :class:`_Still`."""
     pcfg = validate_pipeline({"graph": {"warmup": 3, "ba_downsample": 4, "remove_redundant": False,
                                         "second_start": True, "second_start_span": 0.35},
                               "loop_closure": {"nms_keyframes": 0}})
