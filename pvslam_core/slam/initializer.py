@@ -178,6 +178,9 @@ def two_view_init_why(
     ok_front = [c for c in scored if c[0] >= front_frac * n_max]
     c_min = min(c[1] for c in ok_front)
     best = max((c for c in ok_front if c[1] <= 1.05 * c_min), key=lambda c: (c[0], -c[1]))
+    if LOG.isEnabledFor(logging.DEBUG):
+        LOG.debug("two-view hypotheses (model, in front, cost px^2, t): %s", "; ".join(
+            f"{c[7]} {c[0]} {c[1] * px * px:.4f} {np.round(c[3].ravel(), 2).tolist()}" for c in scored))
     if ambiguity_ratio is not None:
         rival = min((c for c in scored if c[0] >= min_inliers), key=lambda c: c[1])  # n_max >= min_inliers: one
         worse = best[1] / max(rival[1], 1e-30)
@@ -192,9 +195,6 @@ def two_view_init_why(
             if c[0] >= TIE_FRONT * best[0] and c[1] <= tie_ratio * best[1] and ang > TIE_ANGLE_DEG:
                 return None, (f"ambiguous: two motions {ang:.0f} deg apart fit alike ({best[0]} / {c[0]} points in "
                               f"front, cost ratio {c[1] / max(best[1], 1e-30):.2f}; R_H {r_h:.2f})")
-    if LOG.isEnabledFor(logging.DEBUG):
-        LOG.debug("two-view hypotheses (model, in front, cost px^2, t): %s", "; ".join(
-            f"{c[7]} {c[0]} {c[1] * px * px:.4f} {np.round(c[3].ravel(), 2).tolist()}" for c in scored))
     _, _, R, t, inl, X, ok, model = best
     par = float(np.quantile(_parallax_deg(X, R, t)[ok], parallax_quantile))
     if par < min_parallax_deg:
