@@ -63,7 +63,7 @@ if str(ROOT) not in sys.path:
 from bench.matrix_jobs import KITTI, run_cell  # noqa: E402
 
 SEED_SETS = {"default": (0,), "tune": (1, 2, 6, 7, 8), "report": (3, 4, 5)}
-USED_SEEDS = tuple(range(9, 132))  # fresh validation seeds already spent on decisions (see the module docstring)
+USED_SEEDS = tuple(range(9, 147))  # fresh validation seeds already spent on decisions (see the module docstring)
 KITTI_SEQS = ("kitti_06", "kitti_01")
 INIT_TARGET_S = 2.0
 

@@ -271,6 +271,8 @@ class Pipeline:
                     "keyframes_removed": g.next_id - g.n,
                     "keyframes_provisional_removed": mapper.provisional_removed,
                     "second_starts": mapper.second_starts[0], "second_starts_kept": mapper.second_starts[1],
+                    # stretches of keyframes whose depth was never measured (pvslam_core/slam/scale_gaps.py)
+                    "scale_gaps": [gap.as_dict() for gap in mapper.scale_gaps],
                     # map fragments (a re-initialisation starts one; a verified loop merges it back): "maps" is how
                     # many separate frames the trajectory ends in (1 = one trajectory in one frame)
                     "fragments": len(mapper.fragments.starts), "fragment_merges": mapper.fragments.merges,
@@ -280,12 +282,13 @@ class Pipeline:
                       "no texture); the trajectory holds placeholder poses")
         metrics: dict[str, Any] = {"timing": timing, "tracking": tracking}
         if self.outputs is not None:
-            self.outputs.checkpoint(mapper)
-            self.outputs.close(mapper)
-            metrics = {**self.outputs.evaluate(mapper, timing, self.dataset), "tracking": tracking}
             from .outputs.metrics import MetricsFile
 
+            self.outputs.checkpoint(mapper)
+            self.outputs.close(mapper)
+            # before the evaluation: it reads tracking.scale_gaps (ate_segments)
             MetricsFile(self.run_dir / "metrics.json").update({"tracking": tracking})
+            metrics = {**self.outputs.evaluate(mapper, timing, self.dataset), "tracking": tracking}
         result = RunResult(
             run_dir=str(self.run_dir) if self.run_dir else None,
             timestamps=ts,

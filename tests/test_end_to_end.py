@@ -41,6 +41,7 @@ def test_default_pipeline_short_driving_sequence(tmp_path, driving_seq):
     # BA off (11.2 %) or robust kernels off (3.1 %) break it.
     assert ate["rmse_percent_of_path"] < 1.5, ate
     assert m["timing"]["frames"] == FRAMES and m["timing"]["keyframes"] >= 10
+    assert m["tracking"]["scale_gaps"] == []  # a drive measures depth all along (pvslam_core/slam/scale_gaps.py)
     assert m["panoptic"]["pq"] > 0.99  # oracle labels + tracking keep ids
     assert m["panoptic"]["vpq"] > 0.9
     ts, poses = read_tum(d / "trajectory.txt")

@@ -4,7 +4,9 @@ Reads (see ``pvslam_core/outputs`` for the layout):
 
 * ``trajectory.txt`` (TUM, every input frame) and ``groundtruth.txt`` (TUM) -> ``ate`` and ``rpe``
   (evo; Sim(3) alignment by default: monocular scale is unobservable), plus ``ate_keyframes`` from
-  ``keyframes.txt`` when present; plots ``plots/trajectory_top.png`` and ``plots/ate_over_time.png``;
+  ``keyframes.txt`` when present, and ``ate_segments`` (each part aligned on its own) where ``metrics.json``'s
+  ``tracking.scale_gaps`` holds a turn wider than the view; plots ``plots/trajectory_top.png`` and
+  ``plots/ate_over_time.png``;
 * ``loops.json`` + ground-truth revisit pairs (given by the caller) -> ``loops`` (precision / recall);
 * ``panoptic/`` (PNG + ``segments.json``) + ground-truth panoptic frames (given by the caller) -> ``panoptic``
   (PQ and VPQ).
@@ -36,6 +38,22 @@ def _load_gt_trajectory(run_dir: Path, gt: Any):
         return read_tum(gt)
     ts, poses = gt
     return np.asarray(ts, dtype=np.float64), np.asarray(poses, dtype=np.float64)
+
+
+def _scale_cuts(run_dir: Path) -> list[float]:
+    """Where the run says its map's scale was not observed across a turn wider than the view (``metrics.json``:
+    ``tracking.scale_gaps`` with ``beyond_fov``, :mod:`pvslam_core.slam.scale_gaps`): the gaps' first timestamps."""
+    path = run_dir / "metrics.json"
+    if not path.is_file():
+        return []
+    from pvslam_core.outputs.metrics import read_json
+
+    try:
+        gaps = read_json(path).get("tracking", {}).get("scale_gaps", [])
+        return [float(g["first_time"]) for g in gaps if g.get("beyond_fov")]
+    except (ValueError, KeyError, TypeError, AttributeError) as e:
+        LOG.warning("%s: tracking.scale_gaps not read (%s); no ate_segments", path, e)
+        return []
 
 
 def _panoptic_sequence(frames: Any) -> dict[int, Any]:
@@ -92,13 +110,16 @@ def evaluate_run(
         gt_traj = None
         out["ate"] = {"error": str(e)}
     if gt_traj is not None and est_path.is_file():
-        from pvslam_core.evaluation.trajectory import aligned_positions, ate, rpe
+        from pvslam_core.evaluation.trajectory import aligned_positions, ate, ate_segments, rpe
         from pvslam_core.outputs.trajectory_io import read_tum
 
         gt_ts, gt_poses = gt_traj
         try:
             est_ts, est = read_tum(est_path)
             out["ate"] = ate(est_ts, est, gt_ts, gt_poses, align=align, max_diff=max_diff)
+            cuts = _scale_cuts(run_dir)
+            if cuts:
+                out["ate_segments"] = ate_segments(est_ts, est, gt_ts, gt_poses, cuts, align=align, max_diff=max_diff)
             try:
                 out["rpe"] = rpe(est_ts, est, gt_ts, gt_poses, delta=rpe_delta, align=align, max_diff=max_diff)
             except ValueError as e:

@@ -21,7 +21,7 @@ and counted in ``num_invalid_est``.
 from __future__ import annotations
 
 import copy
-from typing import Any, Optional
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
@@ -211,6 +211,39 @@ def ate(
         alignment=r["alignment"].tolist(),
     )
     return out
+
+
+def ate_segments(
+    est_ts: Any,
+    est_poses: Any,
+    gt_ts: Any,
+    gt_poses: Any,
+    cuts: Sequence[float],
+    align: str = "sim3",
+    max_diff: float = 0.01,
+) -> list[dict]:
+    """:func:`ate` of each part of the trajectory between the timestamps ``cuts`` (a part runs from one cut, included,
+    to the next), each part aligned on its own: ``start``, ``end`` (its first and last estimated timestamps) and
+    ``rmse``, ``rmse_percent_of_path``, ``scale``, ``num_pairs``, ``path_length``; or ``error`` (too few poses).
+
+    Why: where a monocular map's scale was not observed (a turn on the spot wider than the view,
+    :mod:`pvslam_core.slam.scale_gaps`) the parts on either side have scales of their own, and one Sim(3) for the
+    whole trajectory charges the difference to every pose; the parts' scales say how large it was."""
+    ts, poses = _np(est_ts).astype(np.float64), _np(est_poses)
+    bounds = [-np.inf, *sorted(float(c) for c in cuts), np.inf]
+    parts = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        m = (ts >= a) & (ts < b)
+        if not m.any():
+            continue
+        part: dict[str, Any] = {"start": float(ts[m][0]), "end": float(ts[m][-1])}
+        try:
+            r = ate(ts[m], poses[m], gt_ts, gt_poses, align=align, max_diff=max_diff)
+            part.update({k: r[k] for k in ("rmse", "rmse_percent_of_path", "scale", "num_pairs", "path_length")})
+        except ValueError as e:
+            part["error"] = str(e)
+        parts.append(part)
+    return parts
 
 
 def rpe(

@@ -48,6 +48,7 @@ from .keyframing import keyframe_distance, pair_flow_quantile
 from .fragments import Fragments, align_fragment, fragment_indices, relocalise, replace_gap_frames
 from .loops import LoopPolicy
 from .observed import ObservedMasks
+from .scale_gaps import ScaleGap, graph_scale_gaps
 from .window_ba import WindowBA
 
 LOG = logging.getLogger("pvslam")
@@ -87,6 +88,7 @@ class Mapper(GraphListener, WindowBA):
         self.second_starts = [0, 0]  # window BAs also run from the constant-velocity centre, and those it won
         self.observed = ObservedMasks(self.cfg.unobserved_weight, self.cfg.observed_parallax,
                                       self.cfg.guess_min_measured)  # see .observed
+        self.scale_gaps: list[ScaleGap] = []  # where the map's scale was not observed (.scale_gaps; at finalize)
 
     # ----------------------------------------------------------------------------------- GraphListener --
     def on_keyframe_removed(self, kf_id: int) -> None:
@@ -173,6 +175,7 @@ class Mapper(GraphListener, WindowBA):
             self._try_initialise(k)
             return self._result(frame, entry, ref, track, kf_id=kf_id)
         self._optimize_new(k, self.frontend.rounds)
+        self.observed.settle(self.graph.id_of(k))
         t0 = thread_time()
         self._close_loops(k)
         self.cpu["loops"] += thread_time() - t0
@@ -479,6 +482,12 @@ class Mapper(GraphListener, WindowBA):
             if report.rejected:
                 LOG.warning("final optimisation rejected: %s", report.message)
             self.frames.refill()
+            self._report_scale_gaps()
         elif not self.initialized:
             LOG.warning("the map was never initialised (too little parallax); poses are identity/extrapolated")
         self.frames.close()  # the queued frame refinements are done; their worker thread stops
+
+    def _report_scale_gaps(self) -> None:
+        """Where the map's scale was not observed (:mod:`.scale_gaps`; warns of the gaps wider than the view)."""
+        if self.observed.active:
+            self.scale_gaps = graph_scale_gaps(self.graph, self.observed.settled_fraction, self.fragments.starts)

@@ -38,6 +38,7 @@ class ObservedMasks:
         self.guess_min = float(guess_min)
         self.min_weight = float(min_weight)
         self.masks: dict[int, torch.Tensor] = {}  # keyframe id -> bool [h, w]
+        self.settled: dict[int, float] = {}  # keyframe id -> its measured share after its own window BA
 
     @property
     def active(self) -> bool:
@@ -67,11 +68,22 @@ class ObservedMasks:
         m = self.masks.get(int(kf_id))
         return 1.0 if m is None else float(m.float().mean())
 
+    def settle(self, kf_id: int) -> None:
+        """Record keyframe ``kf_id``'s measured share as it is now, after its own window BA (first call only): what
+        its depth was when the next keyframes were placed against it (.scale_gaps)."""
+        self.settled.setdefault(int(kf_id), self.fraction(kf_id))
+
+    def settled_fraction(self, kf_id: int) -> float:
+        """The share :meth:`settle` recorded, else the current one (:meth:`fraction`)."""
+        got = self.settled.get(int(kf_id))
+        return self.fraction(kf_id) if got is None else got
+
     def set(self, kf_id: int, mask: torch.Tensor) -> None:
         self.masks[int(kf_id)] = mask.bool()
 
     def forget(self, kf_id: int) -> None:
         self.masks.pop(int(kf_id), None)
+        self.settled.pop(int(kf_id), None)
 
     def factor(self, kf_ids: list[int], shape: tuple[int, int], device) -> torch.Tensor:
         """Confidence factors ``[len(kf_ids), 1, h, w]`` (one per edge source): 1 where measured, ``weight``

@@ -101,3 +101,27 @@ def test_run_eval_command_line(tmp_path, capsys):
     printed = json.loads(capsys.readouterr().out)
     assert printed["ate"]["align"] == "se3"
     assert json.loads((tmp_path / "metrics.json").read_text())["ate"]["rmse"] == pytest.approx(printed["ate"]["rmse"])
+
+
+def test_a_scale_gap_splits_the_ate(tmp_path):
+    """A map whose scale halves after t = 3 s (as after a turn on the spot): with the run's scale gap in metrics.json
+    the two parts are also aligned on their own; each fits exactly, with the scales 1/0.3 and 1/0.15."""
+    ts, gt, _ = _trajectories()
+    est = gt.copy()
+    steps = np.diff(gt[:, :3], axis=0) * np.where(ts[1:] > 3.0, 0.15, 0.3)[:, None]  # the step into t > 3 s: new
+    est[:, :3] = np.concatenate([[0.3 * gt[0, :3]], 0.3 * gt[0, :3] + np.cumsum(steps, axis=0)])
+    write_tum(tmp_path / "trajectory.txt", ts, est)
+    write_tum(tmp_path / "groundtruth.txt", ts, gt)
+    assert "ate_segments" not in evaluate_run(tmp_path, plots=False)  # no gap on record: one alignment
+    gap = {"first_frame": 30, "last_frame": 31, "first_time": 3.0, "last_time": 3.1, "keyframes": 2,
+           "unmeasured": 2, "turn_deg": 120.0, "beyond_fov": True}
+    narrow = dict(gap, first_time=1.0, turn_deg=20.0, beyond_fov=False)  # not a cut
+    write_json_atomic(tmp_path / "metrics.json", {"tracking": {"scale_gaps": [narrow, gap]}})
+    m = evaluate_run(tmp_path, plots=False)
+    whole, parts = m["ate"], m["ate_segments"]
+    assert [p["num_pairs"] for p in parts] == [30, 30]
+    assert [(p["start"], p["end"]) for p in parts] == [(0.0, pytest.approx(2.9)), (pytest.approx(3.0), pytest.approx(5.9))]
+    assert parts[0]["scale"] == pytest.approx(1 / 0.3, rel=1e-6) and parts[0]["rmse"] < 1e-9
+    assert parts[1]["scale"] == pytest.approx(1 / 0.15, rel=1e-6) and parts[1]["rmse"] < 1e-9
+    assert whole["rmse"] > 0.1  # one Sim(3) for both parts
+    assert json.loads((tmp_path / "metrics.json").read_text())["ate_segments"] == parts
