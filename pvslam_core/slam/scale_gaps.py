@@ -34,8 +34,8 @@ from typing import Callable
 
 import torch
 
-from ..geometry.lie import quat_conj, quat_mul
 from .graph import FrameGraph
+from .loops import rotation_deg
 
 LOG = logging.getLogger("pvslam")
 
@@ -71,7 +71,7 @@ def find_scale_gaps(poses_wc: torch.Tensor, shares: list[float], frames: list[in
     if not (poses_wc.shape[0] == len(frames) == len(times) == len(fragments) == n):
         raise ValueError(f"find_scale_gaps: {poses_wc.shape[0]} poses, {n} shares, {len(frames)} frames, "
                          f"{len(times)} timestamps, {len(fragments)} fragments")
-    q = poses_wc[:, 3:7].double()
+    q = poses_wc[:, 3:7]
     gaps = []
     before = None  # the newest well measured keyframe so far (of the current fragment)
     for k in range(n):
@@ -83,8 +83,7 @@ def find_scale_gaps(poses_wc: torch.Tensor, shares: list[float], frames: list[in
             a, b = before + 1, k - 1  # the gap's keyframes
             unmeasured = sum(1 for x in shares[a:k] if x <= MAX_SHARE)
             if unmeasured:
-                rel = quat_mul(quat_conj(q[before]), q[k])
-                turn = math.degrees(2.0 * math.atan2(float(rel[:3].norm()), abs(float(rel[3]))))
+                turn = rotation_deg(q[before], q[k])
                 gaps.append(ScaleGap(int(frames[a]), int(frames[b]), float(times[a]), float(times[b]), b - a + 1,
                                      unmeasured, round(turn, 1), turn > fov_deg))
         before = k
