@@ -19,8 +19,10 @@ nine as an unseen report of that default, 66-68 on all nine (the road's distance
 all nine as an unseen report of it, 72-74 on all nine (the initialisation's chain check, kept opt-in), 75-77 on
 all nine (the row fill of a new keyframe's depth made the default), 78-80 on all nine (the chain check with the
 parallax quantile), 81-83 on all nine (frames that lost their anchor held between keyframes), 84-86 on all nine (the
-predicted start of a frame without a velocity init), 87-89 on all nine (the initialisation's ambiguity decline);
-they are seen now, so the next decision takes fresh seeds from 90 up (``--seeds``).  The KITTI excerpts (06 and 01,
+predicted start of a frame without a velocity init), 87-89 on all nine (the initialisation's ambiguity decline),
+90-146 (bench/RESULTS.md, sessions 12-04 b-d), 147-149 on all nine through three lenses (``--hfov``; two of the
+45 deg cells diagnosed), 150-152 on all nine at 45 deg (the initialisation's chained links made the default); they
+are seen now, so the next decision takes fresh seeds from 153 up (``--seeds``).  The KITTI excerpts (06 and 01,
 51 frames each) have no seeds: they are in every set, so whoever tunes sees them too.  The printout and the JSON say
 which set ran.
 
@@ -53,6 +55,7 @@ import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -63,7 +66,7 @@ if str(ROOT) not in sys.path:
 from bench.matrix_jobs import KITTI, run_cell  # noqa: E402
 
 SEED_SETS = {"default": (0,), "tune": (1, 2, 6, 7, 8), "report": (3, 4, 5)}
-USED_SEEDS = tuple(range(9, 147))  # fresh validation seeds already spent on decisions (see the module docstring)
+USED_SEEDS = tuple(range(9, 153))  # fresh validation seeds already spent on decisions (see the module docstring)
 KITTI_SEQS = ("kitti_06", "kitti_01")
 INIT_TARGET_S = 2.0
 
@@ -80,7 +83,7 @@ def seed_set_of(seed: int) -> str:
 
 def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool, colmap: bool,
          jobs: int, overrides: tuple[str, ...] = (), size: tuple[int, int] = (320, 240),
-         exposure: bool = False) -> list[dict]:
+         exposure: bool = False, hfov_deg: Optional[float] = None) -> list[dict]:
     """One job per (synthetic scenario, seed) and one per KITTI excerpt, longest first (parallel efficiency)."""
     default_len = {"driving_city": 550, "driving_loop": 488, "handheld_fast": 360, "indoor_handheld": 330}
     cells = []
@@ -89,7 +92,7 @@ def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool
             cells.append({"scenario": sc, "seed": None if sc.startswith("kitti_") else seed, "frames": frames,
                           "out": str(out), "labels": labels, "colmap": colmap,
                           "colmap_threads": 1 if jobs > 1 else -1, "overrides": list(overrides), "size": list(size),
-                          "exposure": exposure and not sc.startswith("kitti_"),
+                          "exposure": exposure and not sc.startswith("kitti_"), "hfov_deg": hfov_deg,
                           "set": "shared" if sc.startswith("kitti_") else seed_set_of(seed)})
     return sorted(cells, key=lambda c: -(min(frames or 10 ** 9, default_len.get(c["scenario"], 300))))
 
@@ -317,6 +320,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, help="first N frames of every sequence (a shorter, cheaper matrix)")
     ap.add_argument("--size", default="320x240", metavar="WxH",
                     help="image size of the synthetic sequences (another camera; default 320x240)")
+    ap.add_argument("--hfov", type=float, metavar="DEG", help="horizontal field of view of the synthetic sequences' "
+                    "camera in degrees (another lens, same scenes; default: the generator's, about 61)")
     ap.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every pvslam run (repeatable, TOML value syntax, as `pvslam run "
@@ -379,10 +384,18 @@ def main(argv=None) -> int:
     size = (int(wh[1]), int(wh[2]))
     if size != (320, 240):
         print(f"synthetic image size {size[0]}x{size[1]}")
+    if args.hfov is not None:
+        from pvslam_plugins.datasets.synthetic.render import check_hfov
+
+        try:
+            check_hfov(args.hfov)
+        except ValueError as e:
+            ap.error(f"--hfov: {e}")
+        print(f"synthetic camera: {args.hfov:g} deg horizontal field of view")
     if args.exposure:
         print("auto-exposure changes on every synthetic sequence (exposure.auto_exposure_gain)")
     cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs, tuple(args.override), size,
-                 args.exposure)
+                 args.exposure, args.hfov)
     t0 = time.perf_counter()
     rows = []
     if args.jobs > 1:
@@ -406,7 +419,8 @@ def main(argv=None) -> int:
         Path(args.json).write_text(json.dumps({
             "set": label, "seeds": seeds, "seed_sets": SEED_SETS, "argv": sys.argv[1:] if argv is None else argv,
             "commit": commit(), "host": platform.node(), "cpus": os.cpu_count(), "jobs": args.jobs,
-            "frames": args.frames, "size": list(size), "exposure": args.exposure, "wall_s": wall, "rows": rows,
+            "frames": args.frames, "size": list(size), "hfov_deg": args.hfov, "exposure": args.exposure,
+            "wall_s": wall, "rows": rows,
             "summary": summ, "targets": tg}, indent=1, default=str))
         print(f"results written to {args.json}")
     return 0

@@ -35,11 +35,14 @@ KITTI = Path(os.environ.get("PVSLAM_KITTI", ROOT.parent / "shared" / "data" / "k
 
 
 # ------------------------------------------------------------------------------------------------ sequences
-def synthetic_sequence(scenario: str, seed: int, frames: Optional[int], size: tuple[int, int] = (320, 240)) -> Path:
-    """The cached synthetic folder (generated on first use; ``size`` = (width, height), 320x240 by default)."""
+def synthetic_sequence(scenario: str, seed: int, frames: Optional[int], size: tuple[int, int] = (320, 240),
+                       hfov_deg: Optional[float] = None) -> Path:
+    """The cached synthetic folder (generated on first use; ``size`` = (width, height), 320x240 by default;
+    ``hfov_deg`` the camera's horizontal field of view, None = the generator's default camera)."""
     from pvslam_plugins.datasets.synthetic.generator import ensure_cached
 
-    return ensure_cached(scenario, num_frames=frames, seed=seed, width=size[0], height=size[1], progress=False)
+    return ensure_cached(scenario, num_frames=frames, seed=seed, width=size[0], height=size[1], progress=False,
+                         hfov_deg=hfov_deg)
 
 
 def kitti_as_tum(seq: str, out: Path) -> Path:
@@ -223,7 +226,8 @@ def run_cell(job: dict) -> dict:
             seq_dir = kitti_as_tum(scenario[6:], out / "kitti")
             fps = 10.0
         else:
-            seq_dir = synthetic_sequence(scenario, seed, frames, tuple(job.get("size") or (320, 240)))
+            seq_dir = synthetic_sequence(scenario, seed, frames, tuple(job.get("size") or (320, 240)),
+                                         job.get("hfov_deg"))
             if job.get("exposure"):  # a copy whose images follow a camera's auto-exposure, for every method
                 from pvslam_plugins.datasets.synthetic.exposure import exposure_copy
 

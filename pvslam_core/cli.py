@@ -65,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--hfov", type=float, metavar="DEG", help="another camera: horizontal field of view in degrees "
+                   "(default: the plugin's camera)")
     p.add_argument("--plugin", default="synthetic", help="dataset plugin that generates (default: synthetic)")
 
     p = sub.add_parser("eval", help="recompute the metrics of a run directory")
@@ -375,8 +377,9 @@ def _cmd_synth(args) -> int:
         return 0
     if args.scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {args.scenario!r}; available: {', '.join(SCENARIOS)}")
+    camera = {} if args.hfov is None else {"hfov_deg": args.hfov}  # only asked of a generator when given
     out = generate(args.scenario, Path(args.out) if args.out else None, num_frames=args.frames,
-                   width=args.width, height=args.height, seed=args.seed, progress=True)
+                   width=args.width, height=args.height, seed=args.seed, progress=True, **camera)
     print(out)
     return 0
 

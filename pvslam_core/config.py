@@ -136,6 +136,12 @@ class GraphSection(PluginConfig):
         "px of it (0: off). On a fast forward drive the near road leaves the view within the pair, yet its flow "
         "passes the forward-backward check and corrupts the two-view choice; with the check the parallax is read "
         "at graph.init_parallax_quantile (pvslam_core/slam/bootstrap.py, bench/RESULTS.md)")
+    init_chain_fallback: bool = Field(
+        True, description="with graph.init_chain_tol: when the direct flow of a pair keeps fewer confident "
+        "correspondences than the initialisation needs, the pair's correspondences are its links' chained flows "
+        "instead. Before the map exists nothing starts a direct flow from the motion, and DIS from zero loses a "
+        "pair a few keyframes apart when the image moves fast (a 45 deg lens on a hand-held camera: pvslam_core/"
+        "slam/bootstrap.py, bench/RESULTS.md)")
     unobserved_weight: float = Field(
         0.3, gt=0, le=1, description="confidence factor, in the window BA (and a new keyframe's motion-only pose "
         "guess when it keeps every pixel), of the depth pixels no edge with parallax has measured yet (a new "

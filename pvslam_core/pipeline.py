@@ -270,7 +270,7 @@ class Pipeline:
                     "retired_edges": g.num_retired, "keyframes_added": g.next_id,
                     "keyframes_removed": g.next_id - g.n,
                     "keyframes_provisional_removed": mapper.provisional_removed,
-                    "second_starts": mapper.second_starts[0], "second_starts_kept": mapper.second_starts[1],
+                    "second_starts": mapper.second_starts, "second_starts_kept": mapper.second_starts_kept,
                     # stretches of keyframes whose depth was never measured (pvslam_core/slam/scale_gaps.py)
                     "scale_gaps": [gap.as_dict() for gap in mapper.scale_gaps],
                     # map fragments (a re-initialisation starts one; a verified loop merges it back): "maps" is how

@@ -20,6 +20,15 @@ slow camera over a textureless room makes keyframes rarely (indoor_textureless, 
 and 1.37 s), and the 5th came up to 2.1 s into the motion; on the 10-12 frames/s driving sequences (a keyframe every
 ~2 frames) the count comes first, as before.
 
+A pair more than one keyframe apart is checked against its links, the pairs of consecutive keyframes between it,
+chained (:func:`chain_checked`, ``graph.init_chain_tol``).  When its own flow keeps too few confident
+correspondences, the chained links give them instead (:func:`chain_follow`, ``graph.init_chain_fallback``): before
+the map exists nothing starts a far pair's flow from the motion, and DIS from zero finds a few tens of pixels at
+most.  Through a 45 deg lens a hand-held camera (synthetic room, seed 147, 15 fps) moves the image 1.4x as far as
+through the default 61 deg one: every pair two or more keyframes apart came back with 0-69 confident pixels while
+each link had 400-660; the map started 27 frames in, on keyframes 7-9, 22 deg / 61 deg off (rotation / direction
+of motion), and the run ended at 3.9 % of the path (0.1 % with the chained links; bench/RESULTS.md, 12-04 e).
+
 While it cannot initialise, the reason is printed (INFO) about once per second of video, so a user sees why (too
 little parallax, no overlap, too few points in front of the cameras) while it keeps trying.  Poses are T_wc.
 """
@@ -51,6 +60,36 @@ def init_pairs(first: int, k: int, window: int, tries: int) -> list[tuple[int, i
     return out[:tries]
 
 
+def chain_follow(chain_target: torch.Tensor, chain_weight: torch.Tensor, relative_weight: bool,
+                 land_in_view: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each view-``a`` pixel followed along the chained pairs (``chain_target`` / ``chain_weight`` ``[E, 2, h, w]``:
+    a -> a+1, ..., m-1 -> m, BA px): ``(pos [2, h, w], ok [h, w], conf [h, w])``, where it lands in view ``m``,
+    whether every link started in view and was confident about it (initializer.confidence_threshold) -- and, with
+    ``land_in_view``, whether it lands in view ``m`` too -- and the least confidence of its links (0 where not ok)."""
+    from ..geometry.projective import pixel_grid
+    from .initializer import confidence_threshold
+
+    h, w = chain_target.shape[-2:]
+    pos = pixel_grid(h, w, chain_target.device).permute(2, 0, 1)  # [2, h, w] where each view-a pixel is, link by link
+    ok = torch.ones(h, w, dtype=torch.bool, device=chain_target.device)
+    conf = torch.ones(h, w, device=chain_target.device)
+    scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], device=chain_target.device)
+    for t_e, w_e in zip(chain_target, chain_weight):
+        ok &= (pos[0] >= -1e-3) & (pos[0] <= w - 1 + 1e-3) & (pos[1] >= -1e-3) & (pos[1] <= h - 1 + 1e-3)
+        grid = (pos.permute(1, 2, 0) * scale - 1.0)[None]  # [1, h, w, 2] in grid_sample's [-1, 1]
+        w_min = w_e.min(0).values.float()  # [h, w]
+        thr = confidence_threshold(w_min.cpu().numpy(), relative_weight)
+        # the link's target (x, y) and confidence at each pixel's current position, one bilinear sample
+        at = torch.nn.functional.grid_sample(torch.cat([t_e.float(), w_min[None]])[None], grid, align_corners=True)[0]
+        t_at, w_at = at[:2], at[2]
+        ok &= (w_at > thr) & torch.isfinite(t_at).all(0)
+        pos = torch.where(ok[None], t_at, pos)
+        conf = torch.minimum(conf, w_at)
+    if land_in_view:
+        ok &= (pos[0] >= -1e-3) & (pos[0] <= w - 1 + 1e-3) & (pos[1] >= -1e-3) & (pos[1] <= h - 1 + 1e-3)
+    return pos, ok, torch.where(ok, conf, torch.zeros_like(conf))
+
+
 def chain_checked(target: torch.Tensor, weight: torch.Tensor, chain_target: torch.Tensor, chain_weight: torch.Tensor,
                   tol: float, relative_weight: bool) -> torch.Tensor:
     """``weight`` ``[2, h, w]`` of a pair's correspondences ``target`` (view-``a`` pixels in view ``m``, BA px) with 0
@@ -63,25 +102,20 @@ def chain_checked(target: torch.Tensor, weight: torch.Tensor, chain_target: torc
     the road still in view, forward-backward consistent: 255 of the 321 confident correspondences of the highway's
     init pair (unseen seed 69) had no true match, and the cheirality test then favoured sideways or reversed motions
     (bench/RESULTS.md, 12-03 g).  Each short link keeps most of its pixels in view and the chain follows them out."""
-    from ..geometry.projective import pixel_grid
-    from .initializer import confidence_threshold
-
-    h, w = target.shape[-2:]
-    pos = pixel_grid(h, w, target.device).permute(2, 0, 1)  # [2, h, w] where each view-a pixel is, link by link
-    ok = torch.ones(h, w, dtype=torch.bool, device=target.device)
-    scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], device=target.device)
-    for t_e, w_e in zip(chain_target, chain_weight):
-        ok &= (pos[0] >= -1e-3) & (pos[0] <= w - 1 + 1e-3) & (pos[1] >= -1e-3) & (pos[1] <= h - 1 + 1e-3)
-        grid = (pos.permute(1, 2, 0) * scale - 1.0)[None]  # [1, h, w, 2] in grid_sample's [-1, 1]
-        w_min = w_e.min(0).values.float()  # [h, w]
-        thr = confidence_threshold(w_min.cpu().numpy(), relative_weight)
-        # the link's target (x, y) and confidence at each pixel's current position, one bilinear sample
-        at = torch.nn.functional.grid_sample(torch.cat([t_e.float(), w_min[None]])[None], grid, align_corners=True)[0]
-        t_at, w_at = at[:2], at[2]
-        ok &= (w_at > thr) & torch.isfinite(t_at).all(0)
-        pos = torch.where(ok[None], t_at, pos)
+    pos, ok, _ = chain_follow(chain_target, chain_weight, relative_weight)
     ok &= (target.float() - pos).norm(dim=0) <= tol
     return weight * ok[None].to(weight.dtype)
+
+
+INIT_MIN_INLIERS = 60  # confident correspondences a pair needs (two_view_init_why's min_inliers)
+
+
+def _confident(weight: torch.Tensor, cfg) -> int:
+    """How many of a pair's correspondences (``weight [2, h, w]``) two_view_init_why would count as confident."""
+    from .initializer import confidence_threshold
+
+    w_min = weight.detach().cpu().float().numpy().reshape(2, -1).min(0)
+    return int((w_min > confidence_threshold(w_min, cfg.init_relative_confidence)).sum())
 
 
 class Bootstrap:
@@ -108,9 +142,18 @@ class Bootstrap:
                 ii, jj = torch.arange(a, m, device=g.device), torch.arange(a + 1, m + 1, device=g.device)
                 chain = mapper.frontend.observe(g, ii, jj)
                 mapper.frontend.discard_pairs(g.ids[ii], g.ids[jj])
-                weight = chain_checked(obs.target[0], weight, chain.target, chain.weight, self.cfg.init_chain_tol,
-                                       self.cfg.init_relative_confidence)
-            init, why = two_view_init_why(obs.target[0], weight, g.intrinsics,
+                checked = chain_checked(obs.target[0], weight, chain.target, chain.weight, self.cfg.init_chain_tol,
+                                        self.cfg.init_relative_confidence)
+                target, weight = obs.target[0], checked
+                if self.cfg.init_chain_fallback and _confident(checked, self.cfg) < INIT_MIN_INLIERS:
+                    # the direct flow lost the pair (DIS from zero, no map yet to start it from): its links did not
+                    pos, ok, conf = chain_follow(chain.target, chain.weight, self.cfg.init_relative_confidence,
+                                                 land_in_view=True)
+                    if int(ok.sum()) >= INIT_MIN_INLIERS:
+                        target, weight = pos.to(obs.target.dtype), conf[None].expand(2, -1, -1).to(weight.dtype)
+            else:
+                target = obs.target[0]
+            init, why = two_view_init_why(target, weight, g.intrinsics, min_inliers=INIT_MIN_INLIERS,
                                           min_parallax_deg=self.cfg.init_min_parallax_deg,
                                           relative_weight=self.cfg.init_relative_confidence,
                                           parallax_quantile=self.cfg.init_parallax_quantile,

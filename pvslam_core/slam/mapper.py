@@ -85,7 +85,8 @@ class Mapper(GraphListener, WindowBA):
         # CPU seconds of this thread per part of the mapping (track, pose_guess, edges, ba, loops, fill, ...)
         self.cpu: dict[str, float] = defaultdict(float)
         self.provisional_removed = 0  # provisional keyframes removed without ever being optimised
-        self.second_starts = [0, 0]  # window BAs also run from the constant-velocity centre, and those it won
+        self.second_starts = 0  # window BAs also run from the constant-velocity centre (.motion_start) ...
+        self.second_starts_kept = 0  # ... and those whose second start won
         self.observed = ObservedMasks(self.cfg.unobserved_weight, self.cfg.observed_parallax,
                                       self.cfg.guess_min_measured)  # see .observed
         self.scale_gaps: list[ScaleGap] = []  # where the map's scale was not observed (.scale_gaps; at finalize)

@@ -1,6 +1,6 @@
 """Observing edges and the window BA of a new keyframe: a part of :class:`~.mapper.Mapper` (a mixin that uses its
 ``graph``, ``frontend``, ``optimizer``, ``observed``, ``cfg``, ``cpu``, ``ba_shape``, ``fragment_start`` and
-``second_starts``).
+``second_starts`` / ``second_starts_kept``).
 
 Per window BA: ``rounds`` x (the frontend's observations of the active edges, the stored ones of the retired edges
 near the window (:func:`.edges.frozen_edges`), the frontend's depth and distance priors, the measured-depth factor
@@ -127,9 +127,9 @@ class WindowBA:
         g.poses[k, :3] = centre.to(g.poses)
         for obs in given:
             self._step(k, obs)
-        self.second_starts[0] += 1
+        self.second_starts += 1
         if weighted_cost(g, given[0]) < cost_guess:
-            self.second_starts[1] += 1
+            self.second_starts_kept += 1
         else:
             g.poses.copy_(guess_result[0])
             g.disps.copy_(guess_result[1])

@@ -234,3 +234,20 @@ def _fake_sequence(tmp_path):
     (d / "meta.json").write_text(json.dumps({"fps": 10.0}))
     (d / "groundtruth.txt").write_text("".join(f"{0.1 * i:.1f} {i} 0 0 0 0 0 1\n" for i in range(5)))
     return d
+
+
+def test_another_lens_reaches_the_synthetic_cells_and_a_bad_one_fails_first(tmp_path, monkeypatch):
+    cells = bench_matrix.plan(["busy_street", "kitti_06"], [3], None, tmp_path, False, False, 1, hfov_deg=90.0)
+    assert [c["hfov_deg"] for c in cells] == [90.0, 90.0]  # (a KITTI cell reads its own calibration)
+    asked = []
+
+    def fake_sequence(scenario, seed, frames, size, hfov_deg=None):
+        asked.append(hfov_deg)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(matrix_jobs, "synthetic_sequence", fake_sequence)
+    row = matrix_jobs.run_cell({"scenario": "busy_street", "seed": 3, "frames": 5, "out": str(tmp_path),
+                                "hfov_deg": 90.0})
+    assert asked == [90.0] and "stop here" in row["error"]
+    with pytest.raises(SystemExit):
+        bench_matrix.main(["--scenarios", "busy_street", "--seeds", "3", "--hfov", "200", "--out", str(tmp_path)])

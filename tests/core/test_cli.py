@@ -95,3 +95,12 @@ def test_one_openmp_thread_unless_the_user_chose(tmp_path):
     out = subprocess.run([sys.executable, "-c", probe], env={**env, "OMP_NUM_THREADS": "2"}, capture_output=True,
                          text=True, check=True).stdout
     assert "OMP 2 2" in out
+
+
+def test_synth_writes_a_sequence_through_another_lens(tmp_path, capsys):
+    out = tmp_path / "wide"
+    assert main(["synth", "--scenario", "indoor_handheld", "--frames", "2", "--width", "48", "--height", "32",
+                 "--hfov", "90", "--out", str(out)]) == 0
+    assert capsys.readouterr().out.strip().endswith(str(out))
+    assert (out / "calib.txt").read_text().split()[:2] == ["24.000000", "24.000000"]  # 48 px wide at 90 deg
+    assert json.loads((out / "meta.json").read_text())["hfov_deg"] == 90.0

@@ -91,10 +91,11 @@ def test_failure_midway_keeps_what_was_written(tmp_path, fake_registry, monkeypa
 
 @pytest.mark.parametrize("tries, initialised", [(1, False), (3, True)])
 def test_initialisation_falls_back_to_a_nearer_pair(fake_registry, fake_config_file, tries, initialised):
-    """Fast motion: the flow from the first keyframe to the newest fails; a nearer partner still initialises."""
+    """Fast motion: the flow from the first keyframe to the newest fails; a nearer partner still initialises (with
+    the chained links of the far pair off: graph.init_chain_fallback, the next test)."""
     res = run_config(fake_config_file, registry=fake_registry,
                      overrides=["frontend.max_pair_gap=1", f"graph.init_tries={tries}", "graph.warmup=3",
-                                "graph.init_min_parallax_deg=0.3"])
+                                "graph.init_min_parallax_deg=0.3", "graph.init_chain_fallback=false"])
     log = (__import__("pathlib").Path(res.run_dir) / "log.txt").read_text()
     # the pairs all end at the newest keyframe (pvslam_core/slam/bootstrap.py): (0, 2) fails, (1, 2) initialises
     assert ("map initialised with keyframes 0..2 (pair 1-2" in log) == initialised, log
@@ -102,6 +103,16 @@ def test_initialisation_falls_back_to_a_nearer_pair(fake_registry, fake_config_f
     if initialised:  # keyframe 0 (before the pair) was placed against keyframe 1: the camera's constant velocity
         x = res.keyframe_poses[:3, 0].numpy()
         assert x[2] != x[1] and abs((x[2] - x[1]) - (x[1] - x[0])) < 1e-3 * abs(x[2] - x[1])
+
+
+def test_a_far_pair_whose_flow_failed_initialises_on_its_links(fake_registry, fake_config_file):
+    """The same fast motion with graph.init_chain_fallback (the default): the far pair (0, 2) takes its
+    correspondences from the chained links 0 -> 1 -> 2, so the first try initialises."""
+    res = run_config(fake_config_file, registry=fake_registry,
+                     overrides=["frontend.max_pair_gap=1", "graph.init_tries=1", "graph.warmup=3",
+                                "graph.init_min_parallax_deg=0.3"])
+    log = (__import__("pathlib").Path(res.run_dir) / "log.txt").read_text()
+    assert "map initialised with keyframes 0..2 (pair 0-2" in log and "never initialised" not in log, log
 
 
 @pytest.mark.parametrize("gap, expected", [(0, 8), (100, 1), (3, 3)])

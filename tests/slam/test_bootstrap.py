@@ -177,3 +177,41 @@ def test_with_the_chain_check_the_pairs_between_are_observed_then_discarded_and_
     for mm in (m, m0):  # right up to scale both (the chain drops what leaves the view: another median depth)
         ate = umeyama_ate(mm.trajectory()[1][:, :3], gt[:, :3])
         assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate
+
+
+def test_a_pair_whose_direct_flow_is_lost_initialises_on_its_chained_links(monkeypatch, caplog):
+    """graph.init_chain_fallback: before the map exists nothing starts a far pair's flow from the motion, and it can
+    come back with no confident pixel while each link between is fine (a 45 deg lens on a hand-held camera).  The
+    pair then initialises on the chained links' correspondences: on exact links the map starts at the same frame
+    and on the same pair as with the direct flow, right up to scale; without the fallback that pair is declined."""
+    def run(wipe, fallback):
+        m, ds = _build(init_chain_tol=1.0, init_chain_fallback=fallback)
+        fe = m.frontend
+        real_observe = fe.observe
+
+        def observe(graph, ii, jj):
+            obs = real_observe(graph, ii, jj)
+            if wipe and not m.initialized and len(ii) == 1 and int(jj[0]) - int(ii[0]) > 1:
+                obs.weight.zero_()  # the far pair's direct flow: nothing confident
+            return obs
+
+        monkeypatch.setattr(fe, "observe", observe)
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="pvslam"):
+            results = [m.process(f, None) for f in ds]
+        m.finalize()
+        said = next(r.getMessage() for r in caplog.records if "map initialised" in r.getMessage())
+        return m, said, next(i for i, r in enumerate(results) if r.initialized)
+
+    m_ref, said_ref, first_ref = run(wipe=False, fallback=True)
+    m_fb, said_fb, first_fb = run(wipe=True, fallback=True)
+    _, said_off, first_off = run(wipe=True, fallback=False)
+    pair = said_ref.split("(pair ")[1].split(",")[0]
+    a, k = (int(x) for x in pair.split("-"))
+    assert k - a > 1  # the reference starts on a far pair (the one the wiped runs lose)
+    assert first_fb == first_ref and f"(pair {pair}," in said_fb
+    assert f"(pair {pair}," not in said_off  # declined without the fallback: an adjacent pair or a later keyframe
+    _, ds = _build()
+    gt = torch.stack([f.gt_pose for f in ds])
+    ate = umeyama_ate(m_fb.trajectory()[1][:, :3], gt[:, :3])
+    assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate

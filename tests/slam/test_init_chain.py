@@ -1,5 +1,6 @@
 """The initialisation pair's chain check (pvslam_core/slam/bootstrap.py ``chain_checked``): a correspondence of a pair
 far apart is kept only where the flows of the keyframes between, chained, stay in view, are confident and land on it."""
+import pytest
 import torch
 
 from pvslam_core.slam import bootstrap as B
@@ -53,3 +54,23 @@ def test_a_pixel_that_passes_an_unconfident_link_pixel_is_dropped():
     assert not kept[3, 3]  # (3, 3) -> (4, 3): through the unconfident pixel
     # every other pixel whose first link stays in view (the last column leaves it)
     assert int(kept[: H - 1, : W - 1].sum()) == (H - 1) * (W - 1) - 1 and not bool(kept[:, W - 1].any())
+
+
+def test_chain_follow_lands_each_pixel_and_keeps_its_least_confidence():
+    """``chain_follow``: where each view-a pixel lands after the links (the sum of the shifts), whether every link
+    kept it in view and confident, and the least confidence met on the way (0 where it was lost)."""
+    links = torch.stack([_shift(1.0), _shift(0.5, 1.0)])
+    lw = torch.ones_like(links)
+    lw[0] *= 0.9
+    lw[1, :, 2, 3] = 0.6  # the second link is less confident at (x 3, y 2) of view a+1
+    pos, ok, conf = B.chain_follow(links, lw, relative_weight=True)
+    expect = torch.zeros(H, W, dtype=torch.bool)
+    expect[:, : W - 1] = True  # every link starts in view (the second from x + 1) ...
+    assert torch.equal(ok, expect)
+    pos, ok, conf = B.chain_follow(links, lw, relative_weight=True, land_in_view=True)
+    expect[H - 1] = False  # ... and lands in view only above the last row (y + 1) and left of the last column
+    expect[:, W - 2] = False  # (x + 1.5)
+    assert torch.equal(ok, expect)
+    assert torch.allclose(pos[:, ok], _shift(1.5, 1.0)[:, ok])
+    assert float(conf[2, 2]) == pytest.approx(0.6) and float(conf[ok].max()) == pytest.approx(0.9)
+    assert not bool(conf[~ok].any())

@@ -103,7 +103,7 @@ def test_the_constant_velocity_start_wins_where_the_guess_is_off():
     m.frontend.observe = lambda graph, ii, jj: asked.append(1) or observe(graph, ii, jj)
     m._optimize_new(k, 2)
     assert len(asked) == 2  # once per round: the second start reuses the observations
-    assert m.second_starts == [1, 1]
+    assert (m.second_starts, m.second_starts_kept) == (1, 1)
     assert torch.allclose(g.poses[k, :3].double(), expected.to(g.poses), atol=1e-5)
     touched = (g.ii >= k - m.cfg.active_window + 1) | (g.jj >= k - m.cfg.active_window + 1)
     assert bool((g.edge_age[touched] - age0[: g.num_edges][touched] == 2).all())  # aged by the rounds, once
@@ -118,7 +118,7 @@ def test_the_guess_stays_where_the_prediction_is_worse(monkeypatch):
     wrong = g.poses[k, :3].double() + torch.tensor([0.0, 0.5 * step, 0.0], dtype=torch.float64)
     monkeypatch.setattr(window_ba, "constant_velocity_centre", lambda *a, **kw: wrong)
     m._optimize_new(k, 1)
-    assert m.second_starts == [1, 0]
+    assert (m.second_starts, m.second_starts_kept) == (1, 0)
     assert torch.equal(g.poses, before)
 
 
@@ -128,4 +128,4 @@ def test_switched_off_it_runs_one_window_ba():
     calls = []
     m.optimizer = type("Counting", (_Still,), {"step": lambda self, g, o: calls.append(1) or OptimizerReport()})()
     m._optimize_new(k, 2)
-    assert len(calls) == 2 and m.second_starts == [0, 0]
+    assert len(calls) == 2 and (m.second_starts, m.second_starts_kept) == (0, 0)

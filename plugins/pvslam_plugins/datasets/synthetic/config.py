@@ -21,6 +21,8 @@ class SyntheticConfig(ReaderOptions):
     width: int = Field(320, ge=16, description="image width to generate")
     height: int = Field(240, ge=16, description="image height to generate")
     seed: int = Field(0, description="scene/trajectory seed (same seed, same sequence)")
+    hfov_deg: Optional[float] = Field(None, ge=20, le=150, description="another camera: its horizontal field of view "
+                                      "in degrees (same scene and trajectory); None = the default, about 61")
     progress: bool = Field(True, description="progress bar while generating (only on a terminal)")
     gt_maps: list[Literal["depth", "panoptic", "dynamic"]] = Field(
         default_factory=lambda: ["panoptic"],

@@ -15,7 +15,9 @@ Nothing depends on the viewpoint except the level of detail, so static surfaces 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -25,6 +27,17 @@ from .shading import shade
 NEAR = 0.05  # metres; hits closer than this are ignored
 _EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
 _SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+
+
+HFOV_RANGE = (20.0, 150.0)  # degrees: a pinhole beyond ~150 stretches the border rows without bound
+
+
+def check_hfov(hfov_deg: float) -> float:
+    """``hfov_deg`` when it is a horizontal field of view a pinhole camera can have (:data:`HFOV_RANGE`)."""
+    lo, hi = HFOV_RANGE
+    if not (lo <= float(hfov_deg) <= hi):
+        raise ValueError(f"hfov_deg must be within {lo:g}-{hi:g} degrees (a pinhole camera), got {hfov_deg}")
+    return float(hfov_deg)
 
 
 @dataclass(frozen=True)
@@ -39,9 +52,10 @@ class Camera:
     height: int
 
     @staticmethod
-    def default(width: int = 320, height: int = 240) -> "Camera":
-        """fx = fy = 0.85 W (about 61 degrees horizontal field of view), centred principal point."""
-        f = 0.85 * width
+    def default(width: int = 320, height: int = 240, hfov_deg: Optional[float] = None) -> "Camera":
+        """fx = fy = 0.85 W (about 61 degrees horizontal field of view), or the focal length of ``hfov_deg`` degrees
+        horizontally (another camera: a wide action camera ~90, a narrow lens ~45); centred principal point."""
+        f = 0.85 * width if hfov_deg is None else 0.5 * width / math.tan(math.radians(check_hfov(hfov_deg)) / 2)
         return Camera(f, f, (width - 1) / 2.0, (height - 1) / 2.0, int(width), int(height))
 
     def rays(self, u: np.ndarray | None = None, v: np.ndarray | None = None) -> np.ndarray:

@@ -80,15 +80,19 @@ def _builders() -> dict[str, Callable[..., Scenario]]:
 
 
 def build(name: str, num_frames: Optional[int] = None, width: int = 320, height: int = 240, seed: int = 0,
-          laps: Optional[float] = None) -> Scenario:
-    """Build scenario ``name``.  ``num_frames`` None = the scenario's default length (``laps`` may set it)."""
+          laps: Optional[float] = None, hfov_deg: Optional[float] = None) -> Scenario:
+    """Build scenario ``name``.  ``num_frames`` None = the scenario's default length (``laps`` may set it);
+    ``hfov_deg`` None = the default camera (:meth:`.render.Camera.default`).  The scene and the trajectory do not
+    depend on the camera: another field of view sees the same sequence through another lens."""
     check_name(name)
     if width < 16 or height < 16:
         raise ValueError(f"image size must be at least 16x16, got {width}x{height}")
     if num_frames is not None and num_frames < 1:
         raise ValueError(f"num_frames must be positive, got {num_frames}")
-    sc = _builders()[name](num_frames, Camera.default(width, height), seed, laps)
+    sc = _builders()[name](num_frames, Camera.default(width, height, hfov_deg), seed, laps)
     sc.params = dict(scenario=name, num_frames=sc.num_frames, width=width, height=height, seed=seed, laps=laps)
+    if hfov_deg is not None:
+        sc.params["hfov_deg"] = float(hfov_deg)
     if revision(name, seed):
         sc.params["revision"] = revision(name, seed)
     return sc
