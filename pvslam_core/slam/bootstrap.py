@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Optional
 import torch
 
 from ..geometry.lie import se3_interpolate, se3_mul
-from .initializer import TwoViewInit, two_view_init_why
+from .initializer import TwoViewInit, confident_mask, two_view_init_why
 
 if TYPE_CHECKING:  # pragma: no cover
     from .mapper import Mapper
@@ -74,8 +74,12 @@ def chain_follow(chain_target: torch.Tensor, chain_weight: torch.Tensor, relativ
     ok = torch.ones(h, w, dtype=torch.bool, device=chain_target.device)
     conf = torch.ones(h, w, device=chain_target.device)
     scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], device=chain_target.device)
+
+    def in_view(p: torch.Tensor) -> torch.Tensor:
+        return (p[0] >= -1e-3) & (p[0] <= w - 1 + 1e-3) & (p[1] >= -1e-3) & (p[1] <= h - 1 + 1e-3)
+
     for t_e, w_e in zip(chain_target, chain_weight):
-        ok &= (pos[0] >= -1e-3) & (pos[0] <= w - 1 + 1e-3) & (pos[1] >= -1e-3) & (pos[1] <= h - 1 + 1e-3)
+        ok &= in_view(pos)
         grid = (pos.permute(1, 2, 0) * scale - 1.0)[None]  # [1, h, w, 2] in grid_sample's [-1, 1]
         w_min = w_e.min(0).values.float()  # [h, w]
         thr = confidence_threshold(w_min.cpu().numpy(), relative_weight)
@@ -86,7 +90,7 @@ def chain_follow(chain_target: torch.Tensor, chain_weight: torch.Tensor, relativ
         pos = torch.where(ok[None], t_at, pos)
         conf = torch.minimum(conf, w_at)
     if land_in_view:
-        ok &= (pos[0] >= -1e-3) & (pos[0] <= w - 1 + 1e-3) & (pos[1] >= -1e-3) & (pos[1] <= h - 1 + 1e-3)
+        ok &= in_view(pos)
     return pos, ok, torch.where(ok, conf, torch.zeros_like(conf))
 
 
@@ -110,14 +114,6 @@ def chain_checked(target: torch.Tensor, weight: torch.Tensor, chain_target: torc
 INIT_MIN_INLIERS = 60  # confident correspondences a pair needs (two_view_init_why's min_inliers)
 
 
-def _confident(weight: torch.Tensor, cfg) -> int:
-    """How many of a pair's correspondences (``weight [2, h, w]``) two_view_init_why would count as confident."""
-    from .initializer import confidence_threshold
-
-    w_min = weight.detach().cpu().float().numpy().reshape(2, -1).min(0)
-    return int((w_min > confidence_threshold(w_min, cfg.init_relative_confidence)).sum())
-
-
 class Bootstrap:
     """Initialises the mapper's current fragment (``Mapper._try_initialise`` delegates here)."""
 
@@ -135,24 +131,23 @@ class Bootstrap:
         for a, m in init_pairs(first, k, self.cfg.init_window, self.cfg.init_tries):
             obs = mapper._observe(torch.tensor([a]), torch.tensor([m]))
             mapper._release_pairs(torch.tensor([a]), torch.tensor([m]))  # not an edge: not observed again
-            weight = obs.weight[0]
+            target, weight = obs.target[0], obs.weight[0]
             if self.cfg.init_chain_tol > 0 and m - a > 1:
                 # the pairs between are odometry edges: observed now, before the map exists, their flows must not
                 # stay cached (the window BA's first observation starts them from the map's poses)
                 ii, jj = torch.arange(a, m, device=g.device), torch.arange(a + 1, m + 1, device=g.device)
                 chain = mapper.frontend.observe(g, ii, jj)
                 mapper.frontend.discard_pairs(g.ids[ii], g.ids[jj])
-                checked = chain_checked(obs.target[0], weight, chain.target, chain.weight, self.cfg.init_chain_tol,
-                                        self.cfg.init_relative_confidence)
-                target, weight = obs.target[0], checked
-                if self.cfg.init_chain_fallback and _confident(checked, self.cfg) < INIT_MIN_INLIERS:
+                weight = chain_checked(target, weight, chain.target, chain.weight, self.cfg.init_chain_tol,
+                                       self.cfg.init_relative_confidence)
+                if (self.cfg.init_chain_fallback
+                        and int(confident_mask(target, weight, self.cfg.init_relative_confidence).sum())
+                        < INIT_MIN_INLIERS):
                     # the direct flow lost the pair (DIS from zero, no map yet to start it from): its links did not
                     pos, ok, conf = chain_follow(chain.target, chain.weight, self.cfg.init_relative_confidence,
                                                  land_in_view=True)
                     if int(ok.sum()) >= INIT_MIN_INLIERS:
-                        target, weight = pos.to(obs.target.dtype), conf[None].expand(2, -1, -1).to(weight.dtype)
-            else:
-                target = obs.target[0]
+                        target, weight = pos.to(target.dtype), conf[None].expand(2, -1, -1).to(weight.dtype)
             init, why = two_view_init_why(target, weight, g.intrinsics, min_inliers=INIT_MIN_INLIERS,
                                           min_parallax_deg=self.cfg.init_min_parallax_deg,
                                           relative_weight=self.cfg.init_relative_confidence,

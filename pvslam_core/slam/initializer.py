@@ -83,6 +83,14 @@ def confidence_threshold(w_min: np.ndarray, relative_weight: bool) -> float:
     return max(RELATIVE_FLOOR, min(0.5, 0.5 * float(np.quantile(w_min, 0.9))))
 
 
+def confident_mask(target: torch.Tensor, weight: torch.Tensor, relative_weight: bool) -> np.ndarray:
+    """bool ``[h*w]``: the correspondences of a pair (``target`` / ``weight`` ``[2, h, w]``) that count as confident
+    (:func:`confidence_threshold` on the smaller of the two weights) and have a finite target."""
+    p1 = target.detach().cpu().double().numpy().reshape(2, -1).T  # [P, 2]
+    w_min = weight.detach().cpu().numpy().reshape(2, -1).min(0)  # [P]
+    return (w_min > confidence_threshold(w_min, relative_weight)) & np.isfinite(p1).all(1)
+
+
 def two_view_init_why(
     target: torch.Tensor,
     weight: torch.Tensor,
@@ -120,8 +128,7 @@ def two_view_init_why(
     ys, xs = np.mgrid[0:h, 0:w]
     p0 = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)  # [P, 2]
     p1 = target.detach().cpu().double().numpy().reshape(2, -1).T  # [P, 2]
-    w_min = weight.detach().cpu().numpy().reshape(2, -1).min(0)  # [P]
-    good = (w_min > confidence_threshold(w_min, relative_weight)) & np.isfinite(p1).all(1)
+    good = confident_mask(target, weight, relative_weight)
     if good.sum() < min_inliers:
         return None, f"{int(good.sum())} confident correspondences < {min_inliers} (the views do not overlap)"
     p0g, p1g = p0[good], p1[good]

@@ -7,6 +7,7 @@ from pydantic import Field, field_validator
 
 from pvslam_core.datasets.base import ReaderOptions
 
+from .render import HFOV_RANGE
 from .scenarios import DEFAULT_SCENARIO, check_name
 
 
@@ -21,8 +22,10 @@ class SyntheticConfig(ReaderOptions):
     width: int = Field(320, ge=16, description="image width to generate")
     height: int = Field(240, ge=16, description="image height to generate")
     seed: int = Field(0, description="scene/trajectory seed (same seed, same sequence)")
-    hfov_deg: Optional[float] = Field(None, ge=20, le=150, description="another camera: its horizontal field of view "
-                                      "in degrees (same scene and trajectory); None = the default, about 61")
+    hfov_deg: Optional[float] = Field(
+        None, ge=HFOV_RANGE[0], le=HFOV_RANGE[1],
+        description="another camera: its horizontal field of view in degrees (same scene and trajectory); None = the "
+        "default, about 61")
     progress: bool = Field(True, description="progress bar while generating (only on a terminal)")
     gt_maps: list[Literal["depth", "panoptic", "dynamic"]] = Field(
         default_factory=lambda: ["panoptic"],
