@@ -240,9 +240,10 @@ class FlowFrontendConfig(PluginConfig):
         "not-yet-converged estimate); 0 disables.",
     )
     max_dynamic_fraction: float = Field(
-        0.5, gt=0.0, le=1.0,
+        0.8, gt=0.0, le=1.0,
         description="If more than this fraction of an edge's pixels would be dynamic, the estimate (not the scene) "
-        "is wrong: the edge gets no dynamic mask.",
+        "is wrong: the edge gets no dynamic mask. Not lower: a vehicle close to the camera can fill more than half "
+        "of the view, and an edge that drops its mask then hands the pose to the vehicle.",
     )
     dynamic_regions: bool = Field(
         True,
