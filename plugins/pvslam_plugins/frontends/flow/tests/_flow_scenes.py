@@ -65,6 +65,25 @@ def patch_segmentation(x0: int, y0: int, ph: int, pw: int, car_id: int = 26001, 
     return PanopticSegmentation(ids=ids, segments=segs)
 
 
+def identity_reproject(h: int, w: int, valid=None):
+    """``(reproject_fn, coords)`` for ``FlowFrontend(reproject_fn=...)``: the estimate maps each of the ``h x w`` BA
+    pixels onto itself (``coords`` float64 ``[h, w, 2]``, (x, y)), and every pixel can be judged unless ``valid``
+    (bool ``[h, w]``) says otherwise.  An edge's residual is then its target's own shift (:func:`shifted_target`)."""
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    coords = torch.stack([xs, ys], -1)
+    ok = torch.ones(h, w, dtype=torch.bool) if valid is None else valid
+
+    def reproject(poses, disps, intr, ii, jj):
+        return coords[None].expand(len(ii), -1, -1, -1), ok[None].expand(len(ii), -1, -1)
+
+    return reproject, coords
+
+
+def shifted_target(coords: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
+    """An edge's target ``[2, h, w]``: each pixel of ``coords`` ``[h, w, 2]`` moved by ``du`` ``[h, w]`` BA px along u."""
+    return (coords + torch.stack([du, torch.zeros_like(du)], -1)).permute(2, 0, 1)
+
+
 class TwoKeyframeGraph:
     """The attributes the frontend's ``_dynamic_masks`` reads: two keyframes of ``h x w`` BA pixels with different
     poses (the second 1 m along z), unit inverse depth, intrinsics ``(10, 10, w / 2, h / 2)``."""

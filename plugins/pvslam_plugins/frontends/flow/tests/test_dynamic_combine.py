@@ -39,18 +39,13 @@ def _scene():
 
 def _frontend(**cfg):
     seg, res, valid = _scene()
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
-    coords = torch.stack([xs, ys], -1)[None]  # the estimate maps each pixel onto itself
-
-    def reproject(poses, disps, intr, ii, jj):
-        return coords.expand(len(ii), -1, -1, -1), valid[None].expand(len(ii), -1, -1)
-
+    reproject, coords = S.identity_reproject(H, W, valid)  # the estimate maps each pixel onto itself
     fe = FlowFrontend(FlowFrontendConfig(**cfg), reproject_fn=reproject)
     gray = np.zeros((24, 32), np.uint8)
     things = torch.tensor([PARKED, MOVING, LEAVING])
     fe._kfs[0] = _Keyframe(gray=gray, frame_index=0, seg_ba=seg, thing_ids=things)
     fe._kfs[1] = _Keyframe(gray=gray, frame_index=1, seg_ba=seg, thing_ids=things)
-    target = (coords[0] + torch.stack([res, torch.zeros_like(res)], -1)).permute(2, 0, 1)[None]  # residual along u
+    target = S.shifted_target(coords, res)[None]  # residual along u
     return fe, target, seg, res, valid
 
 

@@ -30,18 +30,13 @@ def _scene():
 
 def _frontend():
     seg0, seg1, res = _scene()
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
-    coords = torch.stack([xs, ys], -1)[None]
-
-    def reproject(poses, disps, intr, ii, jj):
-        return coords.expand(len(ii), -1, -1, -1), torch.ones(len(ii), H, W, dtype=torch.bool)
-
+    reproject, coords = S.identity_reproject(H, W)
     # without regions the rule is "candidates OR voted segments": what the vote adds is visible on its own
     fe = FlowFrontend(FlowFrontendConfig(dynamic_regions=False, max_dynamic_fraction=1.0), reproject_fn=reproject)
     gray = np.zeros((2 * H, 2 * W), np.uint8)
     fe._kfs[0] = _Keyframe(gray=gray, frame_index=0, seg_ba=seg0, thing_ids=torch.tensor([1]))
     fe._kfs[1] = _Keyframe(gray=gray, frame_index=1, seg_ba=seg1, thing_ids=torch.tensor([1, 2, 3, 4, 5]))
-    tgt = (coords[0] + torch.stack([res, torch.zeros_like(res)], -1)).permute(2, 0, 1)
+    tgt = S.shifted_target(coords, res)
     return fe, torch.stack([tgt, tgt]), (seg0, seg1), res
 
 
