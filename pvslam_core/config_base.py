@@ -12,29 +12,53 @@ LOG = logging.getLogger("pvslam.config")
 class PluginConfig(BaseModel):
     """Plugin parameters: unknown keys are errors (``extra="forbid"``), so typos never pass silently.
 
-    Renamed keys: a subclass lists ``renamed = {"old": "new"}`` (``"new"`` = ``None``: the key was removed and is
-    ignored); files that still use an old name keep working for one release, with a warning that names the new key.
+    Keys of earlier releases, so that old config files and the ``config.json`` of old run directories still load:
+
+    * ``renamed = {"old": "new"}``: the key moved; ``"new"`` may be a dotted path into a nested table
+      (``{"warmup": "init.warmup"}``), or ``None`` when the key was removed and is ignored.  A file that still uses
+      the old name loads, with one warning per table that names the new keys.
+    * ``retired = {"old": value}``: the setting became a fixed part of the method (a constant in the code).  A file
+      that gives exactly ``value`` loads (old run directories store every key); any other value is an error that
+      says so, since the run would not do what the file asks.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
     renamed: ClassVar[dict[str, Any]] = {}
+    retired: ClassVar[dict[str, Any]] = {}
 
     @model_validator(mode="before")
     @classmethod
-    def _renamed_keys(cls, data: Any) -> Any:
-        if not cls.renamed or not isinstance(data, dict):
+    def _old_keys(cls, data: Any) -> Any:
+        if not (cls.renamed or cls.retired) or not isinstance(data, dict):
             return data
         out = dict(data)
+        moved, ignored = [], []
         for old, new in cls.renamed.items():
             if old not in out:
                 continue
             value = out.pop(old)
             if new is None:
-                LOG.warning("config key %r of %s is no longer used and is ignored", old, cls.__name__)
-            elif new in out:
-                LOG.warning("config keys %r (deprecated) and %r both given in %s; using %r", old, new,
-                            cls.__name__, new)
+                ignored.append(old)
+                continue
+            *tables, key = new.split(".")
+            node = out
+            for t in tables:  # nested tables are copied, never changed in place
+                node[t] = dict(node.get(t) or {})
+                node = node[t]
+            if key in node:
+                LOG.warning("config keys %r (old name) and %r both given in %s; using %r", old, new, cls.__name__, new)
             else:
-                LOG.warning("config key %r of %s is deprecated; use %r", old, cls.__name__, new)
-                out[new] = value
+                node[key] = value
+                moved.append(f"{old} -> {new}")
+        if moved:
+            LOG.warning("%s: config keys of an earlier release, now named: %s", cls.__name__, ", ".join(moved))
+        if ignored:
+            LOG.warning("%s: config keys no longer used, ignored: %s", cls.__name__, ", ".join(ignored))
+        for old, fixed in cls.retired.items():
+            if old not in out:
+                continue
+            value = out.pop(old)
+            if value != fixed:
+                raise ValueError(f"key {old!r} was retired: its setting is now fixed at {fixed!r} (got {value!r}); "
+                                 "remove the key (docs/decisions.md says why)")
         return out

@@ -15,6 +15,8 @@ import torch
 
 from .types import (
     Category,
+    DepthPrior,
+    DistancePrior,
     EdgeObservations,
     Frame,
     LoopCandidate,
@@ -143,17 +145,16 @@ class Frontend(GraphListener, ABC):
         mapper's default (the previous keyframe's depth moved into the new pose)."""
         return None
 
-    def depth_prior(self, graph: "FrameGraph", idx: torch.Tensor) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
-        """A prior on the inverse depth of graph keyframes ``idx`` (int64 ``[m]``): ``(disp [m, h, w], weight
-        [m, h, w])``, weight 0 where there is none (DROID-SLAM's sensor depth; the flow frontend's road), or None.
-        The mapper asks for the depth sources of every BA call (``EdgeObservations.disp_prior``)."""
+    def depth_prior(self, graph: "FrameGraph", idx: torch.Tensor) -> Optional[DepthPrior]:
+        """A prior on the inverse depth of graph keyframes ``idx`` (int64 ``[m]``; ``DepthPrior.ids`` = ``idx``),
+        weight 0 where there is none (DROID-SLAM's sensor depth; the flow frontend's road), or None.  The mapper
+        asks for the depth sources of every BA call (``EdgeObservations.disp_prior``)."""
         return None
 
-    def distance_prior(self, graph: "FrameGraph", idx: torch.Tensor) -> Optional[tuple[torch.Tensor, ...]]:
+    def distance_prior(self, graph: "FrameGraph", idx: torch.Tensor) -> Optional[DistancePrior]:
         """A prior on the distance between the camera centres of pairs of graph keyframes among ``idx`` (int64
-        ``[m]``): ``(ii [k], jj [k] int64 graph indices, dist [k] float64 map units > 0, weight [k] float64)``, or
-        None (the flow frontend's road motion).  The mapper asks for the keyframes of every BA call's edges
-        (``EdgeObservations.dist_prior``)."""
+        ``[m]``), or None (the flow frontend's road motion).  The mapper asks for the keyframes of every BA call's
+        edges (``EdgeObservations.dist_prior``)."""
         return None
 
 

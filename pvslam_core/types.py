@@ -203,9 +203,9 @@ class Frame:
 
     def gray(self):
         """numpy ``uint8 [H, W]`` luminance."""
-        import cv2
+        from .imaging import to_gray
 
-        return cv2.cvtColor(self.image_hwc(), cv2.COLOR_RGB2GRAY)
+        return to_gray(self.image)
 
 
 @dataclass
@@ -248,21 +248,9 @@ class EdgeObservations:
     # float32 [n, h, w]: per-keyframe inverse-depth damping for the BA, one map per graph keyframe (learned
     # frontends: DROID's eta); None -> the optimizer's configured constant
     depth_damping: Optional[torch.Tensor] = None
-    # a prior on the inverse depth of graph keyframes ``disp_prior_ids`` (int64 [m]): target float32 [m, h, w]
-    # (DROID-SLAM's ``disps_sens``: a depth sensor's, or a frontend's own, e.g. the road plane's) and weight
-    # float32 [m, h, w] (DROID's alpha, 0.05 there; 0: no prior at that pixel); None -> no prior.  The BA adds
-    # ``alpha (d - disp_prior)^2`` per pixel of the keyframes whose depth it optimises (geometry/ba.py).
-    disp_prior_ids: Optional[torch.Tensor] = None
-    disp_prior: Optional[torch.Tensor] = None
-    disp_prior_weight: Optional[torch.Tensor] = None
-    # a prior on the distance between the camera centres of graph keyframes ``dist_prior_ii[m]`` and
-    # ``dist_prior_jj[m]`` (int64 [m]): ``dist_prior`` float64 [m] in map units (> 0), ``dist_prior_weight``
-    # float64 [m] (alpha in flow-cost units of the relative error; geometry/ba_distance.py), e.g. the flow
-    # frontend's road motion in camera heights times the camera height; None -> none.
-    dist_prior_ii: Optional[torch.Tensor] = None
-    dist_prior_jj: Optional[torch.Tensor] = None
-    dist_prior: Optional[torch.Tensor] = None
-    dist_prior_weight: Optional[torch.Tensor] = None
+    # priors a frontend adds for the BA (the mapper asks for them: Frontend.depth_prior / distance_prior)
+    disp_prior: Optional["DepthPrior"] = None
+    dist_prior: Optional["DistancePrior"] = None
 
     def __post_init__(self) -> None:
         e = int(self.ii.shape[0])
@@ -271,23 +259,40 @@ class EdgeObservations:
                 f"EdgeObservations: inconsistent edge counts ii={tuple(self.ii.shape)} jj={tuple(self.jj.shape)} "
                 f"target={tuple(self.target.shape)} weight={tuple(self.weight.shape)}"
             )
-        given = [t is not None for t in (self.disp_prior_ids, self.disp_prior, self.disp_prior_weight)]
-        if any(given) and not all(given):
-            raise ValueError("EdgeObservations: disp_prior_ids, disp_prior and disp_prior_weight come together (all "
-                             "three or none)")
-        dist = [t is not None for t in (self.dist_prior_ii, self.dist_prior_jj, self.dist_prior,
-                                        self.dist_prior_weight)]
-        if any(dist) and not (all(dist) and self.dist_prior_ii.shape == self.dist_prior_jj.shape
-                              == self.dist_prior.shape == self.dist_prior_weight.shape
-                              and self.dist_prior.dim() == 1):
-            raise ValueError("EdgeObservations: dist_prior_ii, dist_prior_jj, dist_prior and dist_prior_weight come "
-                             "together (all four or none), each [m]")
-        if all(given) and not (tuple(self.disp_prior.shape) == tuple(self.disp_prior_weight.shape)
-                               and self.disp_prior.dim() == 3
-                               and tuple(self.disp_prior_ids.shape) == (self.disp_prior.shape[0],)):
-            raise ValueError(f"EdgeObservations: disp_prior_ids {tuple(self.disp_prior_ids.shape)}, disp_prior "
-                             f"{tuple(self.disp_prior.shape)} and disp_prior_weight "
-                             f"{tuple(self.disp_prior_weight.shape)} must be [m], [m, h, w], [m, h, w]")
+
+
+@dataclass
+class DepthPrior:
+    """A prior on the inverse depth of graph keyframes ``ids`` (DROID-SLAM's ``disps_sens`` with its ``alpha``: a
+    depth sensor's, or a frontend's own, such as the road plane's).  The BA adds ``weight (d - disp)^2`` per pixel
+    of the keyframes whose depth it optimises (:mod:`pvslam_core.geometry.ba`)."""
+
+    ids: torch.Tensor  # int64 [m] graph indices of the keyframes
+    disp: torch.Tensor  # float32 [m, h, w] inverse depth
+    weight: torch.Tensor  # float32 [m, h, w] alpha >= 0 (0: no prior at that pixel)
+
+    def __post_init__(self) -> None:
+        if not (self.disp.dim() == 3 and tuple(self.disp.shape) == tuple(self.weight.shape)
+                and tuple(self.ids.shape) == (self.disp.shape[0],)):
+            raise ValueError(f"DepthPrior: ids {tuple(self.ids.shape)}, disp {tuple(self.disp.shape)} and weight "
+                             f"{tuple(self.weight.shape)} must be [m], [m, h, w], [m, h, w]")
+
+
+@dataclass
+class DistancePrior:
+    """A prior on the distance between the camera centres of graph keyframes ``ii[m]`` and ``jj[m]`` (the flow
+    frontend's road motion in camera heights times the camera height); the BA adds ``weight`` times the squared
+    relative error (:mod:`pvslam_core.geometry.ba_distance`)."""
+
+    ii: torch.Tensor  # int64 [m] graph indices
+    jj: torch.Tensor  # int64 [m] graph indices
+    dist: torch.Tensor  # float64 [m] map units, > 0
+    weight: torch.Tensor  # float64 [m] alpha in flow-cost units of the relative error
+
+    def __post_init__(self) -> None:
+        if not (self.dist.dim() == 1 and self.ii.shape == self.jj.shape == self.dist.shape == self.weight.shape):
+            raise ValueError(f"DistancePrior: ii {tuple(self.ii.shape)}, jj {tuple(self.jj.shape)}, dist "
+                             f"{tuple(self.dist.shape)} and weight {tuple(self.weight.shape)} must each be [m]")
 
 
 @dataclass

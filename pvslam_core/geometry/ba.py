@@ -31,13 +31,13 @@ the same linearisation point.  Peak memory is therefore set by the chunk budget 
 edge-pixel of one chunk at float32), not by the number of edges; a problem that fits one chunk is linearised
 once, as without chunking.
 
-Disparity prior. ``obs.disp_prior`` / ``obs.disp_prior_weight`` (``[m, h, w]`` for the graph keyframes
-``obs.disp_prior_ids``; DROID-SLAM's ``disps_sens`` and ``alpha``) add ``alpha (d - d_prior)^2 / weight_scale`` per
+Disparity prior. ``obs.disp_prior`` (:class:`~pvslam_core.types.DepthPrior`: ``disp`` and ``weight`` ``[m, h, w]``
+for the graph keyframes ``ids``; DROID-SLAM's ``disps_sens`` and ``alpha``) adds ``alpha (d - d_prior)^2 / weight_scale`` per
 pixel to the objective: ``C += alpha``, ``w += alpha (d_prior - d)`` (DROID's kernel, which takes ``alpha = 0.05``).
 Being diagonal in the depths it changes nothing else of the Schur step; a prior at a constant scale also fixes the
 monocular gauge.
 
-Distance prior. ``obs.dist_prior`` (``[m]`` pairs ``obs.dist_prior_ii`` / ``dist_prior_jj``) adds ``alpha ((L -
+Distance prior. ``obs.dist_prior`` (:class:`~pvslam_core.types.DistancePrior`, ``[m]`` pairs ``ii`` / ``jj``) adds ``alpha ((L -
 |c_i - c_j|) / L)^2`` per pair of camera centres to the objective (in flow-cost units): its 6x6 blocks join the
 reduced pose system directly (:mod:`.ba_distance`, which says why and derives the Jacobian).
 
@@ -298,23 +298,23 @@ def dense_ba(
     eta_src = obs.depth_damping if obs.depth_damping is not None else torch.as_tensor(depth_damping)
     if not _all_finite(eta_src) or bool((eta_src < 0).any()):
         return _report_reject(report, "dense_ba: non-finite or negative depth damping; estimate left unchanged")
-    if obs.disp_prior is not None:
-        m = int(obs.disp_prior_ids.shape[0])
-        if tuple(obs.disp_prior.shape) != (m, h, w):
-            raise ValueError(f"obs.disp_prior must be [{m}, {h}, {w}], got {tuple(obs.disp_prior.shape)}")
-        if m and (int(obs.disp_prior_ids.min()) < 0 or int(obs.disp_prior_ids.max()) >= N):
-            raise IndexError(f"obs.disp_prior_ids out of range for {N} keyframes")
-        if not (_all_finite(obs.disp_prior) and _all_finite(obs.disp_prior_weight)) \
-                or bool((obs.disp_prior_weight < 0).any()):
+    dprior, lprior = obs.disp_prior, obs.dist_prior
+    if dprior is not None:
+        m = int(dprior.ids.shape[0])
+        if tuple(dprior.disp.shape) != (m, h, w):
+            raise ValueError(f"obs.disp_prior.disp must be [{m}, {h}, {w}], got {tuple(dprior.disp.shape)}")
+        if m and (int(dprior.ids.min()) < 0 or int(dprior.ids.max()) >= N):
+            raise IndexError(f"obs.disp_prior.ids out of range for {N} keyframes")
+        if not (_all_finite(dprior.disp) and _all_finite(dprior.weight)) or bool((dprior.weight < 0).any()):
             return _report_reject(report, "dense_ba: non-finite disparity prior or negative prior weight; "
                                           "estimate left unchanged")
 
-    if obs.dist_prior is not None:
-        dpi, dpj = obs.dist_prior_ii.reshape(-1), obs.dist_prior_jj.reshape(-1)
+    if lprior is not None:
+        dpi, dpj = lprior.ii.reshape(-1), lprior.jj.reshape(-1)
         if dpi.numel() and (int(torch.minimum(dpi, dpj).min()) < 0 or int(torch.maximum(dpi, dpj).max()) >= N):
-            raise IndexError(f"obs.dist_prior_ii / dist_prior_jj out of range for {N} keyframes")
-        if not (_all_finite(obs.dist_prior) and _all_finite(obs.dist_prior_weight)) \
-                or bool((obs.dist_prior <= 0).any()) or bool((obs.dist_prior_weight < 0).any()):
+            raise IndexError(f"obs.dist_prior.ii / jj out of range for {N} keyframes")
+        if not (_all_finite(lprior.dist) and _all_finite(lprior.weight)) \
+                or bool((lprior.dist <= 0).any()) or bool((lprior.weight < 0).any()):
             return _report_reject(report, "dense_ba: non-finite or non-positive distance prior, or a negative "
                                           "weight; estimate left unchanged")
 
@@ -334,16 +334,16 @@ def dense_ba(
     # the disparity prior per depth source (target, alpha) [Ns, P]: DROID's disps_sens term, C += alpha,
     # w += alpha (d_sens - d); sources without one get alpha 0
     prior = None
-    if obs.disp_prior is not None and Ns > 0:
+    if dprior is not None and Ns > 0:
         at = torch.full((N,), -1, dtype=torch.int64, device=dev)
-        at[obs.disp_prior_ids.to(dev, torch.int64)] = torch.arange(int(obs.disp_prior_ids.shape[0]), device=dev)
+        at[dprior.ids.to(dev, torch.int64)] = torch.arange(int(dprior.ids.shape[0]), device=dev)
         row = at[src]
         has = torch.nonzero(row >= 0).squeeze(1)
         if has.numel():
             tgt_s = torch.zeros(Ns, P, dtype=dtype, device=dev)
             alpha_s = torch.zeros(Ns, P, dtype=dtype, device=dev)
-            tgt_s[has] = obs.disp_prior.to(dev, dtype).reshape(-1, P)[row[has]]
-            alpha_s[has] = obs.disp_prior_weight.to(dev, dtype).reshape(-1, P)[row[has]]
+            tgt_s[has] = dprior.disp.to(dev, dtype).reshape(-1, P)[row[has]]
+            alpha_s[has] = dprior.weight.to(dev, dtype).reshape(-1, P)[row[has]]
             prior = (tgt_s, alpha_s)
 
     G = se3_inv(graph.poses)  # world-to-camera, updated by left retraction
@@ -371,10 +371,9 @@ def dense_ba(
 
     def dist_terms():
         """The distance prior's Gauss-Newton terms at the current poses (:mod:`.ba_distance`), or None."""
-        if obs.dist_prior is None or obs.dist_prior.numel() == 0:
+        if lprior is None or lprior.dist.numel() == 0:
             return None
-        return distance_prior_terms(G, pose_map, obs.dist_prior_ii, obs.dist_prior_jj, obs.dist_prior,
-                                    obs.dist_prior_weight, weight_scale, F)
+        return distance_prior_terms(G, pose_map, lprior.ii, lprior.jj, lprior.dist, lprior.weight, weight_scale, F)
 
     def prior_cost() -> float:
         """The priors' part of the objective, in the units of the flow cost (the disparity prior's alpha /

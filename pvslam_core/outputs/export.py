@@ -31,6 +31,7 @@ import numpy as np
 
 from ._atomic import atomic_write_bytes, atomic_write_text
 from .metrics import write_json_atomic
+from .trajectory_io import pose_to_matrix
 
 LOG = logging.getLogger("pvslam")
 FORMATS = ("colmap", "nerfstudio", "tum-aligned")
@@ -39,9 +40,9 @@ __all__ = ["FORMATS", "export_run", "colmap_pose", "nerfstudio_c2w", "to_corner_
 
 # ------------------------------------------------------------------------------------------ conventions --
 def _rotmats(q_xyzw: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat(np.asarray(q_xyzw, np.float64).reshape(-1, 4)).as_matrix()
+    """``[K, 3, 3]`` rotation matrices of quaternions ``[..., 4]`` (x, y, z, w)."""
+    q = np.asarray(q_xyzw, np.float64).reshape(-1, 4)
+    return pose_to_matrix(np.concatenate([np.zeros((len(q), 3)), q], axis=1))[:, :3, :3]
 
 
 def colmap_pose(poses_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

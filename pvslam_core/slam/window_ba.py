@@ -47,11 +47,10 @@ class WindowBA:
         src = torch.unique(obs.ii)
         prior = self.frontend.depth_prior(self.graph, src)
         if prior is not None:
-            obs = replace(obs, disp_prior_ids=src, disp_prior=prior[0], disp_prior_weight=prior[1])
+            obs = replace(obs, disp_prior=prior)
         dist = self.frontend.distance_prior(self.graph, torch.unique(torch.cat([obs.ii, obs.jj])))
         if dist is not None:
-            obs = replace(obs, dist_prior_ii=dist[0], dist_prior_jj=dist[1], dist_prior=dist[2],
-                          dist_prior_weight=dist[3])
+            obs = replace(obs, dist_prior=dist)
         return obs
 
     def _release_pairs(self, ii: torch.Tensor, jj: torch.Tensor) -> None:

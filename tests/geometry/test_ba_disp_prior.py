@@ -5,7 +5,7 @@ import torch
 
 from pvslam_core.geometry.ba import dense_ba
 from pvslam_core.geometry.testing import make_problem, perturb
-from pvslam_core.types import EdgeObservations
+from pvslam_core.types import DepthPrior, DistancePrior, EdgeObservations
 
 
 @pytest.fixture(scope="module")
@@ -17,8 +17,7 @@ def with_prior(pr, target, alpha, ids=None):
     """The problem's observations with a prior on keyframes ``ids`` (default: all, in order)."""
     o = pr.obs()
     ids = torch.arange(target.shape[0]) if ids is None else ids
-    return EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior_ids=ids, disp_prior=target,
-                            disp_prior_weight=alpha)
+    return EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior=DepthPrior(ids, target, alpha))
 
 
 def scaled(pr, s):
@@ -104,12 +103,8 @@ def test_bad_priors_are_refused(problem):
     assert torch.equal(g.poses, p0) and torch.equal(g.disps, d0)
     rep = dense_ba(g, with_prior(pr, pr.disps, -torch.ones_like(pr.disps)), free, iters=2)
     assert rep.rejected and "prior weight" in rep.message
-    o = pr.obs()
-    with pytest.raises(ValueError, match="come together"):
-        EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior=pr.disps)
     with pytest.raises(ValueError, match=r"must be \[m\], \[m, h, w\]"):
-        EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior_ids=torch.arange(7), disp_prior=pr.disps,
-                         disp_prior_weight=pr.disps[:2])
+        DepthPrior(torch.arange(7), pr.disps, pr.disps[:2])
 
 
 def test_prior_on_some_keyframes_in_any_order(problem):
@@ -137,7 +132,7 @@ def test_prior_on_some_keyframes_in_any_order(problem):
     dense_ba(a, with_prior(pr, target[ids], alpha[ids], ids), free, iters=3, depth_free=depth_free)
     dense_ba(b, pr.obs(), free, iters=3, depth_free=depth_free)
     torch.testing.assert_close(a.disps, b.disps)
-    with pytest.raises(IndexError, match="disp_prior_ids out of range"):
+    with pytest.raises(IndexError, match="disp_prior.ids out of range"):
         dense_ba(a, with_prior(pr, target[:1], alpha[:1], torch.tensor([7])), free, iters=1)
 
 
@@ -155,12 +150,12 @@ def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
     class FE:
         def depth_prior(self, graph, idx):
             asked.append(idx.tolist())
-            return None if 0 in idx.tolist() else (pr.disps[idx], torch.full_like(pr.disps[idx], 0.05))
+            return None if 0 in idx.tolist() else DepthPrior(idx, pr.disps[idx], torch.full_like(pr.disps[idx], 0.05))
 
         def distance_prior(self, graph, idx):  # consecutive pairs among the edges' keyframes, 1 map unit apart
             asked_dist.append(idx.tolist())
             one = torch.ones(len(idx) - 1, dtype=torch.float64)
-            return idx[:-1], idx[1:], one, 5 * one
+            return DistancePrior(idx[:-1], idx[1:], one, 5 * one)
 
     m = Mapper.__new__(Mapper)
     m.frontend, m.graph = FE(), pr.graph()
@@ -169,10 +164,10 @@ def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
     part = EdgeObservations(o.ii[sel], o.jj[sel], o.target[sel], o.weight[sel])
     got = m._with_prior(_concat([part, part], torch.arange(2 * int(sel.sum()))))
     assert asked[-1] == sorted(set(o.ii[sel].tolist()))
-    assert got.disp_prior_ids.tolist() == asked[-1] and got.disp_prior.shape == (len(asked[-1]), *pr.shape)
-    torch.testing.assert_close(got.disp_prior, pr.disps[got.disp_prior_ids])
+    assert got.disp_prior.ids.tolist() == asked[-1] and got.disp_prior.disp.shape == (len(asked[-1]), *pr.shape)
+    torch.testing.assert_close(got.disp_prior.disp, pr.disps[got.disp_prior.ids])
     # the distance prior: asked for the keyframes at either end of the edges, attached as given
     assert asked_dist[-1] == sorted(set(o.ii[sel].tolist()) | set(o.jj[sel].tolist()))
-    assert got.dist_prior_ii.tolist() == asked_dist[-1][:-1] and got.dist_prior_jj.tolist() == asked_dist[-1][1:]
-    assert got.dist_prior_weight.tolist() == [5.0] * (len(asked_dist[-1]) - 1)
+    assert got.dist_prior.ii.tolist() == asked_dist[-1][:-1] and got.dist_prior.jj.tolist() == asked_dist[-1][1:]
+    assert got.dist_prior.weight.tolist() == [5.0] * (len(asked_dist[-1]) - 1)
     assert m._with_prior(o).disp_prior is None  # keyframe 0 among the sources: this frontend gives none

@@ -9,7 +9,7 @@ from pvslam_core.geometry.ba import dense_ba
 from pvslam_core.geometry.ba_distance import distance_prior_terms
 from pvslam_core.geometry.lie import se3_exp, se3_inv, se3_mul
 from pvslam_core.geometry.testing import make_problem, perturb
-from pvslam_core.types import EdgeObservations
+from pvslam_core.types import DistancePrior, EdgeObservations
 
 
 @pytest.fixture(scope="module")
@@ -31,8 +31,7 @@ def true_pairs(pr, weight=100.0):
 
 def with_dist(pr, ii, jj, dist, alpha):
     o = pr.obs()
-    return EdgeObservations(o.ii, o.jj, o.target, o.weight, dist_prior_ii=ii, dist_prior_jj=jj, dist_prior=dist,
-                            dist_prior_weight=alpha)
+    return EdgeObservations(o.ii, o.jj, o.target, o.weight, dist_prior=DistancePrior(ii, jj, dist, alpha))
 
 
 def test_distance_prior_moves_the_scale_to_it(problem):
@@ -129,9 +128,5 @@ def test_bad_distance_priors_are_refused(problem):
         assert torch.equal(g.poses, p0) and torch.equal(g.disps, d0)
     with pytest.raises(IndexError, match="out of range"):
         dense_ba(pr.graph(p0, d0), with_dist(pr, ii, jj + 1, dist, alpha), free, iters=2)
-    o = pr.obs()
-    with pytest.raises(ValueError, match="all four or none"):
-        EdgeObservations(o.ii, o.jj, o.target, o.weight, dist_prior=dist)
-    with pytest.raises(ValueError, match="all four or none"):
-        EdgeObservations(o.ii, o.jj, o.target, o.weight, dist_prior_ii=ii, dist_prior_jj=jj, dist_prior=dist,
-                         dist_prior_weight=alpha[:2])
+    with pytest.raises(ValueError, match=r"must each be \[m\]"):
+        DistancePrior(ii, jj, dist, alpha[:2])

@@ -6,7 +6,7 @@ from pvslam_core.geometry.pose_graph import loop_relative_sim3, odometry_measure
 from pvslam_core.geometry.testing import circle_poses, drifted_loop, make_problem, perturb, scale_drifted, umeyama_ate
 from pvslam_core.interfaces import BuildContext, Optimizer
 from pvslam_core.registry import get_registry
-from pvslam_core.types import EdgeObservations, LoopClosure
+from pvslam_core.types import DepthPrior, DistancePrior, EdgeObservations, LoopClosure
 
 
 def _loop(i, j, score=0.9):
@@ -96,7 +96,7 @@ def test_renamed_config_keys_still_load(caplog):
     spec = get_registry().get("optimizer", "online_ba")
     cfg = spec.config_model.model_validate({"eta": 1e-4, "pgo_min_gap": 3})
     assert cfg.depth_damping == 1e-4 and "pgo_min_gap" not in cfg.model_dump()
-    assert "use 'depth_damping'" in caplog.text and "pgo_min_gap" in caplog.text
+    assert "eta -> depth_damping" in caplog.text and "pgo_min_gap" in caplog.text
 
 
 def test_pose_graph_only_for_real_drift(loop_problem):
@@ -133,8 +133,8 @@ def test_no_sim3_pose_graph_where_a_depth_prior_observes_the_scale(loop_problem,
                         lambda self, *a: calls.append(1) or orig(self, *a))
     o = pr.obs()
     ids = torch.arange(n)
-    prior = EdgeObservations(o.ii, o.jj, o.target, o.weight, disp_prior_ids=ids, disp_prior=pr.disps.clone(),
-                             disp_prior_weight=torch.full_like(pr.disps, 0.05))
+    prior = EdgeObservations(o.ii, o.jj, o.target, o.weight,
+                             disp_prior=DepthPrior(ids, pr.disps.clone(), torch.full_like(pr.disps, 0.05)))
     drifted = scale_drifted(pr, rate=0.96, yaw_drift=0.01)
     g = pr.graph(*drifted)
     rep = make("online_ba").loop(g, prior, [_loop(n - 1, 0)])
@@ -143,9 +143,9 @@ def test_no_sim3_pose_graph_where_a_depth_prior_observes_the_scale(loop_problem,
     assert not torch.equal(g.poses, drifted[0])  # the loop BA ran
     # a distance prior (geometry/ba_distance.py) observes the scale as well
     one = torch.ones(1, dtype=torch.float64)
-    dist = EdgeObservations(o.ii, o.jj, o.target, o.weight, dist_prior_ii=torch.tensor([0]),
-                            dist_prior_jj=torch.tensor([1]), dist_prior=(pr.poses[0, :3] - pr.poses[1, :3]).norm() * one,
-                            dist_prior_weight=one)
+    span = (pr.poses[0, :3] - pr.poses[1, :3]).norm() * one
+    dist = EdgeObservations(o.ii, o.jj, o.target, o.weight,
+                            dist_prior=DistancePrior(torch.tensor([0]), torch.tensor([1]), span, one))
     rep = make("online_ba").loop(pr.graph(*drifted), dist, [_loop(n - 1, 0)])
     assert not calls and "skipped" in rep.message and not rep.rejected
     make("online_ba", sim3_pgo_with_depth_prior=True).loop(pr.graph(*drifted), prior, [_loop(n - 1, 0)])

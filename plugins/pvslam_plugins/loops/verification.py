@@ -24,6 +24,7 @@ from pydantic import Field
 
 from pvslam_core.config_base import PluginConfig
 from pvslam_core.geometry.two_view import find_essential
+from pvslam_core.imaging import to_gray  # noqa: F401  (the classical detector reads its images with it)
 from pvslam_core.types import Intrinsics
 
 ImageLike = Union[torch.Tensor, np.ndarray]
@@ -64,26 +65,6 @@ def _orb(n: int) -> "cv2.ORB":
         orb = cv2.ORB_create(nfeatures=n, scaleFactor=1.2, nlevels=8, edgeThreshold=15, patchSize=31, fastThreshold=10)
         _ORB_CACHE[n] = orb
     return orb
-
-
-def to_gray(image: ImageLike) -> np.ndarray:
-    """uint8/float grayscale ``[H, W]`` from a torch ``[3, H, W]``/``[H, W]`` or numpy ``[H, W, 3]``/``[H, W]`` (RGB)."""
-    if isinstance(image, torch.Tensor):
-        arr = image.detach().cpu().numpy()  # numpy transposes are much cheaper than torch permute+contiguous
-        if arr.ndim == 3:
-            arr = np.ascontiguousarray(arr.transpose(1, 2, 0))
-    else:
-        arr = np.asarray(image)
-    if arr.ndim == 3:
-        if arr.shape[2] == 1:
-            arr = arr[..., 0]
-        else:
-            if arr.dtype != np.uint8:
-                arr = arr.astype(np.float32)
-            arr = cv2.cvtColor(np.ascontiguousarray(arr[..., :3]), cv2.COLOR_RGB2GRAY)
-    if arr.ndim != 2:
-        raise ValueError(f"expected an image [3,H,W] (torch) or [H,W(,3)] (numpy), got shape {tuple(arr.shape)}")
-    return arr
 
 
 def extract(gray: np.ndarray, intrinsics: Intrinsics, n_features: int = 1000) -> OrbFeatures:
@@ -228,8 +209,6 @@ class KeyframeVerifier:
             return
         t0 = time.perf_counter()
         gray = to_gray(image)
-        if gray.dtype != np.uint8:
-            gray = np.clip(gray, 0, 255).astype(np.uint8)
         small, K = self._reduce(gray, intrinsics)
         ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, int(self.config.jpeg_quality)])
         self._kf[int(kf_id)] = _Stored(buf if ok else None, K)

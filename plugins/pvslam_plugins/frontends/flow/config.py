@@ -17,6 +17,9 @@ class FlowFrontendConfig(PluginConfig):
 
     # ba_downsample: the BA resolution comes from graph.ba_downsample (BuildContext.ba_downsample)
     renamed = {"eta": "panoptic_offset", "ba_downsample": None}
+    # the preset's own DIS iterations and patches (the presets are the choice a user makes)
+    retired = {"gradient_descent_iterations": None, "variational_refinement_iterations": None, "patch_size": None,
+               "patch_stride": None}
 
     # --- DIS optical flow -----------------------------------------------------------------------------------
     preset: Literal["ultrafast", "fast", "medium"] = Field(
@@ -62,14 +65,6 @@ class FlowFrontendConfig(PluginConfig):
         description="...only when the predicted mean flow is at least this (BA px); smaller motions are found from "
         "zero, where the prediction only adds the previous flow's noise.",
     )
-    gradient_descent_iterations: Optional[int] = Field(
-        None, ge=1, le=100, description="DIS patch gradient-descent iterations; None: preset default."
-    )
-    variational_refinement_iterations: Optional[int] = Field(
-        None, ge=0, le=50, description="DIS variational refinement iterations (0 = off); None: preset default."
-    )
-    patch_size: Optional[int] = Field(None, ge=4, le=32, description="DIS patch size; None: preset default (8).")
-    patch_stride: Optional[int] = Field(None, ge=1, le=16, description="DIS patch stride; None: preset default.")
     flow_threads: int = Field(
         2, ge=1, le=8,
         description="Threads for independent DIS calls (a frame's forward and backward tracking flow, a new keyframe's "

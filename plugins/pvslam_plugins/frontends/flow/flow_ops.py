@@ -17,71 +17,7 @@ import cv2
 import numpy as np
 import torch
 
-PRESETS = {
-    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
-    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
-}
-
-
-def create_dis(
-    preset: str = "fast",
-    finest_scale: Optional[int] = None,
-    gradient_descent_iterations: Optional[int] = None,
-    variational_refinement_iterations: Optional[int] = None,
-    patch_size: Optional[int] = None,
-    patch_stride: Optional[int] = None,
-):
-    """An OpenCV DIS optical-flow object for ``preset`` with optional overrides (None keeps the preset's)."""
-    if preset not in PRESETS:
-        raise ValueError(f"unknown DIS preset {preset!r}; choose one of {sorted(PRESETS)}")
-    dis = cv2.DISOpticalFlow_create(PRESETS[preset])
-    if finest_scale is not None:
-        dis.setFinestScale(int(finest_scale))
-    if gradient_descent_iterations is not None:
-        dis.setGradientDescentIterations(int(gradient_descent_iterations))
-    if variational_refinement_iterations is not None:
-        dis.setVariationalRefinementIterations(int(variational_refinement_iterations))
-    if patch_size is not None:
-        dis.setPatchSize(int(patch_size))
-    if patch_stride is not None:
-        dis.setPatchStride(int(patch_stride))
-    return dis
-
-
-def to_gray(image, scale: float = 1.0) -> np.ndarray:
-    """Contiguous ``uint8 [H', W']`` luminance of an RGB ``uint8 [3, H, W]`` tensor (or HxW / HxWx3 array).
-
-    A planar tensor is merged with ``cv2.merge`` (~0.1 ms at 320x240; a torch/numpy transpose copy costs ~1 ms).
-    """
-    if isinstance(image, torch.Tensor):
-        t = image.detach()
-        if t.device.type != "cpu":
-            t = t.cpu()
-        if t.dtype != torch.uint8:
-            t = t.float().clamp(0, 255).round().to(torch.uint8)
-        a = t.contiguous().numpy()
-        if a.ndim == 3 and a.shape[0] == 3:
-            gray = cv2.cvtColor(cv2.merge([a[0], a[1], a[2]]), cv2.COLOR_RGB2GRAY)
-        elif a.ndim == 3 and a.shape[0] == 1:
-            gray = a[0]
-        else:
-            gray = a if a.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(a[..., :3]), cv2.COLOR_RGB2GRAY)
-    else:
-        arr = np.asarray(image)
-        if arr.dtype != np.uint8:
-            arr = np.clip(arr, 0, 255).astype(np.uint8)
-        if arr.ndim == 3:
-            gray = cv2.cvtColor(np.ascontiguousarray(arr[..., :3]), cv2.COLOR_RGB2GRAY) if arr.shape[2] >= 3 \
-                else arr[..., 0]
-        else:
-            gray = arr
-    if scale != 1.0:
-        h, w = gray.shape
-        gray = cv2.resize(gray, (max(1, int(round(w * scale))), max(1, int(round(h * scale)))),
-                          interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(gray)
-
+from pvslam_core.imaging import create_dis, to_gray  # noqa: F401  (the frontend's DIS and gray images)
 
 def compute_flow(dis, i0: np.ndarray, i1: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
     """DIS flow ``i0 -> i1`` as float32 ``[H, W, 2]`` (``i1(x + f(x)) ~ i0(x)``), optionally from ``init``."""

@@ -114,12 +114,6 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
         self.device = torch.device(device)
         self.ba_downsample = int(ba_downsample)
         self.rounds = self.cfg.rounds
-        dis_kw = dict(
-            gradient_descent_iterations=self.cfg.gradient_descent_iterations,
-            variational_refinement_iterations=self.cfg.variational_refinement_iterations,
-            patch_size=self.cfg.patch_size,
-            patch_stride=self.cfg.patch_stride,
-        )
         tp = self.cfg.track_preset or self.cfg.preset
         tfs = self.cfg.track_finest_scale if self.cfg.track_finest_scale is not None else self.cfg.finest_scale
         settings = {"edge": (self.cfg.preset, self.cfg.finest_scale), "track": (tp, tfs)}
@@ -128,7 +122,7 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
         # close edges) depended on whichever edge was initialised last.  lanes.py keeps one object per kind of call
         # and thread, and runs independent calls on `flow_threads` threads.
         self._lanes = DisLanes(lambda kind: F.create_dis(settings[kind.split("_")[0]][0],
-                                                         finest_scale=settings[kind.split("_")[0]][1], **dis_kw),
+                                                         finest_scale=settings[kind.split("_")[0]][1]),
                                threads=self.cfg.flow_threads)
         self._last_track: Optional[tuple] = None  # (reference frame index, frame index, fwd, bwd) of the last track
         self._predictor = MotionPredictor()  # per-frame homographies for tracking recovery (recover.py)

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from pvslam_core.geometry.projective import edge_transforms
+from pvslam_core.types import DepthPrior, DistancePrior
 
 from .road_plane import RoadChain, RoadPlane, flow_intrinsics
 
@@ -210,7 +211,7 @@ class RoadFlows:
         v = np.array([np.linalg.norm(motion[k]) for k in ks])
         return ks, t, v
 
-    def distance_prior(self, graph, idx: torch.Tensor) -> Optional[tuple[torch.Tensor, ...]]:
+    def distance_prior(self, graph, idx: torch.Tensor) -> Optional[DistancePrior]:
         """:meth:`Frontend.distance_prior`: consecutive keyframes among ``idx`` tracked over the road get the
         distance ``h |v|`` (``v``: the road's translation between them in camera heights, chained from the
         tracking's plane motions; ``h``: the camera height in map units from the map's motion over the road's,
@@ -251,9 +252,9 @@ class RoadFlows:
         if not bool(keep.any()):
             return None
         L = L[keep]
-        return ii[keep], jj[keep], L, torch.full_like(L, self.cfg.road_distance_weight)
+        return DistancePrior(ii[keep], jj[keep], L, torch.full_like(L, self.cfg.road_distance_weight))
 
-    def depth_prior(self, graph, idx: torch.Tensor) -> Optional[tuple[torch.Tensor, torch.Tensor]]:
+    def depth_prior(self, graph, idx: torch.Tensor) -> Optional[DepthPrior]:
         """:meth:`Frontend.depth_prior`: the road's inverse depth ``(y - cy) / (fy h)`` and its weight
         ``alpha0 w / dp^2`` (``w``: the road pixels' verification weight) for graph keyframes ``idx``, once the
         camera height ``h`` is known (measured here, :meth:`_camera_height`); None before, or with no road pixels
@@ -278,7 +279,7 @@ class RoadFlows:
         zero = torch.zeros(h, w)
         alpha = torch.stack([zero if r is None else rel * r for r in road])
         dev = graph.disps.device
-        return dp.expand(len(road), h, w).contiguous().to(dev), alpha.to(dev)
+        return DepthPrior(idx, dp.expand(len(road), h, w).contiguous().to(dev), alpha.to(dev))
 
     def _predicted_rotation(self, last_sid: int, index: int) -> np.ndarray:
         """Rotation ``[3, 3]`` from the last keyframe's camera to frame ``index``'s, predicted at the rate between

@@ -8,28 +8,11 @@ import cv2
 import numpy as np
 import torch
 
-_DIS_PRESETS = {
-    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
-    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
-}
-
-
-def to_gray_u8(image: torch.Tensor) -> np.ndarray:
-    """uint8 [H, W] luminance of a uint8 [3, H, W] (or [H, W]) image tensor."""
-    a = image.detach().cpu().numpy()
-    if a.ndim == 3:
-        a = np.ascontiguousarray(a.transpose(1, 2, 0))
-    if a.dtype != np.uint8:
-        a = np.clip(a, 0, 255).astype(np.uint8)
-    if a.ndim == 3:
-        a = cv2.cvtColor(np.ascontiguousarray(a[..., :3]), cv2.COLOR_RGB2GRAY) if a.shape[2] >= 3 else a[..., 0]
-    return a
-
+from pvslam_core.imaging import create_dis, to_gray
 
 def dis_flow(prev: torch.Tensor, cur: torch.Tensor, preset: str = "medium", max_side: int = 640) -> np.ndarray:
     """float32 [2, H, W]: for each pixel of ``prev``, its offset into ``cur`` (OpenCV DIS)."""
-    g0, g1 = to_gray_u8(prev), to_gray_u8(cur)
+    g0, g1 = to_gray(prev), to_gray(cur)
     if g0.shape != g1.shape:
         g1 = cv2.resize(g1, (g0.shape[1], g0.shape[0]), interpolation=cv2.INTER_AREA)
     h, w = g0.shape
@@ -39,7 +22,7 @@ def dis_flow(prev: torch.Tensor, cur: torch.Tensor, preset: str = "medium", max_
         a, b = cv2.resize(g0, size, interpolation=cv2.INTER_AREA), cv2.resize(g1, size, interpolation=cv2.INTER_AREA)
     else:
         a, b = g0, g1
-    dis = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset])
+    dis = create_dis(preset)
     f = dis.calc(a, b, None)
     if s < 1.0:
         sx, sy = w / a.shape[1], h / a.shape[0]

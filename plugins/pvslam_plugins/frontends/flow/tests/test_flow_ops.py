@@ -122,9 +122,9 @@ def test_downsample_ids_block_centre():
     assert int(d[0, 0]) == 4 * S.W + 4 and int(d[1, 2]) == 12 * S.W + 20
 
 
-def test_create_dis_overrides():
-    d = F.create_dis("medium", finest_scale=2, gradient_descent_iterations=7, variational_refinement_iterations=0)
-    assert (d.getFinestScale(), d.getGradientDescentIterations(), d.getVariationalRefinementIterations()) == (2, 7, 0)
+def test_create_dis_finest_scale():
+    assert F.create_dis("medium", finest_scale=2).getFinestScale() == 2
+    assert F.create_dis("medium").getFinestScale() == F.create_dis("medium", finest_scale=None).getFinestScale()
     with pytest.raises(ValueError):
         F.create_dis("slow")
 

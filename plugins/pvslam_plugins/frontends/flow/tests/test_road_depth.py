@@ -53,7 +53,10 @@ def _observe(fe, g):
     n = g.n
     obs = fe.observe(g, torch.arange(n - 1), torch.arange(1, n))
     assert obs.disp_prior is None  # the prior is per keyframe: the mapper asks for it (Frontend.depth_prior)
-    return fe.depth_prior(g, torch.arange(n))
+    got = fe.depth_prior(g, torch.arange(n))
+    if got is not None:
+        assert got.ids.tolist() == list(range(n))
+    return None if got is None else (got.disp, got.weight)
 
 
 def test_no_height_while_road_depth_and_motion_disagree(drive):
@@ -85,7 +88,8 @@ def test_height_and_prior_where_they_agree(drive):
         rel = alpha[k][on] * prior[k][on] ** 2 / A0  # the relative weight: the verification weight in [0, 1]
         assert float(rel.max()) <= 1.0 + 1e-5 and float(rel.median()) > 0.3
     # only the asked keyframes; none with road pixels: no prior
-    p2, a2 = fe.depth_prior(_graph(zs, scale=scale, depth_factor=1.0), torch.tensor([5, 2]))
+    got = fe.depth_prior(_graph(zs, scale=scale, depth_factor=1.0), torch.tensor([5, 2]))
+    p2, a2 = got.disp, got.weight
     torch.testing.assert_close(a2, alpha[[5, 2]])
     torch.testing.assert_close(p2, prior[[5, 2]])
     assert fe.depth_prior(_graph(zs, scale=scale, depth_factor=1.0), torch.tensor([0])) is None

@@ -26,7 +26,8 @@ def test_consecutive_keyframes_get_the_roads_distance(drive):
     # the map's road 8x too far for its motion: the depth prior's gate stays closed, the distance prior does not
     # need the road depth
     g = _graph(zs, scale=scale, depth_factor=8.0)
-    ii, jj, dist, alpha = fe.distance_prior(g, torch.arange(8))
+    got = fe.distance_prior(g, torch.arange(8))
+    ii, jj, dist, alpha = got.ii, got.jj, got.dist, got.weight
     assert fe.road_height_motion == pytest.approx(CAM_H * scale, rel=0.05)
     # keyframe 0 was never tracked (no plane motion into it), so the pairs start at (0, 1) only if 1 chains to 0
     assert (jj - ii).tolist() == [1] * len(ii) and len(ii) >= 6
@@ -41,7 +42,8 @@ def test_only_consecutive_pairs_among_the_asked_and_measured_once(drive):
     fe.distance_prior(_graph(zs, scale=0.05, depth_factor=1.0), torch.arange(8))
     h = fe.road_height_motion
     g = _graph(zs, scale=0.06, depth_factor=1.0)  # a later map at another scale does not move it
-    ii, jj, dist, _ = fe.distance_prior(g, torch.tensor([5, 2, 3]))
+    got = fe.distance_prior(g, torch.tensor([5, 2, 3]))
+    ii, jj, dist = got.ii, got.jj, got.dist
     assert fe.road_height_motion == h
     assert ii.tolist() == [2] and jj.tolist() == [3]
     torch.testing.assert_close(dist, torch.tensor([STEP * 0.05], dtype=torch.float64), rtol=0.05, atol=0)
