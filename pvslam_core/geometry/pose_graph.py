@@ -21,7 +21,8 @@ from typing import Optional
 import torch
 import torch.nn.functional as nnf
 
-from .ba import motion_only_ba, solve_spd, sparse_block_matrix, sparse_solve
+from .ba_linalg import solve_spd, sparse_block_matrix, sparse_solve
+from .ba_motion import motion_only_ba
 from .lie import se3_inv, se3_mul, sim3_exp, sim3_from_se3, sim3_inv, sim3_log, sim3_mul
 from .projective import edge_transforms, project_points
 
@@ -64,39 +65,61 @@ def sim3_pose_graph(
 ) -> PoseGraphResult:
     """Optimise Sim3 nodes ``S0 [N, 8]`` against edge measurements ``Z [E, 8]`` (module docstring).
 
-    ``fixed``: bool ``[N]``; ``weights``: ``[E]`` or ``[E, 7]`` information (diagonal), default 1.
+    ``fixed``: bool ``[N]``; ``weights``: ``[E]`` or ``[E, 7]`` information (diagonal), default 1.  ``lm``: the
+    initial LM damping (relative to the diagonal; halved after an accepted step, x10 after a rejected one);
+    ``fd_step``: the central differences' step; stops when the largest step component falls below ``tol``.
     On the CPU, graphs with more than ``sparse_min_nodes`` free nodes are solved with a sparse LU (the normal
     matrix of a chain with a few loops is block-sparse; a dense Cholesky of 7N x 7N would dominate).
     """
+    pg = _PoseGraph(S0, ii, jj, Z, fixed, weights)
     S = S0.to(torch.float64).clone()
-    dev = S.device
-    N, E = S.shape[0], int(ii.shape[0])
-    ii, jj = ii.to(dev, torch.int64), jj.to(dev, torch.int64)
-    Zinv = sim3_inv(Z.to(dev, torch.float64))
-    Wt = torch.ones(E, 7, dtype=torch.float64, device=dev)
-    if weights is not None:
-        weights = weights.to(dev, torch.float64)
-        Wt = Wt * (weights.unsqueeze(-1) if weights.dim() == 1 else weights)
-    fixed = fixed.to(dev, torch.bool)
-    free_idx = torch.nonzero(~fixed).squeeze(1)
-    F = int(free_idx.shape[0])
-    slot = torch.full((N,), -1, dtype=torch.int64, device=dev)
-    slot[free_idx] = torch.arange(F, device=dev)
-
-    def cost_of(S_: torch.Tensor) -> float:
-        r = _edge_residuals(S_, ii, jj, Zinv)
-        return float((Wt * r * r).sum())
-
-    c0 = cost_of(S)
-    if F == 0 or E == 0:
+    c0 = pg.cost_of(S)
+    if pg.F == 0 or pg.E == 0:
         return PoseGraphResult(S, c0, c0, 0, True)
-    eye7 = torch.eye(7, dtype=torch.float64, device=dev)
     lam = lm
     cost = c0
     converged = False
     it = 0
+    sparse = S.device.type == "cpu" and pg.F > sparse_min_nodes
     for it in range(1, int(iters) + 1):
+        gv, br, bc, bv = pg.normal_equations(S, fd_step)
+        S, cost, lam, step, rel = pg.lm_step(S, cost, lam, gv, br, bc, bv, sparse)
+        if step is None or step < tol or rel < 1e-14:
+            converged = True
+            break
+    return PoseGraphResult(S, c0, cost, it, converged)
+
+
+class _PoseGraph:
+    """The edges, weights and free-node slots of one :func:`sim3_pose_graph` problem (float64, ``S0``'s device)."""
+
+    def __init__(self, S0, ii, jj, Z, fixed, weights):
+        dev = self.dev = S0.device
+        N, E = S0.shape[0], int(ii.shape[0])
+        self.E = E
+        self.ii, self.jj = ii.to(dev, torch.int64), jj.to(dev, torch.int64)
+        self.Zinv = sim3_inv(Z.to(dev, torch.float64))
+        Wt = torch.ones(E, 7, dtype=torch.float64, device=dev)
+        if weights is not None:
+            weights = weights.to(dev, torch.float64)
+            Wt = Wt * (weights.unsqueeze(-1) if weights.dim() == 1 else weights)
+        self.Wt = Wt
+        fixed = fixed.to(dev, torch.bool)
+        self.free_idx = torch.nonzero(~fixed).squeeze(1)
+        F = self.F = int(self.free_idx.shape[0])
+        self.slot = torch.full((N,), -1, dtype=torch.int64, device=dev)
+        self.slot[self.free_idx] = torch.arange(F, device=dev)
+
+    def cost_of(self, S_: torch.Tensor) -> float:
+        r = _edge_residuals(S_, self.ii, self.jj, self.Zinv)
+        return float((self.Wt * r * r).sum())
+
+    def normal_equations(self, S: torch.Tensor, fd_step: float):
+        """Gradient ``gv [7F]`` and the normal matrix as 7x7 blocks ``bv`` at block rows / columns ``br, bc`` (free
+        slots), from central-difference Jacobians of every edge with respect to both of its nodes."""
+        ii, jj, Zinv, Wt, slot, E = self.ii, self.jj, self.Zinv, self.Wt, self.slot, self.E
         r = _edge_residuals(S, ii, jj, Zinv)  # [E, 7]
+        eye7 = torch.eye(7, dtype=torch.float64, device=self.dev)
         # central differences: perturb node i or j along each of 7 axes
         dl = torch.cat([eye7, -eye7], 0) * fd_step  # [14, 7]
         Pert = sim3_exp(dl)  # [14, 8]
@@ -109,7 +132,7 @@ def sim3_pose_graph(
         rj = sim3_log(sim3_mul(Zi, sim3_mul(sim3_inv(Si), Sj_p)))
         Ji = ((ri[:, :7] - ri[:, 7:]) / (2 * fd_step)).transpose(1, 2)  # [E, 7(res), 7(var)]
         Jj = ((rj[:, :7] - rj[:, 7:]) / (2 * fd_step)).transpose(1, 2)
-        g = torch.zeros(F, 7, dtype=torch.float64, device=dev)
+        g = torch.zeros(self.F, 7, dtype=torch.float64, device=self.dev)
         si, sj = slot[ii], slot[jj]
         WJi, WJj = Ji * Wt.unsqueeze(-1), Jj * Wt.unsqueeze(-1)
         blk_r, blk_c, blk_v = [], [], []
@@ -121,43 +144,41 @@ def sim3_pose_graph(
                 blk_r.append(sa[mm])
                 blk_c.append(sb[mm])
                 blk_v.append(torch.einsum("erv,erw->evw", WJa[mm], Jb[mm]))
-        br, bc, bv = torch.cat(blk_r), torch.cat(blk_c), torch.cat(blk_v)  # block rows / cols / 7x7 values
-        gv = g.reshape(-1)
-        sparse = dev.type == "cpu" and F > sparse_min_nodes
+        return g.reshape(-1), torch.cat(blk_r), torch.cat(blk_c), torch.cat(blk_v)
+
+    def lm_step(self, S, cost, lam, gv, br, bc, bv, sparse: bool):
+        """One Levenberg-Marquardt step: up to 8 tries with growing damping until the cost does not rise.
+        Returns ``(S, cost, lam, step, rel)``; ``step`` (the largest component of the accepted update) and ``rel``
+        (the relative cost decrease) are None when no try was accepted."""
+        F = self.F
         if sparse:  # chain + loops: block-sparse normal matrix, solved with SuperLU
             Hs = sparse_block_matrix(br, bc, bv, F)
             hdiag = Hs.diagonal()
         else:
-            H = torch.zeros(F * F, 49, dtype=torch.float64, device=dev)
+            H = torch.zeros(F * F, 49, dtype=torch.float64, device=self.dev)
             H.index_add_(0, br * F + bc, bv.reshape(-1, 49))
             Hm = H.reshape(F, F, 7, 7).permute(0, 2, 1, 3).reshape(7 * F, 7 * F)
             Hm = 0.5 * (Hm + Hm.T)
-        accepted = False
         for _ in range(8):
             if sparse:
                 x = sparse_solve(Hs, hdiag * lam + 1e-9, -gv)
             else:
-                A = Hm + lam * torch.diag(torch.diagonal(Hm)) + 1e-9 * torch.eye(7 * F, dtype=torch.float64, device=dev)
+                A = Hm + lam * torch.diag(torch.diagonal(Hm)) + 1e-9 * torch.eye(7 * F, dtype=torch.float64,
+                                                                                  device=self.dev)
                 x = solve_spd(A, -gv)
             if x is None:
                 lam *= 10
                 continue
             delta = x.reshape(F, 7)
             S_new = S.clone()
-            S_new[free_idx] = sim3_mul(sim3_exp(delta), S[free_idx])
-            c_new = cost_of(S_new)
+            S_new[self.free_idx] = sim3_mul(sim3_exp(delta), S[self.free_idx])
+            c_new = self.cost_of(S_new)
             if c_new <= cost:
-                accepted = True
                 step = float(delta.abs().max())
                 rel = (cost - c_new) / max(cost, 1e-300)
-                S, cost = S_new, c_new
-                lam = max(lam * 0.5, 1e-12)
-                break
+                return S_new, c_new, max(lam * 0.5, 1e-12), step, rel
             lam *= 10
-        if not accepted or step < tol or rel < 1e-14:
-            converged = True
-            break
-    return PoseGraphResult(S, c0, cost, it, converged)
+        return S, cost, lam, None, None
 
 
 def _bilinear(img: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

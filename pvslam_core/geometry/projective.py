@@ -96,38 +96,14 @@ def project_points(
     if not jacobians:
         return out
     hz = d * iz  # homogeneous coordinate (inverse depth of the source pixel) / z
-    # d(u, v) / d xi_j with G_j <- Exp(xi_j) G_j  (DROID: fx [h d', 0, -X h d'^2, -X Y d'^2, 1 + X^2 d'^2, -Y d'])
-    # stored transposed, [E, 6, P], which is the layout the BA's batched matmuls want
-    if torch.is_grad_enabled() and any(x.requires_grad for x in (R, t, d)):
-        zero = torch.zeros_like(xn)  # differentiable path (the raft_gru trainer's BA layer)
-        JuT = torch.stack([hz, zero, -xn * hz, -xn * yn, 1 + xn * xn, -yn], dim=1) * fx
-        JvT = torch.stack([zero, hz, -yn * hz, -1 - yn * yn, xn * yn, xn], dim=1) * fy
-    else:  # each row written once into its place (no stack copy, no extra pass for the focal length)
-        JuT, JvT = torch.empty(2, xn.shape[0], 6, xn.shape[1], dtype=xn.dtype, device=device).unbind(0)
-        torch.mul(hz, fx, out=JuT[:, 0])
-        JuT[:, 1].zero_()
-        torch.mul(xn * hz, -fx, out=JuT[:, 2])
-        xy = xn * yn
-        torch.mul(xy, -fx, out=JuT[:, 3])
-        torch.mul(xn, xn, out=JuT[:, 4]).add_(1.0).mul_(fx)
-        torch.mul(yn, -fx, out=JuT[:, 5])
-        JvT[:, 0].zero_()
-        torch.mul(hz, fy, out=JvT[:, 1])
-        torch.mul(yn * hz, -fy, out=JvT[:, 2])
-        torch.mul(yn, yn, out=JvT[:, 3]).add_(1.0).mul_(-fy)
-        torch.mul(xy, fy, out=JvT[:, 4])
-        torch.mul(xn, fy, out=JvT[:, 5])
+    differentiable = torch.is_grad_enabled() and any(x.requires_grad for x in (R, t, d))
+    JuT, JvT = _pose_jacobian_rows(xn, yn, hz, fx, fy, differentiable)
     out.update(JuT=JuT, JvT=JvT)
     if jacobians == "pose":
         return out
     Jdu = (fx * iz) * (t[:, 0:1] - t[:, 2:3] * xn)
     Jdv = (fy * iz) * (t[:, 1:2] - t[:, 2:3] * yn)
-    # d / d xi_i = -Jj Ad(G_ij);  Ad = [[R, t^ R], [0, R]]
-    tR = torch.cross(t.unsqueeze(-1).expand(-1, 3, 3), R, dim=1)  # column-wise t x R[:, k] = (t^ R)[:, :, k]
-    Ad = torch.zeros(R.shape[0], 6, 6, dtype=dtype, device=device)
-    Ad[:, :3, :3] = R
-    Ad[:, :3, 3:] = tR
-    Ad[:, 3:, 3:] = R
+    Ad = _adjoint(R, t, dtype, device)
     out.update(Jdu=Jdu, Jdv=Jdv, Ad=Ad)
     if jacobians == "parts":
         return out
@@ -137,6 +113,43 @@ def project_points(
     if jacobians != "j":
         out["Ji"] = -torch.bmm(Jj.reshape(E, 2 * P, 6), Ad).reshape(E, P, 2, 6)
     return out
+
+
+def _pose_jacobian_rows(xn, yn, hz, fx: float, fy: float, differentiable: bool):
+    """``JuT, JvT [E, 6, P]``: d(u, v) / d xi_j with ``G_j <- Exp(xi_j) G_j`` (DROID: ``fx [h d', 0, -X h d'^2,
+    -X Y d'^2, 1 + X^2 d'^2, -Y d']``), stored transposed, which is the layout the BA's batched matmuls want.
+    ``differentiable``: built with autograd-friendly ops (the raft_gru trainer's BA layer), else each row is
+    written once into its place (no stack copy, no extra pass for the focal length)."""
+    if differentiable:
+        zero = torch.zeros_like(xn)
+        JuT = torch.stack([hz, zero, -xn * hz, -xn * yn, 1 + xn * xn, -yn], dim=1) * fx
+        JvT = torch.stack([zero, hz, -yn * hz, -1 - yn * yn, xn * yn, xn], dim=1) * fy
+        return JuT, JvT
+    JuT, JvT = torch.empty(2, xn.shape[0], 6, xn.shape[1], dtype=xn.dtype, device=xn.device).unbind(0)
+    torch.mul(hz, fx, out=JuT[:, 0])
+    JuT[:, 1].zero_()
+    torch.mul(xn * hz, -fx, out=JuT[:, 2])
+    xy = xn * yn
+    torch.mul(xy, -fx, out=JuT[:, 3])
+    torch.mul(xn, xn, out=JuT[:, 4]).add_(1.0).mul_(fx)
+    torch.mul(yn, -fx, out=JuT[:, 5])
+    JvT[:, 0].zero_()
+    torch.mul(hz, fy, out=JvT[:, 1])
+    torch.mul(yn * hz, -fy, out=JvT[:, 2])
+    torch.mul(yn, yn, out=JvT[:, 3]).add_(1.0).mul_(-fy)
+    torch.mul(xy, fy, out=JvT[:, 4])
+    torch.mul(xn, fy, out=JvT[:, 5])
+    return JuT, JvT
+
+
+def _adjoint(R: torch.Tensor, t: torch.Tensor, dtype, device) -> torch.Tensor:
+    """``Ad(G_ij) = [[R, t^ R], [0, R]] [E, 6, 6]`` (d / d xi_i = -Jj Ad)."""
+    tR = torch.cross(t.unsqueeze(-1).expand(-1, 3, 3), R, dim=1)  # column-wise t x R[:, k] = (t^ R)[:, :, k]
+    Ad = torch.zeros(R.shape[0], 6, 6, dtype=dtype, device=device)
+    Ad[:, :3, :3] = R
+    Ad[:, :3, 3:] = tR
+    Ad[:, 3:, 3:] = R
+    return Ad
 
 
 def reproject(

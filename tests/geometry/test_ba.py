@@ -177,7 +177,7 @@ def test_float32_path_matches(problem):
 
 
 def test_all_finite_fast_path():
-    from pvslam_core.geometry.ba import _all_finite
+    from pvslam_core.geometry.ba_linalg import all_finite as _all_finite
 
     assert _all_finite(torch.tensor([3e38, 3e38]))  # the float32 sum overflows, the values are finite
     assert not _all_finite(torch.tensor([1.0, float("inf")]))
@@ -200,11 +200,12 @@ def test_reproject_float32_graph_inputs(problem):
 def test_indefinite_system_rejected(problem, monkeypatch):
     """A pose system that cannot be factorised (forced here) leaves the state unchanged and is reported."""
     import pvslam_core.geometry.ba as ba
+    import pvslam_core.geometry.ba_linalg as ba_linalg
 
     pr = problem
     p0, d0 = perturb(pr, fixed=(0, 1))
     g = pr.graph(p0, d0)
-    monkeypatch.setattr(ba, "solve_spd", lambda A, b: None)
+    monkeypatch.setattr(ba_linalg, "solve_spd", lambda A, b: None)
     free = torch.ones(7, dtype=torch.bool)
     free[0] = False
     rep = ba.dense_ba(g, pr.obs(), free, iters=2)
@@ -214,6 +215,7 @@ def test_indefinite_system_rejected(problem, monkeypatch):
 
 def test_sparse_pose_solve_matches_dense(problem, monkeypatch):
     import pvslam_core.geometry.ba as ba
+    import pvslam_core.geometry.ba_linalg as ba_linalg
 
     pr = problem
     p0, d0 = perturb(pr, fixed=(0, 1))
@@ -221,66 +223,25 @@ def test_sparse_pose_solve_matches_dense(problem, monkeypatch):
     free[:2] = False
     g_dense, g_sparse = pr.graph(p0, d0), pr.graph(p0, d0)
     r1 = ba.dense_ba(g_dense, pr.obs(), free, iters=3)
-    monkeypatch.setattr(ba, "SPARSE_MIN_POSES", 2)
+    monkeypatch.setattr(ba_linalg, "SPARSE_MIN_POSES", 2)
     r2 = ba.dense_ba(g_sparse, pr.obs(), free, iters=3)
     assert not r2.rejected and abs(r1.cost_after - r2.cost_after) < 1e-6 * max(r1.cost_before, 1.0)
     et, er = pose_err(g_dense.poses, g_sparse.poses)
     assert et < 1e-6 and er < 1e-6
 
 
-def test_adaptive_iterations_go_on_only_while_the_cost_falls(problem):
-    """``max_iters``: after ``iters`` iterations the BA continues while the last one gained more than ``rel_tol``
-    of the cost.  Continuing is exactly the plain BA with more iterations (the same updates, bit for bit); a
-    converged problem stops at ``iters``; ``max_iters`` None or <= ``iters`` is the plain BA."""
-    pr = problem
-    p0, d0 = perturb(pr, fixed=(0, 1))
-    free = torch.ones(7, dtype=torch.bool)
-    free[:2] = False
-    kw = dict(lm=1e-4, ep=0.1, depth_damping=1e-3)  # DROID's frontend constants: slow convergence
-
-    def run(**k):
-        g = pr.graph(p0.clone(), d0.clone())
-        return g, dense_ba(g, pr.obs(), free, **kw, **k)
-
-    g3, r3 = run(iters=3)
-    for off in (dict(max_iters=None), dict(max_iters=3, rel_tol=1e-3), dict(max_iters=2, rel_tol=1e-3)):
-        g, r = run(iters=3, **off)
-        assert r.iterations == 3 and torch.equal(g.poses, g3.poses) and torch.equal(g.disps, g3.disps)
-        assert r.cost_after == r3.cost_after
-    ga, ra = run(iters=3, max_iters=12, rel_tol=1e-3)
-    assert 3 < ra.iterations <= 12 and ra.cost_after < 0.5 * r3.cost_after
-    gp, rp = run(iters=ra.iterations)  # the same iterations run plainly
-    assert torch.equal(ga.poses, gp.poses) and torch.equal(ga.disps, gp.disps) and ra.cost_after == rp.cost_after
-    if ra.iterations < 12:  # it stopped because the last iteration gained <= rel_tol
-        g_prev, r_prev = run(iters=ra.iterations - 1)
-        assert r_prev.cost_after - ra.cost_after <= 1e-3 * r_prev.cost_after
-    # no iteration gains more than all of the cost: rel_tol 1 stops right after the minimum; a converged problem too
-    _, rb = run(iters=3, max_iters=12, rel_tol=1.0)
-    assert rb.iterations == 3
-    pn = make_problem(n=7, seed=2, noise=0.3)  # noisy: the optimum's cost is well above float noise
-    gc = pn.graph(*perturb(pn, fixed=(0, 1), seed=3))
-    dense_ba(gc, pn.obs(), free, iters=40, **kw)
-    rc = dense_ba(gc, pn.obs(), free, iters=2, max_iters=10, rel_tol=1e-3, **kw)
-    assert rc.iterations == 2 and rc.cost_after > 1.0
-
-
-def test_robust_cost_is_the_irls_objective():
-    """With the same confidence on u and v the adaptive check's objective is ``sum conf * 2 rho(n)``: Cauchy
+def test_robust_weights_are_the_irls_weights_of_the_kernel():
+    """With the same confidence on u and v the robust objective is ``sum conf * 2 rho(n)``: Cauchy
     ``s^2 log(1 + n^2 / s^2)``, Huber ``n^2`` inside ``s`` and ``2 s n - s^2`` outside; its gradient is the IRLS
     weight times the least-squares one (checked by autograd)."""
-    from pvslam_core.geometry.ba import _robust_cost, _robust_weights
+    from pvslam_core.geometry.ba_residuals import robust_weights as _robust_weights
     g = torch.Generator().manual_seed(0)
     ru, rv = torch.randn(3, 50, generator=g, dtype=torch.float64) * 3, torch.randn(3, 50, generator=g, dtype=torch.float64) * 3
     c = torch.rand(3, 50, generator=g, dtype=torch.float64)
-    conf, valid = torch.stack([c, c], 1), (torch.rand(3, 50, generator=g) > 0.2).double()
-    n2, s = ru ** 2 + rv ** 2, 1.5
-    cauchy = float((valid * c * s * s * torch.log1p(n2 / s ** 2)).sum())
-    n = n2.sqrt()
-    huber = float((valid * c * torch.where(n <= s, n2, 2 * s * n - s * s)).sum())
-    assert _robust_cost(conf, valid, ru, rv, "cauchy", s) == pytest.approx(cauchy, rel=1e-9)
-    assert _robust_cost(conf, valid, ru, rv, "huber", s) == pytest.approx(huber, rel=1e-9)
-    assert _robust_cost(conf, valid, ru, rv, None, s) == pytest.approx(float((valid * c * n2).sum()), rel=1e-12)
-    for kind in ("cauchy", "huber"):  # the same per-pixel factor as _robust_cost, differentiated
+    valid = (torch.rand(3, 50, generator=g) > 0.2).double()
+    s = 1.5
+    assert _robust_weights(ru, rv, None, s) is None and _robust_weights(ru, rv, "none", s) is None
+    for kind in ("cauchy", "huber"):  # the per-pixel factor of the objective, differentiated
         x, y = ru.clone().requires_grad_(), rv.clone().requires_grad_()
         n2g = (x * x + y * y).clamp(min=1e-12)
         ng = n2g.sqrt()
@@ -289,3 +250,26 @@ def test_robust_cost_is_the_irls_objective():
         (valid * f * c * n2g).sum().backward()
         w = _robust_weights(ru, rv, kind, s)
         assert torch.allclose(x.grad, 2 * valid * c * w * ru, atol=1e-9) and torch.allclose(y.grad, 2 * valid * c * w * rv, atol=1e-9)
+
+
+def test_options_object_and_keyword_overrides_are_the_same_call(problem):
+    """``dense_ba(g, obs, free, BAOptions(...))`` is the keyword call of the same fields, bit for bit; keywords
+    override single fields of an options object; an unknown keyword (the retired adaptive iterations) is an error."""
+    from pvslam_core.geometry.ba import BAOptions
+
+    pr = problem
+    p0, d0 = perturb(pr, fixed=(0, 1))
+    free = torch.ones(7, dtype=torch.bool)
+    free[:2] = False
+    kw = dict(iters=3, lm=1e-5, ep=1e-2, depth_damping=1e-5, robust="cauchy", robust_scale=1.0)
+    runs = []
+    for args, extra in (((BAOptions(**kw),), {}), ((), kw), ((BAOptions(iters=1, robust="huber"),), kw)):
+        g = pr.graph(p0, d0)
+        rep = dense_ba(g, pr.obs(), free, *args, **extra)
+        runs.append((g.poses, g.disps, rep.cost_before, rep.cost_after, rep.iterations))
+    for other in runs[1:]:
+        assert torch.equal(runs[0][0], other[0]) and torch.equal(runs[0][1], other[1]) and runs[0][2:] == other[2:]
+    with pytest.raises(TypeError, match="max_iters"):
+        dense_ba(pr.graph(p0, d0), pr.obs(), free, iters=2, max_iters=5)
+    with pytest.raises(Exception):  # frozen: one call's settings cannot change under it
+        BAOptions().iters = 3

@@ -3,7 +3,7 @@ one-chunk result (exactly up to float32 summation order)."""
 import pytest
 import torch
 
-import pvslam_core.geometry.ba as ba
+import pvslam_core.geometry.ba_linalg as ba_linalg
 from pvslam_core.geometry.ba import dense_ba
 from pvslam_core.geometry.ba_schur import plan_chunks
 from pvslam_core.geometry.testing import make_problem, perturb
@@ -146,7 +146,7 @@ def test_depth_only_and_pose_only_problems(problem):
 
 def test_sparse_pose_solve_with_chunks(problem, monkeypatch):
     pr, p0, d0, free = problem
-    monkeypatch.setattr(ba, "SPARSE_MIN_POSES", 2)
+    monkeypatch.setattr(ba_linalg, "SPARSE_MIN_POSES", 2)
     assert_same(run(pr, p0, d0, free, HUGE), run(pr, p0, d0, free, 5 * P))
 
 

@@ -4,7 +4,7 @@ agree, zero weight is no prior and bad priors are refused."""
 import pytest
 import torch
 
-import pvslam_core.geometry.ba as ba
+import pvslam_core.geometry.ba_linalg as ba_linalg
 from pvslam_core.geometry.ba import dense_ba
 from pvslam_core.geometry.ba_distance import distance_prior_terms
 from pvslam_core.geometry.lie import se3_exp, se3_inv, se3_mul
@@ -89,7 +89,7 @@ def test_sparse_solve_equals_dense(problem, monkeypatch):
     ii, jj, dist, alpha = true_pairs(pr)
     out = []
     for thresh in (10**9, 0):
-        monkeypatch.setattr(ba, "SPARSE_MIN_POSES", thresh)
+        monkeypatch.setattr(ba_linalg, "SPARSE_MIN_POSES", thresh)
         g = pr.graph(p0, d0)
         rep = dense_ba(g, with_dist(pr, ii, jj, dist * 1.1, alpha), free, iters=3)
         assert not rep.rejected

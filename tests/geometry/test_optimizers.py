@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -29,8 +31,11 @@ def test_registered_with_described_configs():
     for name in ("online_ba", "offline_ba"):
         spec = reg.get("optimizer", name)
         fields = spec.config_model.model_fields
-        for f in ("window", "iters", "lm", "ep", "depth_damping", "loop_window", "loop_iters", "loop_lm", "loop_ep", "sim3_pgo"):
+        for f in ("window", "iters", "robust", "robust_scale", "loop", "final"):
             assert f in fields and fields[f].description, (name, f)
+        for sub in ("loop", "final"):
+            for f, field in fields[sub].annotation.model_fields.items():
+                assert field.description, (name, sub, f)
         assert isinstance(make(name), Optimizer)
         with pytest.raises(Exception):
             spec.config_model(windw=3)
@@ -50,23 +55,6 @@ def test_step_windowed(name):
         opt.step(g, pr.obs())
     err = se3_mul(se3_inv(pr.poses[6:]), g.poses[6:])[:, :3].norm(dim=-1)
     assert float(err.max()) < float(se3_mul(se3_inv(pr.poses[6:]), p0[6:])[:, :3].norm(dim=-1).max())
-
-
-def test_window_ba_adaptive_iterations_from_the_config():
-    """``iters_max`` reaches the window BA: an unconverged window runs past ``iters``, a tolerance no iteration can
-    beat keeps ``iters``; the loop / final BAs keep their fixed counts."""
-    pr = make_problem(n=10, seed=4)
-    p0, d0 = perturb(pr, fixed=(0,), rot=0.01, trans=0.02, disp_rel=0.1)
-    counts = {}
-    for tol in (1e-4, 1.0):
-        g = pr.graph(p0.clone(), d0.clone())
-        counts[tol] = make("online_ba", window=6, iters=2, iters_max=7, iters_tol=tol).step(g, pr.obs()).iterations
-    assert counts[1.0] == 2 and 2 < counts[1e-4] <= 7, counts
-    with pytest.raises(Exception):
-        make("online_ba", iters_tol=-1.0)
-    lp = make_problem(n=16, trajectory="loop", loop_edges=True, radius=2, seed=1)
-    opt = make("online_ba", iters=2, iters_max=7, iters_tol=0.0, final_iters=3)
-    assert opt.finalize(lp.graph(), lambda ii, jj: lp.obs(ii, jj)).iterations == 3
 
 
 @pytest.mark.parametrize("name", ["online_ba", "offline_ba"])
@@ -90,13 +78,58 @@ def test_loop_and_finalize_fix_scale_drift(name, loop_problem):
     assert ate2 < 0.01 * ate0, (ate0, ate2)
 
 
-def test_renamed_config_keys_still_load(caplog):
-    """Files written for the previous release keep working: eta -> depth_damping; pgo_min_gap is ignored (the
-    loop policy's loop_closure.ba_min_gap gates loop BAs and with them the pose graph)."""
-    spec = get_registry().get("optimizer", "online_ba")
-    cfg = spec.config_model.model_validate({"eta": 1e-4, "pgo_min_gap": 3})
-    assert cfg.depth_damping == 1e-4 and "pgo_min_gap" not in cfg.model_dump()
-    assert "eta -> depth_damping" in caplog.text and "pgo_min_gap" in caplog.text
+@pytest.mark.parametrize("name", ["online_ba", "offline_ba"])
+def test_old_config_keys_still_load(name, caplog):
+    """Files written for earlier releases keep working: the flat keys move into the nested tables (with a warning
+    naming the new keys; the schedule's other defaults stay), retired keys load at their fixed value and fail naming
+    the key at any other (eta was depth_damping's name before it), pgo_min_gap is ignored (the loop policy's
+    loop_closure.ba_min_gap gates loop BAs and with them the pose graph)."""
+    from pydantic import ValidationError
+
+    spec = get_registry().get("optimizer", name)
+    default = spec.config_model()
+    cfg = spec.config_model.model_validate({"loop_iters": 2, "sim3_pgo": False, "final_iters": 3, "pgo_min_gap": 3})
+    assert cfg.loop.iters == 2 and cfg.loop.sim3_pgo is False and cfg.final.iters == 3
+    assert cfg.final.rounds == default.final.rounds and cfg.window == default.window and cfg.iters == default.iters
+    assert spec.config_model.model_validate({"final_rounds": 5}).final.rounds == 5
+    assert "loop_iters -> loop.iters" in caplog.text and "final_iters -> final.iters" in caplog.text
+    assert "pgo_min_gap" in caplog.text and "pgo_min_gap" not in cfg.model_dump()
+    # an old run directory's config.json stores every key at its value of the time
+    old = {"window": default.window, "iters": default.iters, "iters_max": None, "iters_tol": 0.01, "lm": 1e-4,
+           "ep": 0.1, "depth_damping": 1e-5, "depth_damping_shrink": False, "depth_damping_horizon": 50,
+           "min_depth": 0.2, "robust": "cauchy", "robust_scale": 1.0, "loop_window": 0, "loop_iters": 4,
+           "loop_lm": 1e-5, "loop_ep": 0.01, "sim3_pgo": True, "sim3_pgo_with_depth_prior": False, "pgo_iters": 25,
+           "pgo_min_drift": 0.02, "pgo_loop_weight": 10.0, "pgo_max_direction_deg": 15.0,
+           "pgo_max_scale_disagreement": 1.25, "pgo_min_pixels": 30, "final_iters": default.final.iters,
+           "final_rounds": default.final.rounds, "final_lm": 1e-5, "final_ep": 0.01}
+    assert spec.config_model.model_validate(old) == default
+    assert spec.config_model.model_validate({"eta": 1e-5}) == default
+    for key, value in (("eta", 1e-4), ("depth_damping", 1e-3), ("iters_max", 5), ("sim3_pgo_with_depth_prior", True),
+                       ("depth_damping_shrink", True), ("pgo_max_direction_deg", None), ("loop_lm", 1e-4)):
+        with pytest.raises(ValidationError, match=f"'{key}' was retired"):
+            spec.config_model.model_validate({key: value})
+
+
+def test_retired_keys_hold_the_constants_the_code_uses():
+    """Each retired key's fixed value is the constant the optimizer now uses (a file that gives it gets that run)."""
+    from pvslam_plugins.optimizers.dense_ba import optimizer as O
+    from pvslam_plugins.optimizers.dense_ba.config import BAConfigBase
+
+    r = BAConfigBase.retired
+    assert (r["lm"], r["ep"], r["loop_lm"], r["loop_ep"], r["final_lm"], r["final_ep"]) == \
+        (O.WINDOW_LM, O.WINDOW_EP, O.GLOBAL_LM, O.GLOBAL_EP, O.GLOBAL_LM, O.GLOBAL_EP)
+    assert r["depth_damping"] == r["eta"] == O.DEPTH_DAMPING and r["min_depth"] == O.MIN_DEPTH
+    assert (r["pgo_iters"], r["pgo_min_drift"], r["pgo_loop_weight"], r["pgo_max_direction_deg"],
+            r["pgo_max_scale_disagreement"], r["pgo_min_pixels"]) == \
+        (O.PGO_ITERS, O.PGO_MIN_DRIFT, O.PGO_LOOP_WEIGHT, O.PGO_MAX_DIRECTION_DEG, O.PGO_MAX_SCALE_DISAGREEMENT,
+         O.PGO_MIN_PIXELS)
+    opt = make("online_ba")
+    for kind, (lm, ep) in (("window", (O.WINDOW_LM, O.WINDOW_EP)), ("loop", (O.GLOBAL_LM, O.GLOBAL_EP)),
+                           ("final", (O.GLOBAL_LM, O.GLOBAL_EP))):
+        o = opt.options(kind)
+        assert (o.lm, o.ep, o.depth_damping, o.min_depth, o.robust, o.robust_scale) == \
+            (lm, ep, O.DEPTH_DAMPING, O.MIN_DEPTH, "cauchy", 1.0)
+    assert (opt.options("window").iters, opt.options("loop").iters, opt.options("final").iters) == (3, 4, 4)
 
 
 def test_pose_graph_only_for_real_drift(loop_problem):
@@ -115,14 +148,14 @@ def test_pose_graph_only_for_real_drift(loop_problem):
 def test_loop_without_pgo_runs(loop_problem):
     pr = loop_problem
     g = pr.graph(*perturb(pr, fixed=(0,), rot=0.005, trans=0.01, disp_rel=0.05))
-    opt = make("online_ba", sim3_pgo=False, loop_iters=4)
+    opt = make("online_ba", loop={"sim3_pgo": False, "iters": 4})
     rep = opt.loop(g, pr.obs(), [_loop(15, 0)])
     assert not rep.rejected and rep.cost_after < rep.cost_before and "sim3" not in rep.message
 
 
 def test_no_sim3_pose_graph_where_a_depth_prior_observes_the_scale(loop_problem, monkeypatch):
     """A loop whose observations carry a depth prior (the scale is observed) gets the loop BA without the Sim(3)
-    pose graph, which would rescale the chain against the prior; ``sim3_pgo_with_depth_prior`` runs it anyway."""
+    pose graph, which would rescale the chain against the prior."""
     import pvslam_plugins.optimizers.dense_ba.optimizer as O
 
     pr = loop_problem
@@ -148,14 +181,13 @@ def test_no_sim3_pose_graph_where_a_depth_prior_observes_the_scale(loop_problem,
                             dist_prior=DistancePrior(torch.tensor([0]), torch.tensor([1]), span, one))
     rep = make("online_ba").loop(pr.graph(*drifted), dist, [_loop(n - 1, 0)])
     assert not calls and "skipped" in rep.message and not rep.rejected
-    make("online_ba", sim3_pgo_with_depth_prior=True).loop(pr.graph(*drifted), prior, [_loop(n - 1, 0)])
     make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
-    assert len(calls) == 2
+    assert len(calls) == 1
 
 
 def test_online_finalize_zero_iters(loop_problem):
     g = loop_problem.graph()
-    rep = make("online_ba", final_iters=0).finalize(g, lambda ii, jj: loop_problem.obs(ii, jj))
+    rep = make("online_ba", final={"iters": 0}).finalize(g, lambda ii, jj: loop_problem.obs(ii, jj))
     assert rep.iterations == 0
 
 
@@ -210,6 +242,8 @@ def test_pose_graph_spans_the_loop_only():
     later laps in pose graphs over every keyframe): keyframes before j keep their poses and depths bit for bit, and
     the corrected poses equal those of the same pose graph over all keyframes with keyframe 0 fixed (the keyframes
     before j hang off the chain without a cycle, so the full problem has the same optimum)."""
+    from pvslam_plugins.optimizers.dense_ba import optimizer as O
+
     n, j = 16, 4
     base = make_problem(n=n, trajectory="loop", radius=2, seed=1)
     ii = torch.cat([base.ii, torch.tensor([j, n - 1])])
@@ -217,7 +251,7 @@ def test_pose_graph_spans_the_loop_only():
     pr = make_problem(n=n, trajectory="loop", radius=2, seed=1, edges=(ii, jj))
     p0, d0 = scale_drifted(pr, rate=0.96, yaw_drift=0.01)
     g = pr.graph(p0.clone(), d0.clone())
-    opt = make("online_ba", loop_iters=0)  # the pose graph alone
+    opt = make("online_ba", loop={"iters": 0})  # the pose graph alone
     rep = opt.loop(g, pr.obs(), [_loop(n - 1, j)])
     assert f"over keyframes {j}..{n - 1}" in rep.message and opt.last_pgo["applied"], rep.message
     assert float((g.poses[:j + 1] - p0[:j + 1]).abs().max()) < 1e-12 and torch.equal(g.disps[:j], d0[:j])
@@ -228,11 +262,11 @@ def test_pose_graph_spans_the_loop_only():
     S = sim3_from_se3(p0, 1.0)
     oi, oj, Z = odometry_measurements(S)
     w = torch.ones(len(oi) + 1, dtype=torch.float64)
-    w[-1] = opt.config.pgo_loop_weight
+    w[-1] = O.PGO_LOOP_WEIGHT
     fixed = torch.zeros(n, dtype=torch.bool)
     fixed[0] = True
     ref = sim3_pose_graph(S, torch.cat([oi, torch.tensor([j])]), torch.cat([oj, torch.tensor([n - 1])]),
-                          torch.cat([Z, Zl[None]]), fixed, w, iters=opt.config.pgo_iters)
+                          torch.cat([Z, Zl[None]]), fixed, w, iters=O.PGO_ITERS)
     assert float((ref.poses[:j + 1, :3] - p0[:j + 1, :3]).norm(dim=-1).max()) < 1e-6  # untouched there too
     assert float((g.poses[:, :3] - ref.poses[:, :3]).norm(dim=-1).max()) < 1e-5
     assert umeyama_ate(g.poses[:, :3], pr.poses[:, :3]) < 0.5 * umeyama_ate(p0[:, :3], pr.poses[:, :3])
@@ -247,7 +281,7 @@ def test_pose_graph_corrects_only_since_the_previous_loop():
     pr = make_problem(n=n, trajectory="loop", radius=2, seed=1,
                       edges=(torch.cat([base.ii, extra[:, 0]]), torch.cat([base.jj, extra[:, 1]])))
     g = pr.graph(*scale_drifted(pr, rate=0.96, yaw_drift=0.01))
-    opt = make("online_ba", loop_iters=0)
+    opt = make("online_ba", loop={"iters": 0})
     rep = opt.loop(g, pr.obs(), [_loop(11, 2)])
     assert "over keyframes 2..15" in rep.message and opt.last_pgo["applied"], rep.message
     p1 = g.poses.clone()
@@ -256,7 +290,7 @@ def test_pose_graph_corrects_only_since_the_previous_loop():
     assert float((g.poses[:12] - p1[:12]).abs().max()) < 1e-12  # up to the previous loop's newest keyframe: untouched
     assert float((g.poses[12:] - p1[12:]).abs().max()) > 1e-3
     # a loop whose old side is newer than the previous correction starts the chain at its old keyframe
-    rep = make("online_ba", loop_iters=0).loop(g, pr.obs(), [_loop(15, 4)])
+    rep = make("online_ba", loop={"iters": 0}).loop(g, pr.obs(), [_loop(15, 4)])
     assert "over keyframes 4..15" in rep.message or "skipped" in rep.message, rep.message
 
 
@@ -291,15 +325,15 @@ def test_loop_measurement_checked_against_the_epipolar_direction(loop_problem, m
     drifted = scale_drifted(pr, rate=0.96, yaw_drift=0.01)
     rep = make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
     assert "sim3 pgo skipped (1 left out by the direction / scale checks)" in rep.message, rep.message
-    rep = make("online_ba", pgo_max_direction_deg=None).loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
+    monkeypatch.setattr(O, "PGO_MAX_DIRECTION_DEG", 90.0)  # the check off: no direction is further off
+    rep = make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
     assert "sim3 pgo:" in rep.message, rep.message
 
 
 def test_loop_scale_measured_from_both_ends_must_agree(loop_problem, monkeypatch):
     """The loop's scale is measured from each end (the old keyframe's depth against the new one's, and the reverse):
     on a drifted map the two ratios multiply to ~1 and the pose graph runs; when one end's ratio is wrong (a loop seen
-    on few pixels: driving_city seed 19 measured 2.62 and 0.724, product 1.90) the loop stays out of the pose graph,
-    and with the check off the pose graph takes it."""
+    on few pixels) the loop stays out of the pose graph, and with the check off the pose graph takes it."""
     from pvslam_plugins.optimizers.dense_ba import optimizer as O
 
     pr = loop_problem
@@ -329,47 +363,6 @@ def test_loop_scale_measured_from_both_ends_must_agree(loop_problem, monkeypatch
     monkeypatch.setattr(O, "loop_relative_sim3", wrong_from_the_old_end)
     rep = make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
     assert "sim3 pgo skipped (1 left out by the direction / scale checks)" in rep.message, rep.message
-    rep = make("online_ba", pgo_max_scale_disagreement=None).loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
+    monkeypatch.setattr(O, "PGO_MAX_SCALE_DISAGREEMENT", math.inf)  # the check off
+    rep = make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
     assert "sim3 pgo:" in rep.message, rep.message
-
-
-def _rescaled(poses, disps, s):
-    """The same map under the monocular gauge: positions x s, inverse depths / s."""
-    p = poses.clone()
-    p[:, :3] *= s
-    return p, disps / s
-
-
-@pytest.mark.parametrize("shrink", [True, False])
-def test_depth_damping_follows_a_shrinking_map(shrink):
-    """A monocular map's scale is arbitrary: the same window BA on a map at the initialiser's gauge (median inverse
-    depth 1) and on that map shrunk 20x must move them the same way.  With the absolute eta the shrunk map's depths
-    are damped 400x harder against the data (C scales with the squared baseline) and converge visibly less; with
-    depth_damping_shrink the two runs agree to float precision.  A map that grew keeps the absolute eta."""
-    pr = make_problem(n=8, seed=3)
-    p0, d0 = perturb(pr, fixed=(0,), rot=0.01, trans=0.03, disp_rel=0.3)
-    p0, d0 = _rescaled(p0, d0, float(d0.median()))  # the initialiser's gauge: median inverse depth 1
-    s = 0.05
-    # a damping strong enough to matter at the unit gauge, ep = 0: the pose damping is absolute
-    cfg = dict(window=8, iters=3, ep=0.0, depth_damping=1e-2, depth_damping_shrink=shrink)
-    ga, gb = pr.graph(p0, d0), pr.graph(*_rescaled(p0, d0, s))
-    opt = make("online_ba", **cfg)
-    eta_a, eta_b = opt.depth_damping(ga), opt.depth_damping(gb)
-    assert eta_a == pytest.approx(1e-2, rel=1e-5)
-    assert opt.depth_damping(pr.graph(*_rescaled(p0, d0, 1 / s))) == 1e-2  # grown: the absolute eta
-    ra, rb = opt.step(ga, pr.obs()), opt.step(gb, pr.obs())
-    assert not ra.rejected and not rb.rejected
-    pa, da = ga.poses.clone(), ga.disps.clone()
-    pb, db = _rescaled(gb.poses, gb.disps, 1.0 / s)  # back to the unit gauge
-    same = torch.allclose(pa[:, :3], pb[:, :3], atol=1e-4 * float(pa[:, :3].abs().max())) and \
-        torch.allclose(da, db, rtol=1e-3, atol=1e-5)
-    undamped = make("online_ba", **{**cfg, "depth_damping": 0.0}).step(pr.graph(p0, d0), pr.obs())
-    assert ra.cost_after > 1.5 * undamped.cost_after  # the damping matters at this strength
-    if shrink:
-        assert eta_b == pytest.approx(s * s * eta_a, rel=1e-5)
-        assert same, (float((pa - pb).abs().max()), float((da - db).abs().max()))
-        assert rb.cost_after == pytest.approx(ra.cost_after, rel=1e-3)
-    else:
-        assert eta_a == eta_b == 1e-2
-        assert not same
-        assert rb.cost_after > 1.05 * ra.cost_after, (ra.cost_after, rb.cost_after)

@@ -56,6 +56,20 @@ def ba_step(
         intr: ``[4]`` fx fy cx cy at the BA resolution.
     """
     N, h, w = disps.shape
+    lin = _linearise(poses_wc, disps, target, weight, intr, ii, jj, min_depth)
+    H, v, C, wz, Eb = _normal_equations(lin, ii, jj, N, h * w)
+    C = C + eta.reshape(N, h * w).to(disps.dtype) + eta_offset
+    dx, dz = _schur_solve(H, v, C, wz, Eb, N, fixedp, lm, ep, damping)
+    G = se3_inv(poses_wc)
+    G_new = torch.cat([G[:fixedp], se3_mul(se3_exp(dx.reshape(-1, 6).to(G.dtype)), G[fixedp:])])
+    disps_new = (disps.reshape(-1) + dz).reshape(N, h, w).clamp(min=DISP_MIN)
+    return se3_inv(G_new), disps_new
+
+
+def _linearise(poses_wc, disps, target, weight, intr, ii, jj, min_depth) -> dict:
+    """Residuals ``ru, rv``, weights ``wu, wv [E, P]`` and the Jacobian rows ``Ji*T, Jj*T [E, 6, P]``, ``Jdu, Jdv
+    [E, P]`` of every edge at the current estimate."""
+    N, h, w = disps.shape
     P = h * w
     E = int(ii.shape[0])
     dtype = disps.dtype
@@ -70,36 +84,50 @@ def ba_step(
     JjuT, JjvT, Ad = out["JuT"], out["JvT"], out["Ad"]  # [E, 6, P], [E, 6, 6]
     JiuT = -torch.bmm(Ad.transpose(1, 2), JjuT)  # Ji = -Jj Ad  ->  Ji^T = -Ad^T Jj^T
     JivT = -torch.bmm(Ad.transpose(1, 2), JjvT)
-    Jdu, Jdv = out["Jdu"], out["Jdv"]  # [E, P]
+    return dict(ru=ru, rv=rv, wu=wu, wv=wv, JiuT=JiuT, JivT=JivT, JjuT=JjuT, JjvT=JjvT, Jdu=out["Jdu"],
+                Jdv=out["Jdv"])
+
+
+def _normal_equations(lin: dict, ii, jj, N: int, P: int):
+    """Dense normal equations: pose blocks ``H [N*N, 6, 6]`` (row pose, column pose), gradient ``v [N, 6]``, the
+    depth diagonal ``C [N, P]`` (without damping), depth gradient ``wz [N, P]`` and pose-depth blocks
+    ``Eb [N*N, 6, P]`` (pose, source)."""
+    ru, rv, wu, wv = lin["ru"], lin["rv"], lin["wu"], lin["wv"]
+    JiuT, JivT, JjuT, JjvT, Jdu, Jdv = (lin[k] for k in ("JiuT", "JivT", "JjuT", "JjvT", "Jdu", "Jdv"))
+    dtype, dev = ru.dtype, ru.device
 
     def quad(Au, Av, Bu, Bv):  # sum_p Au wu Bu^T + Av wv Bv^T  -> [E, 6, 6]
         return torch.bmm(Au * wu[:, None], Bu.transpose(1, 2)) + torch.bmm(Av * wv[:, None], Bv.transpose(1, 2))
 
-    # pose blocks H [N*N, 6, 6] (row pose, column pose) and gradient v [N, 6]
-    H = torch.zeros(N * N, 6, 6, dtype=dtype, device=disps.device)
+    H = torch.zeros(N * N, 6, 6, dtype=dtype, device=dev)
     H = H.index_add(0, ii * N + ii, quad(JiuT, JivT, JiuT, JivT))
     H = H.index_add(0, ii * N + jj, quad(JiuT, JivT, JjuT, JjvT))
     H = H.index_add(0, jj * N + ii, quad(JjuT, JjvT, JiuT, JivT))
     H = H.index_add(0, jj * N + jj, quad(JjuT, JjvT, JjuT, JjvT))
     gi = (JiuT * (wu * ru)[:, None] + JivT * (wv * rv)[:, None]).sum(-1)
     gj = (JjuT * (wu * ru)[:, None] + JjvT * (wv * rv)[:, None]).sum(-1)
-    v = torch.zeros(N, 6, dtype=dtype, device=disps.device).index_add(0, ii, gi).index_add(0, jj, gj)
-    # depth: C [N, P] (diagonal), wz [N, P]; pose-depth blocks E [N(pose), N(source), 6, P]
-    C = torch.zeros(N, P, dtype=dtype, device=disps.device).index_add(0, ii, wu * Jdu * Jdu + wv * Jdv * Jdv)
-    C = C + eta.reshape(N, P).to(dtype) + eta_offset
-    wz = torch.zeros(N, P, dtype=dtype, device=disps.device).index_add(0, ii, wu * Jdu * ru + wv * Jdv * rv)
+    v = torch.zeros(N, 6, dtype=dtype, device=dev).index_add(0, ii, gi).index_add(0, jj, gj)
+    C = torch.zeros(N, P, dtype=dtype, device=dev).index_add(0, ii, wu * Jdu * Jdu + wv * Jdv * Jdv)
+    wz = torch.zeros(N, P, dtype=dtype, device=dev).index_add(0, ii, wu * Jdu * ru + wv * Jdv * rv)
     Ei = JiuT * (wu * Jdu)[:, None] + JivT * (wv * Jdv)[:, None]  # [E, 6, P]
     Ej = JjuT * (wu * Jdu)[:, None] + JjvT * (wv * Jdv)[:, None]
-    Eb = torch.zeros(N * N, 6, P, dtype=dtype, device=disps.device)
+    Eb = torch.zeros(N * N, 6, P, dtype=dtype, device=dev)
     Eb = Eb.index_add(0, ii * N + ii, Ei).index_add(0, jj * N + ii, Ej)
+    return H, v, C, wz, Eb
 
-    free = torch.arange(fixedp, N, device=disps.device)
+
+def _schur_solve(H, v, C, wz, Eb, N: int, fixedp: int, lm: float, ep: float, damping: str):
+    """Pose step ``dx [6F]`` of the free poses (Schur complement on the depths, Cholesky in float64) and depth step
+    ``dz [N P]``."""
+    dtype, dev = H.dtype, H.device
+    P = C.shape[1]
+    free = torch.arange(fixedp, N, device=dev)
     F_ = int(free.numel())
     Hf = H.reshape(N, N, 6, 6)[free][:, free].permute(0, 2, 1, 3).reshape(6 * F_, 6 * F_)
     Ef = Eb.reshape(N, N, 6, P)[free].permute(0, 2, 1, 3).reshape(6 * F_, N * P)  # [6F, N*P]
     vf = v[free].reshape(-1)
     Cinv = 1.0 / C.reshape(-1)
-    eye = torch.eye(6 * F_, dtype=dtype, device=disps.device)
+    eye = torch.eye(6 * F_, dtype=dtype, device=dev)
     if damping == "pose":
         Hf = Hf + (ep + lm * Hf) * eye
     S = Hf - (Ef * Cinv) @ Ef.T
@@ -112,7 +140,4 @@ def ba_step(
     L = torch.linalg.cholesky(S.double())
     dx = torch.cholesky_solve(y.double()[:, None], L)[:, 0].to(dtype)  # [6F]
     dz = Cinv * (wz.reshape(-1) - Ef.T @ dx)
-    G = se3_inv(poses_wc)
-    G_new = torch.cat([G[:fixedp], se3_mul(se3_exp(dx.reshape(F_, 6).to(G.dtype)), G[fixedp:])])
-    disps_new = (disps.reshape(-1) + dz).reshape(N, h, w).clamp(min=DISP_MIN)
-    return se3_inv(G_new), disps_new
+    return dx, dz

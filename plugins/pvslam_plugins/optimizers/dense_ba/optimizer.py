@@ -10,7 +10,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from pvslam_core.geometry.ba import dense_ba
+from pvslam_core.geometry.ba import BAOptions, dense_ba
 from pvslam_core.geometry.lie import quat_to_rotmat, sim3_from_se3, sim3_inv, sim3_log, sim3_mul
 from pvslam_core.geometry.pose_graph import loop_relative_sim3, odometry_measurements, sim3_pose_graph
 from pvslam_core.geometry.two_view import translation_direction
@@ -20,6 +20,27 @@ from pvslam_core.types import EdgeObservations, LoopClosure, OptimizerReport
 from .config import BAConfigBase
 
 log = logging.getLogger("pvslam.ba")
+
+# LM damping of the reduced pose system (S_kk += ep + lm S_kk): DROID-SLAM's frontend constants for the window BA,
+# its backend constants for the loop and global BAs (larger problems, better constrained)
+WINDOW_LM, WINDOW_EP = 1e-4, 0.1
+GLOBAL_LM, GLOBAL_EP = 1e-5, 1e-2
+# inverse-depth damping added to C where the frontend gives no learned one: DROID's 1e-3 kept the window's depths
+# from converging against a classical flow (docs/decisions.md: DEPTH_DAMPING)
+DEPTH_DAMPING = 1e-5
+MIN_DEPTH = 0.2  # points with relative depth z_j / z_i below this get zero weight (DROID)
+PGO_ITERS = 25  # Levenberg-Marquardt iterations of the Sim(3) pose graph
+# the pose graph runs only when a loop measurement disagrees with the estimate by more than this (|log scale|,
+# rotation in rad, translation / median depth of the old keyframe); smaller drift is left to the loop BA
+PGO_MIN_DRIFT = 0.02
+PGO_LOOP_WEIGHT = 10.0  # information weight of a loop edge relative to an odometry edge in the pose graph
+# a loop measurement whose translation is further off the loop edge's epipolar direction (deg) stays out of the pose
+# graph: a revisit seen from behind gets a depth-based pose that lands short (docs/decisions.md: PGO_MAX_DIRECTION_DEG)
+PGO_MAX_DIRECTION_DEG = 15.0
+# ... and so does a loop whose scale measured from both ends disagrees by more than this factor: a loop seen on few
+# pixels can put a wrong scale into the whole chain (docs/decisions.md: PGO_MAX_SCALE_DISAGREEMENT)
+PGO_MAX_SCALE_DISAGREEMENT = 1.25
+PGO_MIN_PIXELS = 30  # confidently matched pixels a loop edge's Sim(3) measurement needs (else the BA alone)
 
 
 def _merge(reports: list[OptimizerReport], message: str = "") -> OptimizerReport:
@@ -49,38 +70,13 @@ class DenseBAOptimizer(Optimizer):
         self._corrected_id: Optional[int] = None  # stable id of the newest keyframe of the last loop BA
 
     # ------------------------------------------------------------------------------------------ helpers
-    def _ba(self, graph, obs: EdgeObservations, free: torch.Tensor, iters: int, lm: float, ep: float,
-            depth_free: Optional[torch.Tensor] = None, max_iters: Optional[int] = None) -> OptimizerReport:
+    def options(self, kind: str) -> BAOptions:
+        """The dense BA's settings for one kind of call: ``"window"`` (:meth:`step`), ``"loop"`` or ``"final"``."""
         c = self.config
-        return dense_ba(graph, obs, free, iters=iters, lm=lm, ep=ep, depth_damping=self.depth_damping(graph),
-                        depth_free=depth_free, min_depth=c.min_depth, robust=c.robust, robust_scale=c.robust_scale,
-                        max_iters=max_iters, rel_tol=c.iters_tol)
-
-    def depth_damping(self, graph) -> float:
-        """The BA's inverse-depth damping ``eta``: ``depth_damping / max(1, m)^2``, ``m`` the median finite positive
-        inverse depth of the last ``depth_damping_horizon`` keyframes (``depth_damping_shrink`` off: ``depth_damping``).
-
-        Why: the initialiser fixes the monocular gauge at a median inverse depth of 1, where ``depth_damping`` was
-        chosen.  A pixel's depth block is ``C = w Jd^2`` with ``Jd`` proportional to the baseline, so when the map
-        shrinks by ``s`` (positions x s, inverse depths / s) ``C`` falls by ``s^2`` and a fixed ``eta`` weighs ever
-        more against the data: the depths stop converging in the window, the BA's remainder shrinks the map further,
-        and driving_city/21 lost 99 % of its scale in 550 frames (6.5 % ATE).  Dividing by ``m^2`` keeps the damping's
-        weight as the map shrinks.  Only shrinking: a map that grows gets relatively weaker damping, which breaks
-        no feedback loop, and ``m`` also follows the scene's content (it fell 20x over busy_street/8's first 15
-        keyframes while the scale held; a fully scale-free ``eta`` damped that map 400x harder and lost it).  Not
-        the baseline: it collapses in every fast turn, where the damping holds the barely observable depths still
-        (handheld_fast lost its scale with a baseline-scaled ``eta``).  Off by default: on fresh seeds it fixed the
-        shrinking driving maps and cost every fast hand-held cell 12-17 % (bench/RESULTS.md, session 2026-12-02 i)."""
-        c = self.config
-        n = int(graph.n)
-        if not c.depth_damping_shrink or n < 1:
-            return c.depth_damping
-        d = graph.disps[max(0, n - c.depth_damping_horizon):n]
-        d = d[torch.isfinite(d) & (d > 0)]
-        if d.numel() == 0:
-            return c.depth_damping
-        m = max(1.0, float(d.median()))
-        return c.depth_damping / (m * m)
+        iters, lm, ep = {"window": (c.iters, WINDOW_LM, WINDOW_EP), "loop": (c.loop.iters, GLOBAL_LM, GLOBAL_EP),
+                         "final": (c.final.iters, GLOBAL_LM, GLOBAL_EP)}[kind]
+        return BAOptions(iters=iters, lm=lm, ep=ep, depth_damping=DEPTH_DAMPING, min_depth=MIN_DEPTH, robust=c.robust,
+                         robust_scale=c.robust_scale)
 
     def window_free(self, graph, window: int) -> torch.Tensor:
         """Poses of the last ``window`` keyframes are free; keyframe 0 is always fixed."""
@@ -89,22 +85,20 @@ class DenseBAOptimizer(Optimizer):
         free[max(1, n - window):] = True
         return free
 
-    def window_ba(self, graph, obs: EdgeObservations, window: int, iters: int, lm: float, ep: float,
-                  max_iters: Optional[int] = None) -> OptimizerReport:
+    def window_ba(self, graph, obs: EdgeObservations, window: int, options: BAOptions) -> OptimizerReport:
         n = graph.n
         free = self.window_free(graph, window)
         # depths: the window's keyframes, plus any older keyframe that is the source of an observed edge
         depth_free = torch.zeros(n, dtype=torch.bool, device=graph.device)
         depth_free[max(0, n - window):] = True
         depth_free[obs.ii.to(graph.device)] = True
-        return self._ba(graph, obs, free, iters, lm, ep, depth_free, max_iters)
+        return dense_ba(graph, obs, free, options, depth_free=depth_free)
 
     # ------------------------------------------------------------------------------------------ interface
     def step(self, graph, obs: EdgeObservations) -> OptimizerReport:
-        c = self.config
         if graph.n < 2 or obs.ii.numel() == 0:
             return OptimizerReport(message="nothing to optimise")
-        return self.window_ba(graph, obs, c.window, c.iters, c.lm, c.ep, c.iters_max)
+        return self.window_ba(graph, obs, self.config.window, self.options("window"))
 
     def loop(self, graph, obs: EdgeObservations, loops: list[LoopClosure]) -> OptimizerReport:
         c = self.config
@@ -112,14 +106,13 @@ class DenseBAOptimizer(Optimizer):
         if n < 2 or obs.ii.numel() == 0:
             return OptimizerReport(message="nothing to optimise")
         pairs = [(int(graph.index_of(l.kf_i)), int(graph.index_of(l.kf_j))) for l in loops]  # graph indices
-        # a depth or distance prior observes the scale: a Sim(3) correction would move it against the prior (config
-        # description)
-        pgo = c.sim3_pgo and ((obs.disp_prior is None and obs.dist_prior is None) or c.sim3_pgo_with_depth_prior)
+        # a depth or distance prior observes the scale: a Sim(3) correction would move it against the prior
+        pgo = c.loop.sim3_pgo and obs.disp_prior is None and obs.dist_prior is None
         msg = self.sim3_correction(graph, obs, pairs) if pgo and pairs else ""
-        if c.sim3_pgo and not pgo and pairs:
+        if c.loop.sim3_pgo and not pgo and pairs:
             msg = "sim3 pgo skipped (the observations carry a depth or distance prior: the scale is observed)"
-        oldest = min((min(i, j) for i, j in pairs), default=max(0, n - c.window))
-        t0 = max(1, n - c.loop_window) if c.loop_window > 0 else max(1, oldest)
+        # the loop BA frees the keyframes from the oldest loop keyframe on (the window spans the loop)
+        t0 = max(1, min((min(i, j) for i, j in pairs), default=max(0, n - c.window)))
         touched = torch.zeros(n, dtype=torch.bool, device=graph.device)
         touched[obs.ii.to(graph.device)] = True
         touched[obs.jj.to(graph.device)] = True
@@ -128,21 +121,21 @@ class DenseBAOptimizer(Optimizer):
         free[0] = False
         for i, j in pairs:  # the old side of each loop anchors the map (and the monocular scale)
             free[min(i, j)] = False
-        rep = self._ba(graph, obs, free, c.loop_iters, c.loop_lm, c.loop_ep)
+        rep = dense_ba(graph, obs, free, self.options("loop"))
         if not rep.rejected:  # the keyframes up to this loop's newest one are corrected (see sim3_correction)
             self._corrected_id = int(graph.id_of(max(max(i, j) for i, j in pairs)))
         return _merge([rep], msg)
 
     def finalize(self, graph, observe: Callable[[torch.Tensor, torch.Tensor], EdgeObservations]) -> OptimizerReport:
         c = self.config
-        if graph.n < 2 or (graph.num_edges + graph.num_retired) == 0 or c.final_iters == 0 or c.final_rounds == 0:
+        if graph.n < 2 or (graph.num_edges + graph.num_retired) == 0 or c.final.iters == 0 or c.final.rounds == 0:
             return OptimizerReport(message="no final optimisation")
         free = torch.ones(graph.n, dtype=torch.bool, device=graph.device)
         free[0] = False
         reports = []
-        for _ in range(c.final_rounds):
+        for _ in range(c.final.rounds):
             obs = observe(*graph.all_edges())  # active edges re-observed, retired ones as stored
-            reports.append(self._ba(graph, obs, free, c.final_iters, c.final_lm, c.final_ep))
+            reports.append(dense_ba(graph, obs, free, self.options("final")))
         return _merge(reports, "global BA")
 
     # ------------------------------------------------------------------------------------------ loop closure
@@ -161,87 +154,102 @@ class DenseBAOptimizer(Optimizer):
         by :func:`loop_relative_sim3` with the old keyframe fixed.  ``p`` is the newest keyframe of the previous
         loop call when it lies between the loop's old keyframe and the new one, else the oldest loop keyframe;
         ``p`` and the loops' old keyframes are fixed.  A loop stays out of the graph when its translation is off the
-        loop edge's epipolar direction (``pgo_max_direction_deg``) or, where both of its edges are observed, when the
-        scale measured from either end disagrees (``pgo_max_scale_disagreement``; with one usable direction only,
-        that one is taken unchecked).  Applies the corrected poses to the chain and divides each chain keyframe's
-        inverse depth by its scale.  Returns a message.
+        loop edge's epipolar direction (``PGO_MAX_DIRECTION_DEG``) or, where both of its edges are observed, when
+        the scale measured from either end disagrees (``PGO_MAX_SCALE_DISAGREEMENT``; with one usable direction
+        only, that one is taken unchecked).  Applies the corrected poses to the chain and divides each chain
+        keyframe's inverse depth by its scale.  Returns a message.
 
         Why not all keyframes with keyframe 0 fixed: the graph holds the chain and this call's loop edges only, so
         it cannot know what earlier loops corrected.  On repeated laps (closures go to the previous lap, see the loop
         policy) a closure then bent every keyframe from the old keyframe on, i.e. the part of the previous lap that
-        earlier closures had tied to the lap before it; and the pose graph over every keyframe made the later laps
-        of a 3000-frame run ~1.4 s per closure.  The keyframes up to the previous correction are as good as the map
-        gets; the chain since then holds this loop's drift (ORB-SLAM instead keeps the older loop edges in its graph;
-        fixing the corrected keyframes is the simpler stand-in, not an equivalent)."""
-        c = self.config
-        n = graph.n
-        dev = graph.device
+        earlier closures had tied to the lap before it; and a pose graph over every keyframe grows with the run.
+        The keyframes up to the previous correction are as good as the map gets; the chain since then holds this
+        loop's drift (ORB-SLAM instead keeps the older loop edges in its graph; fixing the corrected keyframes is
+        the simpler stand-in, not an equivalent)."""
+        n, dev = graph.n, graph.device
         lo = min(min(i, j) for i, j in loops)  # the oldest loop keyframe
         p = self._chain_start(graph, lo, min(max(i, j) for i, j in loops))
         olds = sorted({min(i, j) for i, j in loops if min(i, j) < p})  # fixed nodes outside the chain
         nodes = torch.cat([torch.tensor(olds, dtype=torch.int64), torch.arange(p, n)]).to(dev)  # graph indices
         local = {g: l for l, g in enumerate(nodes.tolist())}  # graph index -> node; every loop end is a node
-        poses, disps, intr = graph.poses, graph.disps, graph.intrinsics
-        S_all = sim3_from_se3(poses, 1.0)
-        S = S_all[nodes]  # [m, 8]
+        S_all = sim3_from_se3(graph.poses, 1.0)
         ii, jj, Z = odometry_measurements(S_all[p:])
-        ii, jj = ii + len(olds), jj + len(olds)
-        w = [torch.ones(len(ii), dtype=torch.float64, device=dev)]
-        e_ii, e_jj, e_Z = [ii], [jj], [Z]
-        oii, ojj = obs.ii.to(dev), obs.jj.to(dev)
+        edges = ([ii + len(olds)], [jj + len(olds)], [Z], [torch.ones(len(ii), dtype=torch.float64, device=dev)])
         used_loops, drift, rejected = 0, 0.0, 0
         for li, lj in loops:
-            a_new, b_old = max(li, lj), min(li, lj)
-            meas = {}  # (a, b) -> (edge, Z_ab, scale ratio) of each usable direction
-            for a, b in ((b_old, a_new), (a_new, b_old)):
-                m = torch.nonzero((oii == a) & (ojj == b)).squeeze(1)
-                if len(m) == 0:
-                    continue
-                e = int(m[0])
-                Zab, s, used = loop_relative_sim3(poses[a], disps[a], poses[b], disps[b], intr,
-                                                  obs.target[e].to(dev), obs.weight[e].to(dev))
-                if used < c.pgo_min_pixels or not bool(torch.isfinite(Zab).all()) or not (0.05 < s < 20.0):
-                    continue
-                meas[(a, b)] = (e, Zab, s)
-                if c.pgo_max_scale_disagreement is None:
-                    break  # one direction is enough without the check
-            if len(meas) == 2 and c.pgo_max_scale_disagreement is not None:
-                # the same relative scale measured from either end: a consistent pair multiplies to 1
-                product = meas[(b_old, a_new)][2] * meas[(a_new, b_old)][2]
-                if abs(math.log(product)) > math.log(c.pgo_max_scale_disagreement):
-                    log.info("loop %d <-> %d: measurement left out of the pose graph (scale %.3g from keyframe %d, "
-                             "%.3g from %d: product %.3g)", a_new, b_old, meas[(b_old, a_new)][2], b_old,
-                             meas[(a_new, b_old)][2], a_new, product)
-                    rejected += 1
-                    continue
-            for a, b in ((b_old, a_new), (a_new, b_old)):  # prefer the old keyframe as the reference
-                if (a, b) not in meas:
-                    continue
-                e, Zab, _ = meas[(a, b)]
-                off = None if c.pgo_max_direction_deg is None else \
-                    self._direction_error(Zab, obs.target[e], obs.weight[e], intr)
-                if off is not None and off > c.pgo_max_direction_deg:
-                    log.info("loop %d <-> %d: measurement left out of the pose graph (translation %.1f deg off the "
-                             "edge's epipolar direction)", a_new, b_old, off)
-                    rejected += 1
-                    break
-                e_ii.append(torch.tensor([local[a]], device=dev))
-                e_jj.append(torch.tensor([local[b]], device=dev))
-                e_Z.append(Zab[None])
-                drift = max(drift, self._drift(S_all, a, b, Zab, disps[b_old]))
-                w.append(torch.full((1,), c.pgo_loop_weight, dtype=torch.float64, device=dev))
-                used_loops += 1
-                break
+            edge = self._loop_edge(graph, obs, max(li, lj), min(li, lj))
+            if edge is None:
+                rejected += 1
+                continue
+            if not edge:
+                continue
+            a, b, Zab = edge
+            for lst, item in zip(edges, (torch.tensor([local[a]], device=dev), torch.tensor([local[b]], device=dev),
+                                         Zab[None],
+                                         torch.full((1,), PGO_LOOP_WEIGHT, dtype=torch.float64, device=dev))):
+                lst.append(item)
+            drift = max(drift, self._drift(S_all, a, b, Zab, graph.disps[min(li, lj)]))
+            used_loops += 1
         if used_loops == 0:
             why = f"{rejected} left out by the direction / scale checks" if rejected else "no usable loop measurement"
             return f"sim3 pgo skipped ({why})"
-        if drift < c.pgo_min_drift:
+        if drift < PGO_MIN_DRIFT:
             self.last_pgo = {"applied": False, "drift": drift}
-            return f"sim3 pgo skipped (drift {drift:.3g} < pgo_min_drift)"
-        fixed = torch.zeros(len(nodes), dtype=torch.bool, device=dev)
-        fixed[: len(olds) + 1] = True  # the loops' old keyframes and the chain's first keyframe p
-        res = sim3_pose_graph(S, torch.cat(e_ii), torch.cat(e_jj), torch.cat(e_Z), fixed, torch.cat(w),
-                              iters=c.pgo_iters)
+            return f"sim3 pgo skipped (drift {drift:.3g} < PGO_MIN_DRIFT {PGO_MIN_DRIFT:g})"
+        return self._apply_pose_graph(graph, S_all[nodes], [torch.cat(e) for e in edges], len(olds), p, used_loops)
+
+    def _loop_edge(self, graph, obs: EdgeObservations, a_new: int, b_old: int):
+        """The pose graph's edge for the loop ``a_new <-> b_old``: ``(a, b, Z_ab)`` of one usable measurement
+        direction (the old keyframe as the reference where both are usable); ``()`` when neither direction gives a
+        usable measurement; None when the direction or scale check leaves the loop out."""
+        meas = self._loop_measurements(graph, obs, a_new, b_old)
+        if len(meas) == 2:
+            # the same relative scale measured from either end: a consistent pair multiplies to 1
+            product = meas[(b_old, a_new)][2] * meas[(a_new, b_old)][2]
+            if abs(math.log(product)) > math.log(PGO_MAX_SCALE_DISAGREEMENT):
+                log.info("loop %d <-> %d: measurement left out of the pose graph (scale %.3g from keyframe %d, "
+                         "%.3g from %d: product %.3g)", a_new, b_old, meas[(b_old, a_new)][2], b_old,
+                         meas[(a_new, b_old)][2], a_new, product)
+                return None
+        for a, b in ((b_old, a_new), (a_new, b_old)):  # prefer the old keyframe as the reference
+            if (a, b) not in meas:
+                continue
+            e, Zab, _ = meas[(a, b)]
+            off = self._direction_error(Zab, obs.target[e], obs.weight[e], graph.intrinsics)
+            if off is not None and off > PGO_MAX_DIRECTION_DEG:
+                log.info("loop %d <-> %d: measurement left out of the pose graph (translation %.1f deg off the "
+                         "edge's epipolar direction)", a_new, b_old, off)
+                return None
+            return a, b, Zab
+        return ()
+
+    @staticmethod
+    def _loop_measurements(graph, obs: EdgeObservations, a_new: int, b_old: int) -> dict:
+        """``{(a, b): (edge, Z_ab, scale ratio)}`` for each observed direction of the loop whose Sim(3) measurement
+        (:func:`loop_relative_sim3`) saw enough pixels and gave a finite, plausible scale."""
+        dev, poses, disps = graph.device, graph.poses, graph.disps
+        oii, ojj = obs.ii.to(dev), obs.jj.to(dev)
+        meas = {}
+        for a, b in ((b_old, a_new), (a_new, b_old)):
+            m = torch.nonzero((oii == a) & (ojj == b)).squeeze(1)
+            if len(m) == 0:
+                continue
+            e = int(m[0])
+            Zab, s, used = loop_relative_sim3(poses[a], disps[a], poses[b], disps[b], graph.intrinsics,
+                                              obs.target[e].to(dev), obs.weight[e].to(dev))
+            if used < PGO_MIN_PIXELS or not bool(torch.isfinite(Zab).all()) or not (0.05 < s < 20.0):
+                continue
+            meas[(a, b)] = (e, Zab, s)
+        return meas
+
+    def _apply_pose_graph(self, graph, S: torch.Tensor, edges: list[torch.Tensor], n_olds: int, p: int,
+                          used_loops: int) -> str:
+        """Solve the pose graph over nodes ``S [m, 8]`` (the loops' old keyframes, then the chain from ``p``; those
+        and ``p`` fixed) with ``edges = [ii, jj, Z, weights]`` and apply it to the chain's poses and depths."""
+        n, dev, disps = graph.n, graph.device, graph.disps
+        fixed = torch.zeros(S.shape[0], dtype=torch.bool, device=dev)
+        fixed[: n_olds + 1] = True  # the loops' old keyframes and the chain's first keyframe p
+        res = sim3_pose_graph(S, edges[0], edges[1], edges[2], fixed, edges[3], iters=PGO_ITERS)
         scales = res.poses[:, 7]
         ok = bool(torch.isfinite(res.poses).all()) and bool((scales > 0.02).all()) and bool((scales < 50).all())
         self.last_pgo = {"cost_before": res.cost_before, "cost_after": res.cost_after, "iterations": res.iterations,
@@ -249,7 +257,7 @@ class DenseBAOptimizer(Optimizer):
         if not ok:
             log.warning("sim3 pose graph gave a degenerate result; poses left unchanged")
             return "sim3 pgo rejected (degenerate result)"
-        chain = res.poses[len(olds):]  # [n - p, 8]
+        chain = res.poses[n_olds:]  # [n - p, 8]
         idx = torch.arange(p, n, device=dev)
         graph.set_poses(idx, chain[:, :7])
         graph.set_disps(idx, (disps[p:] / chain[:, 7].to(disps.dtype).reshape(-1, 1, 1)).clamp(min=1e-3))
@@ -266,9 +274,7 @@ class DenseBAOptimizer(Optimizer):
         Why: the measurement fits b's pose to the flow with a's depth held, so where the flow of the near scene is
         short (a revisit seen from some metres behind: the view is magnified and DIS underestimates it) the pose
         lands short along the viewing direction and the pose graph bends the whole chain to it; the essential
-        matrix only needs the flow's directions.  driving_block seed 0: the measurement 26.9 deg off the true
-        direction, the epipolar one 3.7 deg, the current estimate 4.6 deg; the pose graph took the keyframe ATE
-        from 0.32 to 1.89 m (bench/RESULTS.md, issue 13, session 2026-12-02 e)."""
+        matrix only needs the flow's directions (docs/decisions.md: PGO_MAX_DIRECTION_DEG)."""
         h, w = target.shape[-2:]
         conf = weight.double().reshape(2, -1).min(0).values
         ok = conf >= 0.5 * float(conf.max().clamp(min=1e-12))
