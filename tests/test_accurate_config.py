@@ -1,5 +1,5 @@
-"""configs/accurate.toml: the default pipeline with 5 Gauss-Newton iterations per window BA (more accurate on unseen
-seeds, slower than the real-time target: bench/RESULTS.md, issue 13, session 2026-12-02 i) and nothing else changed."""
+"""configs/accurate.toml: the default pipeline with 5 Gauss-Newton iterations per window BA (more accurate, slower than
+the real-time target: docs/decisions.md, optimizer.iters) and nothing else changed."""
 from pathlib import Path
 
 from pvslam_core.config import load_config

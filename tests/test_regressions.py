@@ -29,7 +29,7 @@ from pvslam_core.api import run_config
 
 pytestmark = pytest.mark.slow
 
-BA_OFF = ["optimizer.iters=0", "optimizer.final_iters=0", "optimizer.loop_iters=0"]
+BA_OFF = ["optimizer.iters=0", "optimizer.final.iters=0", "optimizer.loop.iters=0"]
 ROBUST_OFF = ['optimizer.robust="none"', 'graph.motion_robust="none"']
 LOOP_OFF = ["loop.plugin=none"]
 MASK_OFF = ["frontend.dynamic_masking=false"]

@@ -2,8 +2,8 @@
 
 Why: a monocular map's scale is a gauge the flow observes only through parallax.  On a highway at 20 m/s and
 10 Hz the keyframes are 4 frames (8 m) apart, the near road has left the view by the next keyframe (its pixels
-carry no weight on any keyframe edge) and the far scene barely moves: the scale then drifts (0.75 -> 1.46 of the
-first segment's over 300 frames on the synthetic highway, tune seed 2).  A frontend that measures the motion
+carry no weight on any keyframe edge) and the far scene barely moves: the scale then drifts within a few hundred
+frames (docs/decisions.md: frontend.road.distance_weight).  A frontend that measures the motion
 between keyframes in a metric of its own (the flow frontend's road plane: the translation in camera heights,
 frame to frame, where the near road is still in view) states it as ``|c_i - c_j| = L_ij`` in map units, which
 holds the scale where the flow cannot.

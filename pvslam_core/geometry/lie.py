@@ -334,7 +334,7 @@ def _sim3_W(phi: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
     differences take 1e-6 steps there), so where ``max(|s|, t) < 0.1`` the power series is summed to ``M^9``
     (truncation below 3e-17 relative).  Elsewhere the closed form is exact to rounding (``t`` small but ``|s| >= 0.1``
     only cancels inside ``B``, which multiplies ``Phi^2 = O(t^2)``).  The 6x6 ``matrix_exp`` this replaces gave the
-    same numbers (tested against it) at ~10x the cost: it was 60 % of the loop pose graph's time."""
+    same numbers (tested against it) at ~10x the cost, and dominated the loop pose graph's time."""
     shape = phi.shape[:-1]
     s = sigma.reshape(shape)
     t = torch.linalg.norm(phi, dim=-1)

@@ -243,8 +243,8 @@ def fill_holes(disp: torch.Tensor, hole: torch.Tensor, row_min_frac: float = 0.0
     Why rows: for a camera with little roll, a horizontal plane (floor, road, ceiling) has the same depth all
     along an image row, so the known part of a row predicts the row's new part better than the image's median.
     It matters where a keyframe sees mostly new pixels and nothing can measure their depth yet: through a turn
-    on the spot the median of the previous view walked the map's scale off by e^-0.4 on the synthetic head
-    camera (handheld_fast, seed 72; bench/RESULTS.md, 12-03 h)."""
+    on the spot the median of the previous view walks the map's scale off (docs/decisions.md:
+    graph.fill_row_min_frac)."""
     known = ~hole
     whole = disp[known].median()
     if row_min_frac > 0:

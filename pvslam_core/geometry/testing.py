@@ -221,7 +221,7 @@ class DriftedLoop:
     S: torch.Tensor  # [n, 8] initial Sim(3) poses (est, scale 1)
     ii: torch.Tensor
     jj: torch.Tensor
-    Z: torch.Tensor  # [E, 8] relative Sim(3) measurements (odometry, then the loop edge n-1 -> 0)
+    Z: torch.Tensor  # [E, 8] relative Sim(3) measurements (odometry, then the loop edge (n-1, 0))
     fixed: torch.Tensor  # bool [n], keyframe 0
     weight: torch.Tensor  # [E], the loop edge loop_weight
 
@@ -231,7 +231,7 @@ class DriftedLoop:
 
 def drifted_loop(n: int, radius: float, rate: float, yaw_drift: float, loop_weight: float = 10.0) -> DriftedLoop:
     """A lap of :func:`circle_poses` as monocular odometry sees it (keyframe k's relative translation scaled by
-    ``rate ** k``, a yaw drift per keyframe), the odometry chain as Sim(3) edges and one loop edge ``n-1 -> 0``
+    ``rate ** k``, a yaw drift per keyframe), the odometry chain as Sim(3) edges and one loop edge ``(n-1, 0)``
     measured from the truth in keyframe n-1's drifted scale: a closure after a lap."""
     from .lie import sim3_from_se3
     from .pose_graph import odometry_measurements

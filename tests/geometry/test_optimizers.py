@@ -366,3 +366,20 @@ def test_loop_scale_measured_from_both_ends_must_agree(loop_problem, monkeypatch
     monkeypatch.setattr(O, "PGO_MAX_SCALE_DISAGREEMENT", math.inf)  # the check off
     rep = make("online_ba").loop(pr.graph(*drifted), pr.obs(), [_loop(n - 1, 0)])
     assert "sim3 pgo:" in rep.message, rep.message
+
+
+def test_old_optimizer_keys_through_the_config_loader():
+    """A whole pipeline config with the old flat keys: they land in the nested tables (online and offline schedule);
+    a retired key at another value is a ConfigError that names it."""
+    from pvslam_core.config import ConfigError, load_config
+
+    cfg = load_config(None, overrides=["optimizer.final_iters=6", "optimizer.loop_iters=2", "optimizer.sim3_pgo=false"])
+    opt = cfg.models["optimizer"]
+    assert (opt.final.iters, opt.final.rounds, opt.loop.iters, opt.loop.sim3_pgo) == (6, 1, 2, False)
+    assert cfg.pipeline.optimizer.params["final"] == {"iters": 6, "rounds": 1}  # what a run directory stores
+    cfg = load_config(None, overrides=['optimizer.plugin="offline_ba"', "optimizer.final_rounds=3"])
+    assert (cfg.models["optimizer"].final.iters, cfg.models["optimizer"].final.rounds) == (8, 3)
+    new = load_config(None, overrides=["optimizer.final.iters=6", "optimizer.loop.iters=2"]).models["optimizer"]
+    assert new == load_config(None, overrides=["optimizer.final_iters=6", "optimizer.loop_iters=2"]).models["optimizer"]
+    with pytest.raises(ConfigError, match="'iters_max' was retired"):
+        load_config(None, overrides=["optimizer.iters_max=5"])

@@ -4,9 +4,9 @@ One optimizer (:class:`.optimizer.DenseBAOptimizer`), registered under two names
 default schedule (:mod:`.config`):
 
 * ``online_ba`` - PV-SLAM's online BA: every new keyframe runs a sliding-window BA over the last ``window`` (10)
-  keyframes with 3 Gauss-Newton iterations; a short global refinement (``final_iters`` 4, one round) at the end.
+  keyframes with 3 Gauss-Newton iterations; a short global refinement (``final.iters`` 4, one round) at the end.
 * ``offline_ba`` - DROID-SLAM's schedule: a small local BA per keyframe (``window`` 7, frontend constants) and a
-  global BA over every keyframe at the end (``final_rounds`` 2 x ``final_iters`` 8, backend constants).
+  global BA over every keyframe at the end (``final.rounds`` 2 x ``final.iters`` 8, backend constants).
 
 Both close loops the same way (Sim(3) pose graph when the drift is large, then a relaxed loop BA).  So "online vs
 offline BA" is ``optimizer.plugin = "online_ba" | "offline_ba"``, and any schedule in between is a config.
