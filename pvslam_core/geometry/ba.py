@@ -107,8 +107,10 @@ def dense_ba(graph: "FrameGraph", obs: EdgeObservations, free: torch.Tensor, opt
     ``free`` / ``depth_free``: bool ``[n]`` (``depth_free`` None: every source keyframe of an edge).  ``overrides``:
     single :class:`BAOptions` fields by keyword (``dense_ba(g, obs, free, iters=3)``), applied on top of
     ``options``."""
+    if options is not None and not isinstance(options, BAOptions):
+        raise TypeError(f"dense_ba: options must be a BAOptions (keywords for single fields), got {options!r}")
     opt = dataclasses.replace(options or BAOptions(), **overrides) if overrides else (options or BAOptions())
-    report = OptimizerReport(num_edges=int(obs.ii.reshape(-1).shape[0]))
+    report = OptimizerReport(num_edges=int(obs.ii.numel()))
     inp = _check_inputs(graph, obs, free, depth_free, opt, report)
     if inp is None:
         return report
