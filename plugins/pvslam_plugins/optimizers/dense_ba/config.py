@@ -17,7 +17,8 @@ class LoopBAConfig(PluginConfig):
     iters: int = Field(4, ge=0, description="Gauss-Newton iterations of the relaxed loop BA after the pose graph "
                        "(docs/decisions.md: optimizer.loop.iters)")
     sim3_pgo: bool = Field(True, description="run a Sim(3) pose-graph correction of the drift before the loop BA "
-                           "(skipped where a depth or distance prior observes the scale)")
+                           "(skipped where a depth or distance prior observes the scale; docs/decisions.md: "
+                           "optimizer.loop.sim3_pgo)")
 
 
 class FinalBAConfig(PluginConfig):
@@ -54,8 +55,8 @@ class BAConfigBase(PluginConfig):
     window: int = Field(12, ge=1, description="sliding window: the last `window` keyframes have free poses")
     iters: int = Field(2, ge=0, description="Gauss-Newton iterations per step() call")
     robust: Optional[Literal["none", "huber", "cauchy"]] = Field(
-        "cauchy", description="robust (IRLS) kernel on the 2D residual: classical flow has gross outliers (road, "
-        "occlusions) that its confidences miss (docs/decisions.md: optimizer.robust)")
+        "cauchy", description="robust (IRLS) kernel on the 2D residual ('none', 'huber', 'cauchy'): classical flow has "
+        "gross outliers (road, occlusions) its confidences miss (docs/decisions.md: optimizer.robust)")
     robust_scale: float = Field(1.0, gt=0, description="robust kernel scale in BA-resolution pixels")
     loop: LoopBAConfig = Field(default_factory=LoopBAConfig, description="the loop closure's pose graph and BA")
     final: FinalBAConfig = Field(default_factory=FinalBAConfig, description="the global BA at the end")

@@ -32,6 +32,7 @@ MIN_DEPTH = 0.2  # points with relative depth z_j / z_i below this get zero weig
 PGO_ITERS = 25  # Levenberg-Marquardt iterations of the Sim(3) pose graph
 # the pose graph runs only when a loop measurement disagrees with the estimate by more than this (|log scale|,
 # rotation in rad, translation / median depth of the old keyframe); smaller drift is left to the loop BA
+# (docs/decisions.md: PGO_MIN_DRIFT)
 PGO_MIN_DRIFT = 0.02
 PGO_LOOP_WEIGHT = 10.0  # information weight of a loop edge relative to an odometry edge in the pose graph
 # a loop measurement whose translation is further off the loop edge's epipolar direction (deg) stays out of the pose
@@ -165,7 +166,7 @@ class DenseBAOptimizer(Optimizer):
         earlier closures had tied to the lap before it; and a pose graph over every keyframe grows with the run.
         The keyframes up to the previous correction are as good as the map gets; the chain since then holds this
         loop's drift (ORB-SLAM instead keeps the older loop edges in its graph; fixing the corrected keyframes is
-        the simpler stand-in, not an equivalent)."""
+        the simpler stand-in, not an equivalent; docs/decisions.md: DenseBAOptimizer.sim3_correction)."""
         n, dev = graph.n, graph.device
         lo = min(min(i, j) for i, j in loops)  # the oldest loop keyframe
         p = self._chain_start(graph, lo, min(max(i, j) for i, j in loops))
@@ -174,7 +175,8 @@ class DenseBAOptimizer(Optimizer):
         local = {g: l for l, g in enumerate(nodes.tolist())}  # graph index -> node; every loop end is a node
         S_all = sim3_from_se3(graph.poses, 1.0)
         ii, jj, Z = odometry_measurements(S_all[p:])
-        edges = ([ii + len(olds)], [jj + len(olds)], [Z], [torch.ones(len(ii), dtype=torch.float64, device=dev)])
+        e_ii, e_jj, e_Z = [ii + len(olds)], [jj + len(olds)], [Z]
+        e_w = [torch.ones(len(ii), dtype=torch.float64, device=dev)]
         used_loops, drift, rejected = 0, 0.0, 0
         for li, lj in loops:
             edge = self._loop_edge(graph, obs, max(li, lj), min(li, lj))
@@ -184,10 +186,10 @@ class DenseBAOptimizer(Optimizer):
             if not edge:
                 continue
             a, b, Zab = edge
-            for lst, item in zip(edges, (torch.tensor([local[a]], device=dev), torch.tensor([local[b]], device=dev),
-                                         Zab[None],
-                                         torch.full((1,), PGO_LOOP_WEIGHT, dtype=torch.float64, device=dev))):
-                lst.append(item)
+            e_ii.append(torch.tensor([local[a]], device=dev))
+            e_jj.append(torch.tensor([local[b]], device=dev))
+            e_Z.append(Zab[None])
+            e_w.append(torch.full((1,), PGO_LOOP_WEIGHT, dtype=torch.float64, device=dev))
             drift = max(drift, self._drift(S_all, a, b, Zab, graph.disps[min(li, lj)]))
             used_loops += 1
         if used_loops == 0:
@@ -196,7 +198,8 @@ class DenseBAOptimizer(Optimizer):
         if drift < PGO_MIN_DRIFT:
             self.last_pgo = {"applied": False, "drift": drift}
             return f"sim3 pgo skipped (drift {drift:.3g} < PGO_MIN_DRIFT {PGO_MIN_DRIFT:g})"
-        return self._apply_pose_graph(graph, S_all[nodes], [torch.cat(e) for e in edges], len(olds), p, used_loops)
+        edges = [torch.cat(e) for e in (e_ii, e_jj, e_Z, e_w)]
+        return self._apply_pose_graph(graph, S_all[nodes], edges, len(olds), p, used_loops)
 
     def _loop_edge(self, graph, obs: EdgeObservations, a_new: int, b_old: int):
         """The pose graph's edge for the loop ``a_new <-> b_old``: ``(a, b, Z_ab)`` of one usable measurement
