@@ -1,8 +1,8 @@
 """Configuration of the classical ``flow`` frontend (OpenCV DIS optical flow): ``[frontend]`` with ``plugin = "flow"``.
 
-Sixteen settings in four tables.  What used to be tuning knobs is now fixed in the code, each a named constant next
-to what it controls (``TEXTURE_TAU`` in :mod:`.pair_flow`, ``TRACK_VELOCITY_INIT`` in :mod:`.track_starts`, ...);
-the keys of earlier releases still load (``renamed`` / ``retired`` below).
+Sixteen settings in four tables.  The rest of the method is fixed in the code, each value a named constant next to
+what it controls (``TEXTURE_TAU`` in :mod:`.pair_flow`, ``TRACK_VELOCITY_INIT`` in :mod:`.track_starts`, ...); the
+keys of earlier releases still load (``renamed`` / ``retired`` below).
 """
 from __future__ import annotations
 
