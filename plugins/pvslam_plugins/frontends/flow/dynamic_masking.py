@@ -36,7 +36,7 @@ DYNAMIC_UPDATES = 3  # an edge's mask is re-estimated on this many observations 
 # has not converged yet); 0 would use the absolute threshold alone
 DYNAMIC_REL_THRESH = 3.0
 # group the candidates into coherent regions: a moving vehicle is a region, isolated pixels are left to the BA's
-# robust kernel (docs/decisions.md: DYNAMIC_REGIONS)
+# robust kernel
 DYNAMIC_REGIONS = True
 DYNAMIC_MIN_AREA = 4  # smallest region kept (BA px)
 DYNAMIC_GROW = 1  # regions (and masks moved to a new keyframe) are dilated by this many BA px

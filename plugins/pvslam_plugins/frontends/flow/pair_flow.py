@@ -24,7 +24,7 @@ from .lanes import Call, DisLanes
 
 FB_SIGMA = 1.0  # forward-backward consistency scale (full-resolution px): c = exp(-fb^2 / (2 sigma^2))
 FB_FAIL_PX = 3.0  # a pixel fails the forward-backward check when fb exceeds this (full-resolution px)
-PHOTO_SIGMA = 4.0  # photometric confidence scale (gray levels); 0 would switch the term off
+PHOTO_SIGMA = 4.0  # photometric confidence scale (gray levels); 0: off (docs/decisions.md: PHOTO_SIGMA)
 # texture term lam / (lam + tau), lam the Shi-Tomasi eigenvalue (OpenCV's scale: ~1e-4 on fine asphalt, 1e-3 on
 # facades); 0 would switch it off (docs/decisions.md: TEXTURE_TAU)
 TEXTURE_TAU = 1e-3

@@ -16,8 +16,8 @@ motion that fails is mostly *rotation*, and the image motion of a rotating camer
 
 When the corners give no homography (a bare wall), :class:`MotionPredictor` extrapolates the last frames' image
 motion at constant rate instead.  The caller (:class:`.track_starts.TrackStarts`) keeps whichever of the plain and
-the recovered flows passes most pixels of the forward-backward check.  All arrays are at the flow resolution: ``uint8 [H, W]``
-images, ``float32 [H, W, 2]`` flows.
+the recovered flows passes most pixels of the forward-backward check.  All arrays are at the flow resolution:
+``uint8 [H, W]`` images, ``float32 [H, W, 2]`` flows.
 """
 from __future__ import annotations
 

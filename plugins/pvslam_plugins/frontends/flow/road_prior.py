@@ -56,7 +56,7 @@ ROAD_MARGIN = 1.1  # a pixel takes the plane's flow where its 5x5 brightness res
 # horizon where sidewalks and building bases pass for road
 ROAD_MAX_GAP = 5
 # weigh the plane's pixels by DIS's residual between the views aligned by the merged flow (two more DIS calls a pair)
-# instead of the texture term; the depth prior needs it
+# instead of the texture term; the depth prior needs it (docs/decisions.md: ROAD_VERIFY)
 ROAD_VERIFY = True
 ROAD_H_KEYFRAMES = 3  # consecutive keyframes whose road and motion measure the camera height (_camera_height)
 ROAD_H_SETTLE = 2  # ... the newest of them at least this many keyframes older than the newest keyframe
@@ -67,7 +67,8 @@ ROAD_DIST_CONSISTENT = 1.5
 ROAD_DIST_AGREE = 2.0
 ROAD_DIST_LOOKBACK = 64  # ... its three pairs among this many newest keyframes (no road: not a walk of the whole map)
 # Without a road (indoors) the search from scratch never finds a plane, at about a fifth of the frame's CPU: after
-# this many consecutive misses the tracking search skips 1, 2, 4, ... frames between tries (a found plane resets it)
+# this many consecutive misses the tracking search skips 1, 2, 4, ... frames between tries (a found plane resets it;
+# docs/decisions.md: ROAD_BACKOFF_AFTER)
 ROAD_BACKOFF_AFTER = 8
 ROAD_BACKOFF_MAX = 8  # ... at most this many: a road coming into view is found within 9 frames (0.3 s at 30 Hz)
 

@@ -66,9 +66,10 @@ def patch_segmentation(x0: int, y0: int, ph: int, pw: int, car_id: int = 26001, 
 
 
 def identity_reproject(h: int, w: int, valid=None):
-    """``(reproject_fn, coords)`` for ``FlowFrontend(reproject_fn=...)`` or :func:`masking`: the estimate maps each of the ``h x w`` BA
-    pixels onto itself (``coords`` float64 ``[h, w, 2]``, (x, y)), and every pixel can be judged unless ``valid``
-    (bool ``[h, w]``) says otherwise.  An edge's residual is then its target's own shift (:func:`shifted_target`)."""
+    """``(reproject_fn, coords)`` for ``FlowFrontend(reproject_fn=...)`` or :func:`masking`: the estimate maps each of
+    the ``h x w`` BA pixels onto itself (``coords`` float64 ``[h, w, 2]``, (x, y)), and every pixel can be judged
+    unless ``valid`` (bool ``[h, w]``) says otherwise.  An edge's residual is then its target's own shift
+    (:func:`shifted_target`)."""
     ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     coords = torch.stack([xs, ys], -1)
     ok = torch.ones(h, w, dtype=torch.bool) if valid is None else valid
