@@ -235,22 +235,22 @@ class FlowFrontend(Frontend):
         if kf_id in self._kfs:
             raise ValueError(f"add_keyframe: keyframe id {kf_id} was added before")
         pend = self._pending if (self._pending is not None and self._pending.frame_index == frame.index) else None
-        gray = pend.gray if pend is not None else self.pairs.gray(frame.image)
+        # a frame that was not tracked just before (the first keyframe, a keyframe forced by the mapper) has no
+        # reference keyframe, tracked flow or road motion
+        p = pend if pend is not None else _Tracked(frame.index, self.pairs.gray(frame.image))
         h, w = self._ba_shape_for(frame)
         sid = int(kf_id)
-        tracked = pend is not None and pend.last_sid is not None
-        if tracked and REUSE_TRACK_FLOW and pend.last_sid == self._last_id():
-            a = pend.last_sid
-            (tf, wf), (fwd, bwd) = pend.fwd, pend.flows
-            tb, wb, _ = self.pairs.direction(gray, self._kfs[a].gray, bwd, fwd, *pend.ba_shape, pend.plane)
+        if p.last_sid is not None and REUSE_TRACK_FLOW and p.last_sid == self._last_id():
+            a = p.last_sid
+            (tf, wf), (fwd, bwd) = p.fwd, p.flows
+            tb, wb, _ = self.pairs.direction(p.gray, self._kfs[a].gray, bwd, fwd, *p.ba_shape, p.plane)
             self._put_edge((a, sid), tf, wf)
             self._put_edge((sid, a), tb, wb)
-        self._kfs[sid] = _Keyframe(gray=gray, frame_index=frame.index)
+        self._kfs[sid] = _Keyframe(gray=p.gray, frame_index=frame.index)
         if self.road is not None:
-            self.road.add_keyframe(sid, frame.index, *((pend.last_sid, pend.road, pend.plane, pend.ba_shape)
-                                                       if pend is not None else ()))
+            self.road.add_keyframe(sid, frame.index, p.last_sid, p.road, p.plane, p.ba_shape)
         if self.masking is not None:
-            self.masking.add_keyframe(sid, seg, h, w, *((pend.last_sid, pend.fwd[0]) if tracked else ()))
+            self.masking.add_keyframe(sid, seg, h, w, p.last_sid, None if p.fwd is None else p.fwd[0])
         self._pending = None
 
     # -------------------------------------------------------------------------------- graph listener --
