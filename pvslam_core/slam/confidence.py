@@ -1,6 +1,7 @@
 """Panoptic-aware confidence (PV-SLAM eq. 4) and segment-level voting of dynamic masks.
 
-Shared by every frontend (the classical ``flow`` frontend today, learned PVO/DROID-style frontends later).
+Shared by every frontend (the classical ``flow`` and the learned ``raft_gru``), whose settings of it are one model,
+``frontend.dynamic`` (:class:`pvslam_core.slam.dynamic_config.DynamicMaskingConfig`).
 
 Eq. 4 of the PV-SLAM paper::
 
@@ -147,8 +148,8 @@ def segment_vote(
             keyframe), the int ids allowed to vote in that element's id map (None or empty: none votes).  Segment
             ids are unique only within one frame (a learned segmenter numbers its segments 1, 2, ... in every
             frame), so the movable ids of several keyframes must not be pooled into one ``thing_mask``: one
-            keyframe's car id is another's road id, and a road flagged by flow errors then voted dynamic whole
-            (issue 11).  Combines with ``thing_mask`` (both must allow a segment).
+            keyframe's car id is another's road id, and a road flagged by flow errors then voted dynamic whole.
+            Combines with ``thing_mask`` (both must allow a segment).
 
     Returns:
         bool ``[..., h, w]``: the per-pixel mask OR the voted segments (pixels of segments that did not vote keep

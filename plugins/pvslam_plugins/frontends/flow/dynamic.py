@@ -6,20 +6,14 @@ Candidates alone are noisy (occlusion edges, a few bad flow vectors); a moving v
 candidates are grouped (:func:`group_regions`): 8-connected components of at least ``min_area`` BA pixels are kept
 and grown by ``grow`` pixels (an object's border blocks mix it with the background), isolated pixels are left to
 the robust kernel of the BA.  With a segmenter the segment vote (:func:`pvslam_core.slam.confidence.segment_vote`)
-is OR-ed with these regions: either cue marks a pixel dynamic.  Without one, the map-independent epipolar cue of
-:mod:`.epipolar_cue` (``epipolar_cue``, off by default) can be OR-ed in too: the residual test judges against an
-estimate a large vehicle may already have dragged, the epipolar cue only against the pair's own flow.
+is OR-ed with these regions: either cue marks a pixel dynamic.
 
 Per keyframe the frontend keeps one mask (:func:`keyframe_vote`: the pixels found dynamic on at least half of its
 judged edges), used where an edge has no mask of its own yet (its first observation) and for the motion filter's
 targets (the frames tracked against that keyframe), so a bus does not drag the non-keyframe poses either.  A new
-keyframe starts from its reference keyframe's mask moved along the tracked flow (:func:`warp_mask`), and with
-``dynamic_persist`` (off by default) keeps that inherited mask OR-ed into every later judgement of its edges: a vehicle that
-moves along the camera's direction of travel is epipolar-consistent on most edges and was flagged only on some, so
-once seen moving it stays masked while tracked.  An optional second cue, :func:`depth_candidates`
-(``depth_check``, off: it did not help on the tune seeds), flags depths that disagree across two keyframes.  Every mask
+keyframe starts from its reference keyframe's mask moved along the tracked flow (:func:`warp_mask`).  Every mask
 reaches the weights through PV-SLAM eq. 4 (:func:`pvslam_core.slam.confidence.observed_flow_weight`), the same
-path as a segmenter's.
+path as a segmenter's (:mod:`.dynamic_masking`).
 
 Masks are float32 ``[h, w]`` (or ``[N, h, w]``) at the BA resolution, 1 = dynamic.
 """
@@ -30,8 +24,6 @@ from typing import Optional
 import cv2
 import numpy as np
 import torch
-
-from pvslam_core.geometry.projective import project_points
 
 
 def residual_candidates(res: torch.Tensor, valid: torch.Tensor, thresh: float, rel_thresh: float) -> torch.Tensor:
@@ -88,33 +80,3 @@ def warp_mask(mask: torch.Tensor, target: torch.Tensor, grow: int = 1) -> torch.
         if grow > 0 and out.any():
             out = cv2.dilate(out, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
     return torch.from_numpy(out.astype(np.float32)).to(mask.device)
-
-
-def depth_candidates(R: torch.Tensor, t: torch.Tensor, disp_i: torch.Tensor, disp_j: torch.Tensor,
-                     coords: torch.Tensor, valid: torch.Tensor, intr: torch.Tensor, thresh: float) -> torch.Tensor:
-    """Pixels whose depth disagrees across two keyframes: bool ``[N, h, w]``.
-
-    Keyframe ``i``'s inverse depth ``disp_i [N, h, w]`` moved by the edge transform ``(R [N, 3, 3], t [N, 3])``
-    (camera i -> camera j) predicts the inverse depth each pixel has in ``j``: ``d / Z`` with ``Z`` the homogeneous
-    depth of :func:`~pvslam_core.geometry.projective.project_points` (``r_3 . ray + t_z d``); ``disp_j [N, h, w]``
-    (keyframe ``j``'s own estimate) sampled bilinearly at ``coords [N, h, w, 2]`` (the pixel's reprojection, BA px)
-    is what ``j`` believes.  A static point agrees once both depths have been
-    through BA; a vehicle whose speed relative to the camera changes does not, even where every two-view flow is
-    epipolar-consistent (it moves along the camera's direction of travel).  A pixel is a candidate when the two
-    differ by more than ``thresh`` x the median inverse depth of ``j`` over the judged pixels (the scale of the
-    map: an absolute inverse-depth gap, so the sky and far points, whose inverse depths are all ~0, never count);
-    only ``valid [N, h, w]`` pixels with positive depths are judged.
-    """
-    N, h, w = disp_i.shape
-    if N == 0:
-        return torch.zeros(0, h, w, dtype=torch.bool, device=disp_i.device)
-    dt = disp_i.dtype
-    Z = project_points(R.to(dt), t.to(dt), disp_i.reshape(N, -1), intr.reshape(-1)[:4], h, w)["z"].reshape(N, h, w)
-    pred = disp_i / torch.where(Z > 0, Z, torch.ones_like(Z))  # inverse depth in j
-    u, v = coords[..., 0].to(dt), coords[..., 1].to(dt)
-    grid = torch.stack([2 * u / max(w - 1, 1) - 1, 2 * v / max(h - 1, 1) - 1], -1)  # [N, h, w, 2]
-    seen = torch.nn.functional.grid_sample(disp_j.to(dt)[:, None], grid, mode="bilinear", align_corners=True)[:, 0]
-    judged = valid & (Z > 0) & (pred > 0) & (seen > 0) & torch.isfinite(seen)
-    med = torch.nanmedian(torch.where(judged, seen, torch.nan).reshape(N, -1), dim=1).values  # [N]
-    med = torch.nan_to_num(med, nan=float("inf"))
-    return judged & ((pred - seen).abs() > thresh * med[:, None, None])

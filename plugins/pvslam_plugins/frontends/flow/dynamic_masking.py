@@ -1,41 +1,176 @@
-"""The flow frontend's dynamic masks (PV-SLAM eq. 4 without learned weights): per edge, the observed target
-against the reprojection under the current estimate, as residual candidates grouped into coherent regions
-(:mod:`.dynamic`) and/or voted over the keyframe's thing segments; per keyframe, a vote over its edges' masks.
-With ``epipolar_cue``, each keyframe also keeps the map-independent epipolar cue (:mod:`.epipolar_cue`) of its
-tracked flow and of its first edges, OR-ed into every judgement of its edges (:meth:`DynamicMasking._cue_mask`,
-:meth:`~DynamicMasking._epipolar_cue`, :meth:`~DynamicMasking._edge_cues`).
+"""The flow frontend's dynamic masks and their PV-SLAM eq. 4 weights, without learned weights.
 
-A mixin of :class:`.frontend.FlowFrontend`: it reads the frontend's ``cfg``, ``_kfs`` (keyframe state by stable
-id), ``_edges`` (edge state by ``(src_id, dst_id)``), ``_graph`` and ``_reproject``.
+Per edge: from its second observation on (after at least one BA round), the observed target against the
+reprojection under the current estimate gives residual candidates (:func:`.dynamic.residual_candidates`), grouped
+into coherent regions (:func:`.dynamic.group_regions`) and, with a segmenter, voted over the source keyframe's
+movable thing segments (:func:`pvslam_core.slam.confidence.segment_vote`); re-estimated on ``DYNAMIC_UPDATES``
+observations, then kept.  Per keyframe: a vote over its edges' masks (:func:`.dynamic.keyframe_vote`), used where an
+edge has no mask of its own yet and for the tracking weights of the frames placed against that keyframe; a new
+keyframe starts from its reference's mask moved along the tracked flow.  Every mask reaches the weights through
+eq. 4 with the paper convention: static pixels keep their confidence, dynamic ones get about ``c e^-eta``.
+
+:class:`DynamicMasking` owns the masks, keyed by the graph's stable keyframe ids like the frontend's edge cache.  It
+keeps its own record of the cached edges (their targets and how often each was observed), told by the frontend
+whenever an edge is computed or dropped, so that it walks them in the frontend's order.
 """
 from __future__ import annotations
 
 import logging
-import time
-from typing import Optional
+from dataclasses import dataclass
+from typing import Callable, Optional
 
+import numpy as np
 import torch
 
-from pvslam_core.slam.confidence import segment_vote
+from pvslam_core.slam.confidence import observed_flow_weight, segment_vote
+from pvslam_core.slam.dynamic_config import DynamicMaskingConfig
+from pvslam_core.types import PanopticSegmentation
 
 from . import dynamic as D
-from . import epipolar_cue as E
+from . import flow_ops as F
 
 LOG = logging.getLogger("pvslam.frontend.flow")
 
+DYNAMIC_UPDATES = 3  # an edge's mask is re-estimated on this many observations after its first, then kept
+# the residual threshold is also at least this multiple of the edge's median residual (robust to an estimate that
+# has not converged yet); 0 would use the absolute threshold alone
+DYNAMIC_REL_THRESH = 3.0
+# group the candidates into coherent regions: a moving vehicle is a region, isolated pixels are left to the BA's
+# robust kernel
+DYNAMIC_REGIONS = True
+DYNAMIC_MIN_AREA = 4  # smallest region kept (BA px)
+DYNAMIC_GROW = 1  # regions (and masks moved to a new keyframe) are dilated by this many BA px
+DYNAMIC_TRACK = True  # the reference keyframe's mask also weighs the tracking flow that places a non-keyframe
+THINGS_ONLY = True  # only movable thing segments vote, each keyframe's own (ids are unique within a frame only)
+# with a segmenter, also keep every raw candidate outside the voted segments (PVO's segm_filter); false: voted
+# segments (over their judged pixels) or regions, the evidence of a run without one (docs/decisions.md:
+# VOTE_KEEPS_CANDIDATES)
+VOTE_KEEPS_CANDIDATES = True
+MIN_JUDGED = 8  # an edge with fewer judgeable pixels keeps its previous mask
+
+
+@dataclass
+class _KeyframeMask:
+    seg_ba: Optional[torch.Tensor] = None  # int64 [h, w] panoptic ids at the BA resolution (block centres)
+    thing_ids: Optional[torch.Tensor] = None  # int64 [K] ids of its movable thing segments
+    dyn: Optional[torch.Tensor] = None  # float32 [h, w] the keyframe's mask, 1 = moving
+    dyn_judged: bool = False  # dyn comes from this keyframe's own edges (else: moved from its reference's)
+
+
+@dataclass
+class _EdgeMask:
+    target: torch.Tensor  # float32 [2, h, w] the edge's observed target (the frontend's cached tensor)
+    dynamic: Optional[torch.Tensor] = None  # float32 [h, w] latest mask
+    rounds: int = 0  # how many times the edge was observed
+
+
+def segment_info(seg: Optional[PanopticSegmentation], h: int, w: int):
+    """``(ids int64 [h, w], movable thing ids int64 [K])`` of a segmentation at the BA resolution, or Nones.  A
+    segmentation that found nothing (no segments: all void) is no segmentation."""
+    if seg is None or seg.ids is None or not seg.segments:
+        return None, None
+    ids = F.downsample_ids(seg.ids.to(torch.int64).cpu(), h, w)
+    # only segments of categories that can move vote (Segment.movable: a segmenter's movable-class list)
+    things = torch.tensor([s.id for s in seg.segments if s.isthing and s.movable], dtype=torch.int64)
+    return ids, things
+
 
 class DynamicMasking:
-    def _dynamic_masks(self, graph, ii: torch.Tensor, jj: torch.Tensor, target: torch.Tensor):
+    """Per-edge and per-keyframe dynamic masks and their eq. 4 weights (module docstring).
+
+    ``reproject(poses, disps, intrinsics, ii, jj) -> (coords [N, h, w, 2], valid [N, h, w], ...)``: the graph's
+    reprojection (:func:`pvslam_core.geometry.projective.reproject`)."""
+
+    def __init__(self, cfg: DynamicMaskingConfig, reproject: Callable):
+        self.cfg = cfg
+        self._reproject = reproject
+        self._kfs: dict[int, _KeyframeMask] = {}  # stable keyframe id -> masks (insertion order = time order)
+        self._edges: dict[tuple[int, int], _EdgeMask] = {}  # (source id, target id), in the frontend's cache order
+
+    # ------------------------------------------------------------------------------- keyframes, edges --
+    def add_keyframe(self, sid: int, seg: Optional[PanopticSegmentation], h: int, w: int,
+                     ref_sid: Optional[int] = None, tracked: Optional[np.ndarray] = None) -> None:
+        """Keyframe ``sid`` with its segmentation; ``tracked`` float32 ``[2, h, w]``: where its reference ``ref_sid``'s
+        pixels went in it (the tracked flow's targets), along which it inherits the reference's mask."""
+        seg_ba, things = segment_info(seg, h, w)
+        kf = self._kfs[sid] = _KeyframeMask(seg_ba=seg_ba, thing_ids=things)
+        ref = self._kfs.get(ref_sid) if ref_sid is not None else None
+        if ref is not None and tracked is not None:
+            m = ref.dyn
+            if m is not None and tuple(m.shape) == tuple(tracked.shape[-2:]) and bool((m > 0).any()):
+                kf.dyn = D.warp_mask(m, torch.from_numpy(tracked), DYNAMIC_GROW)
+
+    def keyframe(self, sid: int) -> Optional[_KeyframeMask]:
+        """Keyframe ``sid``'s segment ids and masks (``seg_ba``, ``thing_ids``, ``dyn``, ``dyn_judged``), or None."""
+        return self._kfs.get(sid)
+
+    def remove_keyframe(self, sid: int) -> None:
+        self._kfs.pop(sid, None)
+
+    def edge_added(self, key: tuple[int, int], target: torch.Tensor) -> None:
+        """The frontend cached (or replaced) edge ``key`` with ``target [2, h, w]``: a new edge, no mask yet."""
+        self._edges[key] = _EdgeMask(target)
+
+    def edge_dropped(self, key: tuple[int, int]) -> None:
+        self._edges.pop(key, None)
+
+    def edge_mask(self, key: tuple[int, int]) -> Optional[torch.Tensor]:
+        """Edge ``key``'s latest mask ``[h, w]`` (None: not judged, or no mask)."""
+        e = self._edges.get(key)
+        return None if e is None else e.dynamic
+
+    def nbytes(self) -> int:
+        n = sum(kf.seg_ba.numel() * kf.seg_ba.element_size() for kf in self._kfs.values() if kf.seg_ba is not None)
+        return n + sum(e.dynamic.numel() * 4 for e in self._edges.values() if e.dynamic is not None)
+
+    # ------------------------------------------------------------------------------------------ weights --
+    def observe(self, graph, ii: torch.Tensor, jj: torch.Tensor, keys: list[tuple[int, int]], target: torch.Tensor,
+                conf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Masks ``dyn [E, h, w]`` and eq. 4 weights ``[E, h, w]`` of observed edges ``ii -> jj`` (graph indices;
+        stable ids ``keys``; ``target [E, 2, h, w]`` and confidence ``conf [E, h, w]`` on the graph's device)."""
+        h, w = (int(v) for v in graph.ba_shape)
+        dev = conf.device
+        entries = [self._edges[key] for key in keys]
+        need = [e for e, en in enumerate(entries) if 1 <= en.rounds <= DYNAMIC_UPDATES]
+        if need:
+            self._update(graph, ii, jj, need, entries, target)
+        zeros = torch.zeros(h, w)
+        # an edge not judged yet (first observation) takes its source keyframe's mask
+        kf_dyn = [self._kfs[k[0]].dyn for k in keys]
+        dyn = torch.stack([en.dynamic if en.dynamic is not None else (kd if kd is not None else zeros)
+                           for en, kd in zip(entries, kf_dyn)]).to(dev)
+        c = self.cfg
+        if c.convention == "paper":
+            # eq. 4 only changes dynamic pixels; static ones keep exactly their confidence (no 0.99 cap)
+            weight = conf.clone()
+            m = dyn > 0
+            if bool(m.any()):
+                weight[m] = observed_flow_weight(conf[m], dyn[m], offset=c.panoptic_offset, convention="paper")
+        else:
+            weight = observed_flow_weight(conf, dyn, offset=c.panoptic_offset, convention=c.convention)
+        for en in entries:
+            en.rounds += 1
+        return dyn, weight
+
+    def track_weights(self, sid: int, weight: torch.Tensor, graph) -> None:
+        """Apply keyframe ``sid``'s mask through eq. 4 to the weights ``[2, h, w]`` (in place) of a frame tracked
+        against it: the mapper's motion-only BA places the frame from these.  ``graph``: the last one observed."""
+        if not DYNAMIC_TRACK:
+            return
+        dyn = self._keyframe_dynamic(sid, graph)
+        if dyn is not None and tuple(dyn.shape) == tuple(weight.shape[-2:]) and bool((dyn > 0).any()):
+            m = dyn > 0
+            weight[:, m] = observed_flow_weight(weight[:, m], dyn[m].expand(2, -1), offset=self.cfg.panoptic_offset,
+                                                convention=self.cfg.convention)
+
+    # ------------------------------------------------------------------------------------------- masks --
+    def masks(self, graph, ii: torch.Tensor, jj: torch.Tensor, target: torch.Tensor):
         """Masks of edges ``ii -> jj`` (graph indices) from their observed ``target [N, 2, h, w]`` against the
-        reprojection under the current estimate (:mod:`.dynamic`): ``(dyn bool [N, h, w], fraction [N], valid
-        pixel count [N])``, or None when the reprojection is not available."""
-        try:
-            reproject = self._reproject()
-        except ImportError:
-            return None
+        reprojection under the current estimate: ``(dyn bool [N, h, w], fraction [N], valid pixel count [N])``, or
+        None when the reprojection fails."""
         dev = graph.disps.device
         try:
-            coords, valid = reproject(graph.poses, graph.disps, graph.intrinsics, ii.to(dev), jj.to(dev))[:2]
+            coords, valid = self._reproject(graph.poses, graph.disps, graph.intrinsics, ii.to(dev), jj.to(dev))[:2]
         except Exception as exc:
             LOG.warning("reprojection for dynamic masking failed (%s); masks kept", exc)
             return None
@@ -46,176 +181,42 @@ class DynamicMasking:
         u, v = coords[..., 0], coords[..., 1]
         # only pixels that stay in view can be judged (the others have no flow to compare)
         valid = valid & torch.isfinite(res) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-        # an edge whose two keyframes have the same pose has no motion estimate to judge against (a fragment
-        # before its initialisation: every keyframe sits at the fragment's start); there the "residual" is the
-        # whole flow, and masks judged on it marked the entire view dynamic and kept a hand-held room from ever
-        # initialising (every pair "0 confident correspondences")
+        # an edge whose two keyframes have the same pose has no motion estimate to judge against (a fragment before
+        # its initialisation: every keyframe sits at the fragment's start); there the "residual" is the whole flow,
+        # and masks judged on it would mark the entire view dynamic and keep a turning camera from initialising
         P = graph.poses.to(dev)
         same = (P[ii.to(dev)] == P[jj.to(dev)]).all(-1)
         valid = valid & ~same[:, None, None]
-        dyn = D.residual_candidates(res, valid, self.cfg.dynamic_thresh, self.cfg.dynamic_rel_thresh)
-        if self.cfg.depth_check > 0:
-            # the second geometric cue: depths that disagree across the two keyframes (dynamic.py)
-            from pvslam_core.geometry.projective import edge_transforms
-
-            R, t = edge_transforms(P, ii.to(dev), jj.to(dev))
-            dd = graph.disps.to(dev)
-            dyn = dyn | D.depth_candidates(R, t, dd[ii.to(dev)], dd[jj.to(dev)], coords, valid,
-                                           graph.intrinsics, self.cfg.depth_check)
-        regions = D.group_regions(dyn, self.cfg.dynamic_min_area, self.cfg.dynamic_grow) \
-            if self.cfg.dynamic_regions else None
-        ids = graph.ids
-        srcs = [self._kfs[int(ids[int(i)])] for i in ii.tolist()]
+        dyn = D.residual_candidates(res, valid, self.cfg.thresh, DYNAMIC_REL_THRESH)
+        regions = D.group_regions(dyn, DYNAMIC_MIN_AREA, DYNAMIC_GROW) if DYNAMIC_REGIONS else None
+        srcs = [self._kfs[int(graph.ids[int(i)])] for i in ii.tolist()]
         if any(s_.seg_ba is not None for s_ in srcs):
-            zero = torch.zeros(h, w, dtype=torch.int64)
-            seg = torch.stack([s_.seg_ba if s_.seg_ba is not None else zero for s_ in srcs]).to(dev)
-            # each source votes with its own movable ids (ids are unique only within one frame: segment_vote)
-            things = [s_.thing_ids for s_ in srcs] if self.cfg.things_only else None
-            if regions is not None and not self.cfg.vote_keeps_candidates:
-                # the segment-free evidence plus the vote: a movable thing segment is dynamic when the geometry
-                # inside it says it moves (more than vote_thresh of its judged pixels are candidates), elsewhere
-                # the coherent regions, exactly as without a segmenter.  Not the default: on the moving-vehicles
-                # tune seeds it did worse than also keeping the raw candidates (config.py, vote_keeps_candidates)
-                dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, batch_things=things, valid=valid,
-                                   keep_pixels=False) | regions.to(dyn.device)
-            else:
-                dyn = segment_vote(dyn, seg, thresh=self.cfg.vote_thresh, batch_things=things)
-                if regions is not None:  # both cues: a segment that voted or a coherent region
-                    dyn = dyn | regions.to(dyn.device)
-        elif self.cfg.epipolar_cue and self.cfg.epipolar_replaces_residual:
-            # without a segmenter the epipolar cue (OR-ed below) judges alone: the residual test against the current
-            # estimate flags the static scene as often as the movers once a mover has dragged that estimate
-            dyn = torch.zeros_like(dyn)
+            dyn = self._vote(dyn, regions, valid, srcs, h, w)
         elif regions is not None:
             dyn = regions.to(dyn.device)
-        if self.cfg.dynamic_persist:
-            dyn = dyn | self._persisted(srcs, h, w).to(dyn.device)
-        if self.cfg.epipolar_cue:  # the map-independent cue of the source keyframe (epipolar_cue.py)
-            dyn = dyn | self._persisted(srcs, h, w, "cue").to(dyn.device)
         return dyn, dyn.float().mean(dim=(1, 2)).tolist(), valid.sum(dim=(1, 2)).tolist()
 
-    @staticmethod
-    def _persisted(srcs: list, h: int, w: int, attr: str = "dyn_prior") -> torch.Tensor:
-        """bool ``[N, h, w]``: a mask each source keyframe keeps for its whole life: ``dyn_prior``, the one it
-        inherited from its reference (moved along the tracked flow when it was added; ``dynamic_persist``: a vehicle
-        seen moving once stays masked while it is tracked, also on the edges where it happens to be
-        epipolar-consistent), or ``cue``, the epipolar cue's (``epipolar_cue``, :meth:`_epipolar_cue`)."""
-        out = torch.zeros(len(srcs), h, w, dtype=torch.bool)
-        for n, kf in enumerate(srcs):
-            m = getattr(kf, attr, None)
-            if m is not None and tuple(m.shape) == (h, w):
-                out[n] = m
-        return out
+    def _vote(self, dyn: torch.Tensor, regions: Optional[torch.Tensor], valid: torch.Tensor, srcs: list,
+              h: int, w: int) -> torch.Tensor:
+        """Candidates ``dyn bool [N, h, w]`` with the segment vote of each edge's source keyframe ``srcs[n]``."""
+        zero = torch.zeros(h, w, dtype=torch.int64)
+        seg = torch.stack([s_.seg_ba if s_.seg_ba is not None else zero for s_ in srcs]).to(dyn.device)
+        # each source votes with its own movable ids (ids are unique only within one frame: segment_vote)
+        things = [s_.thing_ids for s_ in srcs] if THINGS_ONLY else None
+        vote = self.cfg.vote_thresh
+        if regions is not None and not VOTE_KEEPS_CANDIDATES:
+            # the segment-free evidence plus the vote: a movable thing segment is dynamic when the geometry inside it
+            # says it moves (more than vote_thresh of its judged pixels are candidates), elsewhere the regions
+            return segment_vote(dyn, seg, thresh=vote, batch_things=things, valid=valid,
+                                keep_pixels=False) | regions.to(dyn.device)
+        out = segment_vote(dyn, seg, thresh=vote, batch_things=things)
+        return out if regions is None else out | regions.to(out.device)  # a voted segment or a coherent region
 
-    def _cue_mask(self, target, weight, frame) -> tuple[Optional[torch.Tensor], Optional[tuple]]:
-        """The epipolar cue (:mod:`.epipolar_cue`) of one tracked flow out of the last keyframe: ``(mask, motion)``,
-        the mask bool ``[h, w]`` in the keyframe's pixels (None: no judgement possible) and the fitted relative motion
-        (None: no fit).  ``target [2, h, w]`` / ``weight [h, w]``: the positions in ``frame`` of the keyframe's
-        pixels and their confidence (BA px; numpy or torch)."""
-        t0 = time.thread_time()
-        c = self.cfg
-        target, weight = torch.as_tensor(target), torch.as_tensor(weight)
-        h, w = weight.shape[-2:]
-        k = frame.intrinsics.scaled(w / frame.width, h / frame.height)  # the BA resolution's intrinsics
-        intr = (k.fx, k.fy, k.cx, k.cy)
-        # the sign of the translation follows the previous fit (the direction of travel does not flip between two
-        # keyframes); not the map's estimate, which is what a mover drags (epipolar_cue.fit_motion)
-        motion = E.fit_motion(target, weight, intr, min_conf=c.epipolar_min_conf, ransac_px=c.epipolar_ransac_px,
-                              prior=self._cue_t)
-        mask = None
-        if motion is not None:
-            self._cue_t = motion[1]
-            mask = self._judged_regions(target, weight, intr, motion)
-        self.stats["epipolar_cue_s"] = self.stats.get("epipolar_cue_s", 0.0) + time.thread_time() - t0
-        self.stats["epipolar_cue_calls"] = self.stats.get("epipolar_cue_calls", 0) + 1
-        return mask, (None if motion is None else (motion, intr))
-
-    def _edge_cues(self, graph, keys: list) -> None:
-        """The epipolar cue on the newest keyframe's freshly computed edges to its ``epipolar_edges`` nearest older
-        keyframes (``keys``: the ``(source id, target id)`` pairs just computed): each pair's flow is fitted on its
-        own and judged in both directions, the masks OR-ed into both keyframes' ``cue`` and ``dyn``.  Longer
-        baselines than the tracked flow (often one frame, when the tracking reference was a provisional keyframe
-        removed as redundant) show more of a mover's motion across its epipolar line."""
-        c = self.cfg
-        if c.epipolar_edges <= 0 or not keys or not self._cue_on(self._last_id()):
-            return
-        t0 = time.thread_time()
-        new = self._last_id()
-        other = {b for a, b in keys if a == new} | {a for a, b in keys if b == new}
-        older = sorted((b for b in other if b in self._kfs and (b, new) in self._edges and (new, b) in self._edges),
-                       key=lambda b: -self._kfs[b].frame_index)[: c.epipolar_edges]
-        intr = tuple(float(v) for v in graph.intrinsics.reshape(-1)[:4])
-        prior = self._cue_t
-        for b in older:
-            fwd, bwd = self._edges[(new, b)], self._edges[(b, new)]
-            # the edge runs new -> older: against the direction of travel of the tracked pair (_cue_mask)
-            motion = E.fit_motion(fwd.target, fwd.conf, intr, min_conf=c.epipolar_min_conf,
-                                  ransac_px=c.epipolar_ransac_px, prior=None if prior is None else -prior)
-            if motion is None:
-                continue
-            for key, en, mot in ((new, fwd, motion), (b, bwd, E.invert(motion))):
-                self._keep_cue(self._kfs[key], self._judged_regions(en.target, en.conf, intr, mot))
-        self.stats["epipolar_cue_s"] = self.stats.get("epipolar_cue_s", 0.0) + time.thread_time() - t0
-
-    def _judged_regions(self, target, conf, intr, motion) -> Optional[torch.Tensor]:
-        """The epipolar cue's mask bool ``[h, w]`` of one flow ``target [2, h, w]`` (confidence ``conf [h, w]``)
-        under ``motion`` (:func:`.epipolar_cue.judge`, grouped by :func:`.epipolar_cue.regions` with the residual
-        cue's region settings); None when the pair cannot be judged."""
-        c = self.cfg
-        cand = E.judge(target, conf, intr, motion, min_conf=c.epipolar_min_conf, inlier_px=c.epipolar_ransac_px,
-                       thresh=c.epipolar_thresh, rel=c.epipolar_rel, back=c.epipolar_back,
-                       min_parallax=c.epipolar_min_parallax)
-        return E.regions(cand, min_area=c.dynamic_min_area, grow=c.dynamic_grow, max_fraction=c.max_dynamic_fraction)
-
-    @staticmethod
-    def _keep_cue(kf, m: Optional[torch.Tensor]) -> None:
-        """OR a cue mask ``m`` bool ``[h, w]`` into keyframe ``kf``'s lifelong ``cue`` and its ``dyn`` (nothing for no
-        keyframe, no mask or an empty one)."""
-        if kf is None or m is None or not bool(m.any()):
-            return
-        kf.cue = m if kf.cue is None else (kf.cue | m)
-        kf.dyn = m.float() if kf.dyn is None else torch.maximum(kf.dyn, m.float())
-
-    def _cue_on(self, sid: int) -> bool:
-        """Whether keyframe ``sid`` gets the epipolar cue (the one gate of every cue call: the keyframe's, its edges',
-        tracking's): with ``dynamic_masking`` and ``epipolar_cue``, always without a segmenter; with one (its
-        segments at the BA resolution) only with ``epipolar_with_segmenter``."""
-        c = self.cfg
-        kf = self._kfs.get(sid)
-        return (c.dynamic_masking and c.epipolar_cue and kf is not None
-                and (c.epipolar_with_segmenter or kf.seg_ba is None))
-
-    def _keyframe_cue(self, pend: dict, sid: int, frame) -> None:
-        """The epipolar cue of a new keyframe ``sid`` from its tracked flow (``pend``: the frontend's pending track:
-        ``fwd`` = (target, weight) out of the reference ``last_sid``, and ``cue`` when tracking judged it already)."""
-        if not self._cue_on(sid):
-            return
-        cue = pend["cue"] if "cue" in pend else self._cue_mask(*pend["fwd"], frame)
-        self._epipolar_cue(pend["last_sid"], sid, *cue, pend["fwd"][0])
-
-    def _epipolar_cue(self, ref_sid: int, sid: int, mask: Optional[torch.Tensor], fit: Optional[tuple],
-                      target) -> None:
-        """Keep the epipolar cue of the tracked flow ``target [2, h, w]`` from the tracking reference ``ref_sid`` to
-        the new keyframe ``sid`` (:meth:`_cue_mask`: ``mask`` in ``ref_sid``'s pixels, ``fit`` = (motion, BA
-        intrinsics)) on both keyframes: ``sid`` judges its own pixels, the flow of its edge back to ``ref_sid`` under
-        the same (inverted) motion, or without that edge (the reference was a provisional keyframe, removed as
-        redundant just before ``sid`` came: about every other keyframe) takes ``mask`` moved along the flow.  Each
-        ORs its mask into its ``cue`` (kept for its life, OR-ed into every judgement of its edges) and its ``dyn``
-        (first observations and tracking).  The map is not consulted: the mask is right when a vehicle first
-        appears, before it can drag the estimate."""
-        c = self.cfg
-        back = self._edges.get((sid, ref_sid))
-        if fit is not None and back is not None:
-            m_new = self._judged_regions(back.target, back.conf, fit[1], E.invert(fit[0]))
-        else:
-            m_new = None if mask is None else D.warp_mask(mask.float(), torch.as_tensor(target), c.dynamic_grow) > 0.5
-        for key, m in ((ref_sid, mask), (sid, m_new)):
-            self._keep_cue(self._kfs.get(key), m)
-
-    def _update_dynamic(self, graph, ii, jj, need: list[int], entries: list, target: torch.Tensor) -> None:
-        """Residual of observed targets against the current reprojection -> dynamic masks for edges ``need``."""
+    def _update(self, graph, ii, jj, need: list[int], entries: list[_EdgeMask], target: torch.Tensor) -> None:
+        """Residual of observed targets against the current reprojection -> masks of edges ``need`` (positions in
+        ``ii`` / ``jj`` / ``entries`` / ``target``); their source keyframes vote again."""
         idx = torch.tensor(need, dtype=torch.int64)
-        out = self._dynamic_masks(graph, ii[idx], jj[idx], target[idx.to(target.device)])
+        out = self.masks(graph, ii[idx], jj[idx], target[idx.to(target.device)])
         if out is None:
             return
         dyn, frac, nvalid = out
@@ -224,10 +225,10 @@ class DynamicMasking:
         touched = set()
         for n, e in enumerate(need):
             en = entries[e]
-            if nvalid[n] < 8:
+            if nvalid[n] < MIN_JUDGED:
                 continue  # nothing to judge with: keep the previous mask
             # too much "dynamic": the estimate, not the scene, is off -> no mask on this edge
-            en.dynamic = None if frac[n] > self.cfg.max_dynamic_fraction else dyn_f[n]
+            en.dynamic = None if frac[n] > self.cfg.max_fraction else dyn_f[n]
             touched.add(int(ids[int(ii[e])]))
         for sid in touched:  # the keyframe's own mask follows its edges' newest masks
             masks = [en.dynamic for (a, _), en in self._edges.items() if a == sid and en.dynamic is not None]
@@ -235,26 +236,25 @@ class DynamicMasking:
             if kf is not None and masks:
                 kf.dyn, kf.dyn_judged = D.keyframe_vote(masks), True
 
-    def _keyframe_dynamic(self, sid: int) -> Optional[torch.Tensor]:
-        """The dynamic mask ``[h, w]`` of keyframe ``sid`` for tracking against it: judged from its edges that the
-        BA has used (once, the first time it is asked for after that), else the mask moved from its reference."""
+    def _keyframe_dynamic(self, sid: int, graph) -> Optional[torch.Tensor]:
+        """The mask ``[h, w]`` of keyframe ``sid`` for tracking against it: judged from its edges that the BA has used
+        (once, the first time it is asked for after that), else the mask moved from its reference."""
         kf = self._kfs.get(sid)
-        if kf is None or kf.dyn_judged or not self.cfg.dynamic_masking:
+        if kf is None or kf.dyn_judged:
             return None if kf is None else kf.dyn
-        g = self._graph
-        if g is None or not g.has_id(sid):
+        if graph is None or not graph.has_id(sid):
             return kf.dyn
-        keys = [key for key, en in self._edges.items() if key[0] == sid and en.rounds >= 1 and g.has_id(key[1])]
+        keys = [key for key, en in self._edges.items() if key[0] == sid and en.rounds >= 1 and graph.has_id(key[1])]
         if not keys:
             return kf.dyn
-        ii = torch.tensor([g.index_of(a) for a, _ in keys], dtype=torch.int64)
-        jj = torch.tensor([g.index_of(b) for _, b in keys], dtype=torch.int64)
-        out = self._dynamic_masks(g, ii, jj, torch.stack([self._edges[key].target for key in keys]))
+        ii = torch.tensor([graph.index_of(a) for a, _ in keys], dtype=torch.int64)
+        jj = torch.tensor([graph.index_of(b) for _, b in keys], dtype=torch.int64)
+        out = self.masks(graph, ii, jj, torch.stack([self._edges[key].target for key in keys]))
         if out is None:
             return kf.dyn
         dyn, frac, nvalid = out
         masks = [dyn[n].float().cpu() for n in range(len(keys))
-                 if nvalid[n] >= 8 and frac[n] <= self.cfg.max_dynamic_fraction]
+                 if nvalid[n] >= MIN_JUDGED and frac[n] <= self.cfg.max_fraction]
         kf.dyn_judged = True
         if masks:
             kf.dyn = D.keyframe_vote(masks)

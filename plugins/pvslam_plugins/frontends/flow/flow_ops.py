@@ -162,8 +162,8 @@ def photometric_confidence(g0: np.ndarray, g1: np.ndarray, flow: np.ndarray, sig
     ``[H, W]``.
 
     Forward-backward consistency misses flows that are wrong the same way in both directions (weak or
-    repetitive texture, large perspective shear such as the near road); on the synthetic driving loop the
-    photometric residual separates those (median 4.9 gray levels) from correct flows (median 1.2).
+    repetitive texture, large perspective shear such as the near road); their photometric residual is several
+    times that of correct flows.
     """
     h, w = g0.shape
     _, _, xy = _grids(h, w)
@@ -189,10 +189,9 @@ def fit_exposure(g0: np.ndarray, g1: np.ndarray, max_gain: float = 4.0, min_gain
     least squares on the samples within 3 MADs of the offset model, then once more within 3 MADs of that fit
     (occlusions and wrong matches are the outliers), kept only when it brings the residuals' MAD below
     ``min_gain_gain`` x the offset model's and the samples' correlation is at least ``min_corr``.  Why: an
-    auto-exposure step scales the brightness (with the offset alone, every textured pixel of a pair across a 1.5x
-    step looked like a wrong match: the 140-frame drive of tests/test_regressions.py went 0.15 -> 0.62 % ATE); why
-    the gates: where the exposure is constant a fitted gain only follows the scene's content or a wrong flow, and
-    without them the synthetic tune cells lost accuracy (moving_vehicles/7 0.96 -> 20.5 %)."""
+    auto-exposure step scales the brightness, and with the offset alone every textured pixel of a pair across the
+    step looks like a wrong match; why the gates: where the exposure is constant a fitted gain only follows the
+    scene's content or a wrong flow (docs/decisions.md: fit_exposure)."""
     x, y = g0.reshape(-1).astype(np.float64), g1.reshape(-1).astype(np.float64)
     if x.size == 0:
         return 1.0, 0.0
@@ -213,8 +212,8 @@ def fit_exposure(g0: np.ndarray, g1: np.ndarray, max_gain: float = 4.0, min_gain
     mad1 = float(np.median(np.abs(y - (gain * x + off))))
     if not mad1 < min_gain_gain * mad0:
         return 1.0, offset
-    # a wrong flow pairs unrelated pixels, and a least-squares gain fitted to them shrinks towards 0 (0.36-0.44 with
-    # correlation 0.48-0.49 on the synthetic drive); matched pixels under an exposure change follow a line (0.72+)
+    # a wrong flow pairs unrelated pixels, and a least-squares gain fitted to them shrinks towards 0 with a weak
+    # correlation; matched pixels under an exposure change follow a line
     corr = float(np.corrcoef(x, y)[0, 1])
     return (gain, off) if corr >= min_corr else (1.0, offset)
 

@@ -1,147 +1,140 @@
-"""The classical ``flow`` frontend: OpenCV DIS optical flow with forward-backward and photometric confidence.
+"""The classical ``flow`` frontend: OpenCV DIS optical flow with forward-backward, photometric and texture confidence.
 
-Per keyframe it keeps only a grayscale image at the flow resolution (19 KB at 320x240 with the default
-``flow_scale`` 0.5, 77 KB at full resolution) and its panoptic ids at the BA resolution (~10 KB).  Per edge it
-caches the BA-resolution target and confidence (computed once: a classical method answers once) plus the latest
-dynamic mask, keyed by the graph's **stable keyframe ids**; the graph tells when a keyframe goes or an edge retires
-(``on_keyframe_removed`` / ``on_edges_retired``) and the cached state goes with it, so the cache stays bounded by
-the active edges.
+Per keyframe it keeps only a grayscale image at the flow resolution (19 KB at 320x240 with the default ``dis.scale``
+0.5) and, for the dynamic masks, its panoptic ids at the BA resolution (~10 KB).  Per edge it caches the
+BA-resolution target and confidence (computed once: a classical method answers once), keyed by the graph's **stable
+keyframe ids**; the graph tells when a keyframe goes or an edge retires (``on_keyframe_removed`` /
+``on_edges_retired``) and the cached state goes with it, so the cache stays bounded by the active edges.
 
-Confidence of a pixel = ``exp(-fb^2 / 2 sigma^2)`` (forward-backward consistency, 0 where ``x + f(x)`` leaves
-the image) x ``exp(-r^2 / 2 sigma_p^2)`` (local photometric residual) x ``lam / (lam + tau)`` (texture of the source
-image, Shi-Tomasi: DIS's flow on weak texture such as the near road at speed is consistently wrong in both directions
+Confidence (:mod:`.pair_flow`): forward-backward consistency x local photometric residual x texture of the source
+image (Shi-Tomasi: DIS's flow on weak texture such as the near road at speed is consistently wrong in both directions
 and photometrically plausible, so only the texture itself tells), pooled over each BA block.
 
-Long-baseline edges: when the graph's current estimate predicts a mean flow above ``init_min_flow``, DIS starts
-from that prediction (older keyframe reprojected into the newer; the reverse by inverting that field), which
-turns 0.8 -> 0.28 BA px median error on 4-frame gaps of the synthetic driving loop.  Far edges (index gap >=
-``init_compare_min_gap``: proximity/loop) also run from zero and keep the more consistent result.
+Long-baseline edges: when the graph's current estimate predicts a mean flow above ``INIT_MIN_FLOW``, DIS starts from
+that prediction (older keyframe reprojected into the newer; the reverse by inverting that field), which makes large
+displacements work; far edges (index gap >= ``INIT_COMPARE_MIN_GAP``: proximity and loop edges, where the estimate
+may be off) also run from zero and keep the more consistent result.
 
-Motion filter (``track``): DIS from the last keyframe to the frame (``track_*`` settings, by default the edge
-settings, whose result is then reused for the new keyframe's edges to the last keyframe), started from the previous
-frame's flows at constant velocity once the motion is large enough (``track_velocity_init``); keyframe when the mean
-flow exceeds ``keyframe_thresh`` BA px or fewer than ``keyframe_min_coverage`` of the pixels are still tracked;
-tracking failure on a blank frame (intensity std) or when more than ``max_fb_fail_fraction`` of the pixels fail
-the forward-backward check (sudden jump).  A repeated frame is not a failure (zero flow, no keyframe).  When more
-than ``track_recover_fail_fraction`` of the pixels fail, DIS runs again from the homography of LK-tracked corners
-(:mod:`.recover`: a fast turn moves the image beyond DIS's coarsest level) and the more consistent flow is kept;
-on the synthetic head camera (``handheld_fast``, tune seeds 1-2) this took 8-15 lost frames and 2-3 map
-re-initialisations per sequence to none.  Where DIS starts and the recovery: :mod:`.track_starts`.
+Motion filter (``track``): DIS from the last keyframe to the frame, whose result is reused for the new keyframe's
+edges to the last keyframe; where it starts (the previous frame's motion, a predicted motion) and its recovery after
+a fast turn (the homography of LK-tracked corners): :mod:`.track_starts`.  Keyframe when the mean flow exceeds
+``keyframes.flow_thresh`` BA px or fewer than ``keyframes.min_coverage`` of the pixels are still tracked; tracking
+failure on a blank frame (intensity std) or when more than ``MAX_FB_FAIL_FRACTION`` of the pixels fail the
+forward-backward check (a sudden jump).  A repeated frame is not a failure (zero flow, no keyframe).
 
-With ``road_plane`` (default; :mod:`.road_frontend`, :mod:`.road_plane`) the ground ahead
-of a car camera takes the flow of its homography, found by a direct search, where DIS cannot follow the near road at
-speed (tracking flows and keyframe pairs up to ``road_max_gap`` frames apart), and once the map's road depth and its
-motion agree on a camera height, the road pixels' inverse depth gets a BA prior at that height
-(``road_depth_weight``: the scale of a car camera's map cannot drift). Without a road (indoors) the search finds no
-plane and nothing changes (and after a few misses in a row it is tried only every few frames).
+Road plane (``road.enabled``, default; :mod:`.road_prior`, :mod:`.road_plane`): the ground ahead of a car camera
+takes the flow of its homography, found by a direct search, where DIS cannot follow the near road at speed; once the
+map's road depth and its motion agree on a camera height, the road pixels' inverse depth and the distance between
+consecutive keyframes get BA priors at that height (the scale of a car camera's map cannot drift).  Without a road
+(indoors) the search finds no plane and nothing changes.
 
-Rounds per new keyframe (``rounds``, default 1).  On an edge's first ``observe`` the weight is the
-confidence only; on its next ``dynamic_updates`` calls (after at least one BA round) pixels whose observed target
-disagrees with the reprojection under the current estimate by more than ``dynamic_thresh`` BA px (and 3x the
-edge's median residual) are dynamic, the mask is voted over (thing) segments, and the weight follows PV-SLAM
-eq. 4 with the paper convention (static -> c, dynamic -> ~ c e^-eta; see :mod:`pvslam_core.slam.confidence`).  This
-also rejects outlier flow on static scenes.  With ``epipolar_cue`` (off by default), a keyframe without a
-segmentation also gets the map-independent epipolar cue of its tracked flow and first edges (:mod:`.epipolar_cue`),
-kept for its life.
+Dynamic masking (``dynamic.enabled``; :mod:`.dynamic_masking`): on an edge's first ``observe`` the weight is the
+confidence only; from the next on, pixels whose target disagrees with the reprojection under the current estimate
+are dynamic (grouped into regions, voted over movable segments), and the weight follows PV-SLAM eq. 4 with the paper
+convention (static -> c, dynamic -> ~ c e^-eta; :mod:`pvslam_core.slam.confidence`).  This also rejects outlier flow
+on static scenes.  ``rounds`` observe -> BA rounds per new keyframe (default 1).
 
 Independent DIS calls (a frame's two tracking flows, a new keyframe's edge pairs with their forward-backward checks)
-run on ``flow_threads`` threads (:mod:`.lanes`; OpenCV releases the GIL), with results bit-equal to one thread.
+run on ``dis.threads`` threads (:mod:`.lanes`; OpenCV releases the GIL), with results bit-equal to one thread.
 
 ``initial_depth(graph, id)``: a constant map equal to the median inverse depth of the newest keyframe, as DROID-SLAM
-2025 does; a median is robust to the few near/far outliers that would pull a mean.  (The mapper prefers the
-previous keyframe's depth moved into the new pose once the map is initialised.)
+does; a median is robust to the few near/far outliers that would pull a mean.
 """
 from __future__ import annotations
 
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
 
-from pvslam_core.slam.confidence import observed_flow_weight
+from pvslam_core.geometry.projective import reproject as _reproject
 from pvslam_core.interfaces import Frontend
-from pvslam_core.types import EdgeObservations, Frame, PanopticSegmentation, TrackResult
 from pvslam_core.slam.graph import median_disp_map
+from pvslam_core.types import DepthPrior, DistancePrior, EdgeObservations, Frame, PanopticSegmentation, TrackResult
 
-from . import dynamic as D
-from .dynamic_masking import DynamicMasking
-from .recover import MotionPredictor
-from .track_starts import TrackStarts
-from .road_frontend import RoadFlows
 from . import flow_ops as F
-from .lanes import DisLanes
 from .config import FlowFrontendConfig
+from .dynamic_masking import DynamicMasking, segment_info
+from .pair_flow import FlowPairs, Plane
+from .road_prior import RoadMotion, RoadPrior
+from .track_starts import TrackStarts
 
 LOG = logging.getLogger("pvslam.frontend.flow")
+
+MIN_TEXTURE_STD = 2.0  # tracking failure when a frame's gray intensity std is below this (a black or blank frame)
+MAX_FB_FAIL_FRACTION = 0.8  # tracking failure (a sudden jump) when more pixels fail the forward-backward check
+# reuse the flow that tracked a frame becoming a keyframe for its edges to the previous keyframe (one flow pair less)
+REUSE_TRACK_FLOW = True
+# start the DIS of an edge from the flow the graph's estimate predicts (reprojection) when its mean exceeds
+# INIT_MIN_FLOW BA px; edges INIT_COMPARE_MIN_GAP keyframes apart or more also run from zero and keep the result with
+# the higher mean confidence (docs/decisions.md: USE_REPROJECTION_INIT)
+USE_REPROJECTION_INIT = True
+INIT_MIN_FLOW = 1.0
+INIT_COMPARE_MIN_GAP = 4
 
 
 @dataclass
 class _Keyframe:
     gray: np.ndarray  # uint8 [Hf, Wf] at the flow resolution
     frame_index: int
-    seg_ba: Optional[torch.Tensor] = None  # int64 [h, w] panoptic ids at the BA resolution (block centres)
-    thing_ids: Optional[torch.Tensor] = None  # int64 [K] ids of thing segments
-    dyn: Optional[torch.Tensor] = None  # float32 [h, w] geometric dynamic mask (dynamic.py), 1 = moving
-    dyn_judged: bool = False  # dyn comes from this keyframe's own edges (else: moved from its reference's)
-    dyn_prior: Optional[torch.Tensor] = None  # bool [h, w] the mask moved from its reference (dynamic_persist)
-    cue: Optional[torch.Tensor] = None  # bool [h, w] the epipolar cue's mask (epipolar_cue, dynamic_masking.py)
 
 
 @dataclass
 class _Edge:
     target: torch.Tensor  # float32 [2, h, w] (u, v) in the target keyframe, BA px
-    conf: torch.Tensor  # float32 [h, w] FB confidence pooled to the BA resolution
-    dynamic: Optional[torch.Tensor] = None  # float32 [h, w] latest dynamic mask
-    rounds: int = 0  # how many times observe() returned this edge
+    conf: torch.Tensor  # float32 [h, w] confidence pooled to the BA resolution
     requested: bool = False  # asked for by observe() (else only computed alongside its reverse)
 
 
-def _default_reproject():
-    from pvslam_core.geometry.projective import reproject  # written by the geometry owner
+@dataclass
+class _Tracked:
+    """The last tracked frame, for :meth:`FlowFrontend.add_keyframe` when it becomes a keyframe."""
 
-    return reproject
+    frame_index: int
+    gray: np.ndarray  # uint8 [Hf, Wf]
+    last_sid: Optional[int] = None  # the keyframe it was tracked against (None: the first keyframe)
+    fwd: Optional[tuple[np.ndarray, np.ndarray]] = None  # BA target [2, h, w] and confidence [h, w], last -> frame
+    flows: Optional[tuple[np.ndarray, np.ndarray]] = None  # the DIS flows (fwd, bwd) [Hf, Wf, 2]
+    ba_shape: Optional[tuple[int, int]] = None
+    road: Optional[RoadMotion] = None  # the road plane's motion (RoadPrior.track)
+    plane: Plane = None  # the road plane's pixels in the frame (the backward direction)
 
 
-class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
-    """DIS optical-flow frontend (see the module docstring)."""
+class FlowFrontend(Frontend):
+    """DIS optical-flow frontend (see the module docstring): the keyframes' images and the edge cache, composed of
+    :class:`.pair_flow.FlowPairs` (DIS, confidences), :class:`.track_starts.TrackStarts`,
+    :class:`.road_prior.RoadPrior` (None when ``road.enabled`` is off) and :class:`.dynamic_masking.DynamicMasking`
+    (None when ``dynamic.enabled`` is off)."""
 
-    def __init__(self, config: Optional[FlowFrontendConfig] = None, device: Any = "cpu", reproject_fn=None,
-                 ba_downsample: int = 8):
+    def __init__(self, config: Optional[FlowFrontendConfig] = None, device: Any = "cpu",
+                 reproject_fn: Optional[Callable] = None, ba_downsample: int = 8):
         self.cfg = config or FlowFrontendConfig()
         self.device = torch.device(device)
         self.ba_downsample = int(ba_downsample)
         self.rounds = self.cfg.rounds
-        tp = self.cfg.track_preset or self.cfg.preset
-        tfs = self.cfg.track_finest_scale if self.cfg.track_finest_scale is not None else self.cfg.finest_scale
-        settings = {"edge": (self.cfg.preset, self.cfg.finest_scale), "track": (tp, tfs)}
-        # Calls with an initial flow get their own DIS object: after such a call, OpenCV's DIS keeps using that
-        # initial flow in later calls without one (verified with OpenCV 4.x/5.0), so the zero-init flows (tracking,
-        # close edges) depended on whichever edge was initialised last.  lanes.py keeps one object per kind of call
-        # and thread, and runs independent calls on `flow_threads` threads.
-        self._lanes = DisLanes(lambda kind: F.create_dis(settings[kind.split("_")[0]][0],
-                                                         finest_scale=settings[kind.split("_")[0]][1]),
-                               threads=self.cfg.flow_threads)
-        self._last_track: Optional[tuple] = None  # (reference frame index, frame index, fwd, bwd) of the last track
-        self._predictor = MotionPredictor()  # per-frame homographies for tracking recovery (recover.py)
-        # the predictor's last observation, running on a flow worker: its RANSAC homography (~1 ms a frame) is needed
-        # only when a later frame fails to track, so the pipeline thread does not wait for it (_predictor_ready)
-        self._observing = None
-        self._reproject_fn = reproject_fn
+        self._reproject = reproject_fn or _reproject
+        self.pairs = FlowPairs(self.cfg.dis)
+        self.starts = TrackStarts(self.pairs, self.ba_downsample)
+        self.road = RoadPrior(self.cfg.road, self.pairs) if self.cfg.road.enabled else None
+        self.masking = DynamicMasking(self.cfg.dynamic, self._reproject) if self.cfg.dynamic.enabled else None
         self._kfs: dict[int, _Keyframe] = {}  # stable keyframe id -> keyframe (insertion order = time order)
         self._edges: dict[tuple[int, int], _Edge] = {}  # (source id, target id) -> cached edge
-        self._pending: Optional[dict] = None  # the last tracked frame's gray and flow to the last keyframe
-        self._cue_t: Optional[torch.Tensor] = None  # the epipolar cue's last translation direction (its sign prior)
-        self._graph = None  # last graph seen in observe (for initial_depth)
-        self._texture = F.TextureTerm(self.cfg.texture_tau, self.cfg.texture_quantile)  # per source image
-        self._road_setup()  # the road plane's flow (road_frontend.py, opt-in)
-        self.stats = {"track_calls": 0, "track_s": 0.0, "dis_calls": 0, "dis_s": 0.0, "edges_computed": 0,
-                      "reprojection_init_used": 0, "track_recoveries": 0, "track_recovered": 0,
-                      "track_predicted_starts": 0, "track_predicted_used": 0}
+        self._pending: Optional[_Tracked] = None
+        self._graph = None  # the last graph seen in observe (BA resolution, tracking weights, predicted rotation)
+        self._counts = {"track_calls": 0, "track_s": 0.0, "edges_computed": 0, "reprojection_init_used": 0}
 
     # ----------------------------------------------------------------------------------------- helpers --
+    @property
+    def stats(self) -> dict:
+        """Counts and seconds: tracking, DIS calls, edges computed, reprojection inits, tracking recoveries."""
+        c = self._counts
+        return {"track_calls": c["track_calls"], "track_s": c["track_s"], **self.pairs.stats,
+                "edges_computed": c["edges_computed"], "reprojection_init_used": c["reprojection_init_used"],
+                **self.starts.stats}
+
     @property
     def num_keyframes(self) -> int:
         return len(self._kfs)
@@ -154,24 +147,14 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
         return sorted(self._edges)
 
     def memory_bytes(self) -> int:
-        """Approximate bytes held (keyframe images + segment maps + cached edges)."""
-        n = 0
-        for kf in self._kfs.values():
-            n += kf.gray.nbytes
-            if kf.seg_ba is not None:
-                n += kf.seg_ba.numel() * kf.seg_ba.element_size()
-        n += self._texture.nbytes()
-        for e in self._edges.values():
-            n += (e.target.numel() + e.conf.numel() + (e.dynamic.numel() if e.dynamic is not None else 0)) * 4
-        return n
+        """Approximate bytes held (keyframe images + segment maps + cached edges and masks)."""
+        n = sum(kf.gray.nbytes for kf in self._kfs.values()) + self.pairs.nbytes()
+        n += sum((e.target.numel() + e.conf.numel()) * 4 for e in self._edges.values())
+        return n + (self.masking.nbytes() if self.masking is not None else 0)
 
-    def _reproject(self):
-        if self._reproject_fn is None:
-            self._reproject_fn = _default_reproject()
-        return self._reproject_fn
-
-    def _gray(self, frame: Frame) -> np.ndarray:
-        return F.to_gray(frame.image, self.cfg.flow_scale)
+    def _seg_info(self, seg: Optional[PanopticSegmentation], h: int, w: int):
+        """:func:`.dynamic_masking.segment_info` (kept for callers of the method)."""
+        return segment_info(seg, h, w)
 
     def _ba_shape_for(self, frame: Frame) -> tuple[int, int]:
         if self._graph is not None:  # the graph's BA resolution wins once one has been seen
@@ -180,52 +163,15 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
         s = self.ba_downsample
         return max(1, frame.height // s), max(1, frame.width // s)
 
-    def _sigma(self) -> float:
-        return self.cfg.fb_sigma * self.cfg.flow_scale
+    def _put_edge(self, key: tuple[int, int], target: np.ndarray, conf: np.ndarray) -> None:
+        """Cache edge ``key`` (a new one, or afresh); the masking follows the cache."""
+        e = self._edges[key] = _Edge(torch.from_numpy(target), torch.from_numpy(conf))
+        if self.masking is not None:
+            self.masking.edge_added(key, e.target)
 
-    def _flows(self, calls: list) -> list[np.ndarray]:
-        """DIS flows of independent ``(kind, i0, i1, init)`` calls (lanes.py: on ``flow_threads`` threads)."""
-        flows, seconds = self._lanes.run(calls)
-        self.stats["dis_calls"] += len(calls)
-        self.stats["dis_s"] += seconds
-        return flows
-
-    def _flow(self, kind: str, i0: np.ndarray, i1: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
-        return self._flows([(kind, i0, i1, init)])[0]
-
-    def _pair_calls(self, g0: np.ndarray, g1: np.ndarray, init_f: Optional[np.ndarray] = None,
-                    init_b: Optional[np.ndarray] = None, kind: str = "edge") -> list:
-        """The forward and backward DIS calls between two grays (with initial flows: ``kind + "_init"``)."""
-        k = kind + ("_init" if init_f is not None else "")
-        return [(k, g0, g1, init_f), (k, g1, g0, init_b)]
-
-
-    def _direction(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, h: int, w: int,
-                   plane: Optional[tuple] = None):
-        """BA target, confidence and FB error of the flow ``g0 -> g1`` (``fwd``), checked against ``bwd``.
-        ``plane = (mask, weight)``: pixels whose flow is the road plane's and their verification weight
-        (``road_verify``, :meth:`_road_flows`), which stands in for the texture term there: that term is for DIS's
-        mistakes on weak texture, and the road's texture is weak."""
-        conf, fb = F.fb_consistency(fwd, bwd, self._sigma())
-        if self.cfg.photo_sigma > 0:
-            conf = conf * F.photometric_confidence(g0, g1, fwd, self.cfg.photo_sigma)
-        if self.cfg.texture_tau > 0:
-            tex = self._texture(g0)
-            conf = conf * (tex if plane is None else np.where(plane[0], plane[1], tex))
-        elif plane is not None:
-            conf = conf * np.where(plane[0], plane[1], np.float32(1.0))
-        t, wgt = F.pool_to_ba(fwd, conf, h, w, self.cfg.weighted_pooling)
-        return t, wgt, fb
-
-    def _seg_info(self, seg: Optional[PanopticSegmentation], h: int, w: int):
-        # a segmentation that found nothing (no segments: all void) is no segmentation: the keyframe is treated as
-        # with segmenter "none"
-        if seg is None or seg.ids is None or not seg.segments:
-            return None, None
-        ids = F.downsample_ids(seg.ids.to(torch.int64).cpu(), h, w)
-        # only segments of categories that can move vote (Segment.movable: a segmenter's movable-class list)
-        things = torch.tensor([s.id for s in seg.segments if s.isthing and s.movable], dtype=torch.int64)
-        return ids, things
+    def _drop_edge(self, key: tuple[int, int]) -> None:
+        if self._edges.pop(key, None) is not None and self.masking is not None:
+            self.masking.edge_dropped(key)
 
     # ------------------------------------------------------------------------------------------- track --
     def track(self, frame: Frame, seg: Optional[PanopticSegmentation]) -> TrackResult:
@@ -233,21 +179,20 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
         try:
             return self._track(frame)
         finally:
-            self.stats["track_calls"] += 1
-            self.stats["track_s"] += time.perf_counter() - t0
+            self._counts["track_calls"] += 1
+            self._counts["track_s"] += time.perf_counter() - t0
 
     def _track(self, frame: Frame) -> TrackResult:
         self._pending = None
-        last_track, self._last_track = self._last_track, None  # set again below when this frame tracks
-        gray = self._gray(frame)
+        self.starts.new_frame()
+        gray = self.pairs.gray(frame.image)
         std = float(gray.std())
-        if not np.isfinite(std) or std < self.cfg.min_texture_std:
+        if not np.isfinite(std) or std < MIN_TEXTURE_STD:
             return TrackResult(is_keyframe=False, mean_flow=0.0, failed=True,
-                               message=f"no texture: intensity std {std:.2f} < min_texture_std "
-                                       f"{self.cfg.min_texture_std}")
+                               message=f"no texture: intensity std {std:.2f} < {MIN_TEXTURE_STD}")
         last_sid = self._last_id()
         if last_sid is None:
-            self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": None}
+            self._pending = _Tracked(frame.index, gray)
             return TrackResult(is_keyframe=True, mean_flow=0.0, message="first keyframe")
         last = self._kfs[last_sid]
         if last.gray.shape != gray.shape:
@@ -256,48 +201,32 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
         h, w = self._ba_shape_for(frame)
         # both flows (the forward-backward check needs them), but the backward target and confidence only if this
         # frame becomes a keyframe (add_keyframe): most frames do not
-        init_f, init_b = self._velocity_init(last_track, last.frame_index, frame.index)
-        fwd, bwd = self._flows(self._pair_calls(last.gray, gray, init_f, init_b, kind="track"))
-        if init_f is None and self.cfg.track_predict_init:  # no velocity init (e.g. the first frame after a keyframe)
-            fwd, bwd = self._predicted_start(last.gray, gray, last.frame_index, frame.index, fwd, bwd)
-        fwd, bwd, road, plane = self._road_track(last_sid, last.gray, last.frame_index, gray, frame, fwd, bwd)
-        tf, wf, fb_f = self._direction(last.gray, gray, fwd, bwd, h, w, plane[0])
-        fail_px = self.cfg.fb_fail_px * self.cfg.flow_scale
-        fail_frac = self._fail_fraction(fb_f)
-        if fail_frac > self.cfg.track_recover_fail_fraction:  # a fast turn (track_starts.py)
-            found = self._recover(last.gray, gray, last.frame_index, frame.index, h, w, fail_frac)
-            if found is not None:
-                fwd, bwd, tf, wf, fb_f, fail_frac = found
-                plane = (None, None)
+        fwd, bwd = self.starts.start(last.gray, gray, last.frame_index, frame.index)
+        road, plane = None, (None, None)
+        if self.road is not None:
+            fwd, bwd, road, plane = self.road.track(last_sid, last.gray, last.frame_index, gray, frame, fwd, bwd,
+                                                    self._graph)
+        tf, wf, fb_f = self.pairs.direction(last.gray, gray, fwd, bwd, h, w, plane[0])
+        fail_frac = self.pairs.fail_fraction(fb_f)
+        found = self.starts.recover(last.gray, gray, last.frame_index, frame.index, h, w, fail_frac)  # a fast turn
+        if found is not None:
+            fwd, bwd, tf, wf, fb_f, fail_frac = found
+            plane = (None, None)
         xs, ys = F.pixel_grid_np(h, w)
         mean_flow = float(np.sqrt((tf[0] - xs) ** 2 + (tf[1] - ys) ** 2).mean())
         target = torch.from_numpy(tf)
         weight = torch.from_numpy(np.stack([wf, wf], 0))
-        # per-frame epipolar cue: with the keyframe cue only, and on the keyframes it runs on (_cue_on)
-        cue = self._cue_mask(tf, wf, frame) if self.cfg.epipolar_track and self._cue_on(last_sid) else None
-        if self.cfg.dynamic_masking and self.cfg.dynamic_track:
-            # the reference keyframe's moving regions (dynamic.py) through eq. 4, as on its edges: the mapper's
-            # motion-only BA places this frame from these weights
-            dyn = self._keyframe_dynamic(last_sid)
-            if cue is not None and cue[0] is not None:  # and this flow's own epipolar outliers (dynamic_masking.py)
-                dyn = cue[0].float() if dyn is None else torch.maximum(dyn, cue[0].float())
-            if dyn is not None and tuple(dyn.shape) == (h, w) and bool((dyn > 0).any()):
-                m = dyn > 0
-                weight[:, m] = observed_flow_weight(weight[:, m], dyn[m].expand(2, -1),
-                                                    offset=self.cfg.panoptic_offset, convention=self.cfg.convention)
-        if fail_frac > self.cfg.max_fb_fail_fraction:
+        if self.masking is not None:  # the reference keyframe's moving regions through eq. 4, as on its edges
+            self.masking.track_weights(last_sid, weight, self._graph)
+        if fail_frac > MAX_FB_FAIL_FRACTION:
             return TrackResult(is_keyframe=False, mean_flow=mean_flow, target=target, weight=weight, failed=True,
                                message=f"flow inconsistent: {fail_frac:.0%} of pixels fail the forward-backward "
-                                       f"check (> {self.cfg.max_fb_fail_fraction:.0%}); sudden jump or cut?")
-        self._last_track = (last.frame_index, frame.index, fwd, bwd)
-        if self.cfg.track_predict_recover or self.cfg.track_predict_init:
-            self._observing = self._lanes.submit(self._predictor_ready().observe, last.frame_index, frame.index, fwd,
-                                                 fb_f <= fail_px)
+                                       f"check (> {MAX_FB_FAIL_FRACTION:.0%}); sudden jump or cut?")
+        self.starts.tracked(last.frame_index, frame.index, fwd, bwd, fb_f <= self.pairs.fail_px)
         coverage = 1.0 - fail_frac
-        is_kf = mean_flow > self.cfg.keyframe_thresh or coverage < self.cfg.keyframe_min_coverage
-        self._pending = {"frame_index": frame.index, "gray": gray, "last_sid": last_sid,
-                         "fwd": (tf, wf), "flows": (fwd, bwd), "ba_shape": (h, w), "road": road, "plane": plane[1],
-                         **({} if cue is None else {"cue": cue})}
+        kf = self.cfg.keyframes
+        is_kf = mean_flow > kf.flow_thresh or coverage < kf.min_coverage
+        self._pending = _Tracked(frame.index, gray, last_sid, (tf, wf), (fwd, bwd), (h, w), road, plane[1])
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")
 
@@ -305,54 +234,60 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
     def add_keyframe(self, kf_id: int, frame: Frame, seg: Optional[PanopticSegmentation]) -> None:
         if kf_id in self._kfs:
             raise ValueError(f"add_keyframe: keyframe id {kf_id} was added before")
-        pend = self._pending if (self._pending and self._pending["frame_index"] == frame.index) else None
-        gray = pend["gray"] if pend is not None else self._gray(frame)
+        pend = self._pending if (self._pending is not None and self._pending.frame_index == frame.index) else None
+        # a frame that was not tracked just before (the first keyframe, a keyframe forced by the mapper) has no
+        # reference keyframe, tracked flow or road motion
+        p = pend if pend is not None else _Tracked(frame.index, self.pairs.gray(frame.image))
         h, w = self._ba_shape_for(frame)
-        seg_ba, things = self._seg_info(seg, h, w)
         sid = int(kf_id)
-        if (pend is not None and self.cfg.reuse_track_flow and pend.get("last_sid") is not None
-                and pend["last_sid"] == self._last_id()):
-            a = pend["last_sid"]
-            (tf, wf), (fwd, bwd) = pend["fwd"], pend["flows"]
-            tb, wb, _ = self._direction(gray, self._kfs[a].gray, bwd, fwd, *pend["ba_shape"], pend.get("plane"))
-            self._edges[(a, sid)] = _Edge(torch.from_numpy(tf), torch.from_numpy(wf))
-            self._edges[(sid, a)] = _Edge(torch.from_numpy(tb), torch.from_numpy(wb))
-        self._kfs[sid] = _Keyframe(gray=gray, frame_index=frame.index, seg_ba=seg_ba, thing_ids=things)
-        self._road_keyframe(sid, pend)
-        if pend is not None and pend.get("last_sid") in self._kfs and self.cfg.dynamic_masking:
-            ref = self._kfs[pend["last_sid"]].dyn  # its moving regions, moved along the tracked flow
-            if ref is not None and tuple(ref.shape) == tuple(pend["fwd"][0].shape[-2:]) and bool((ref > 0).any()):
-                self._kfs[sid].dyn = D.warp_mask(ref, torch.from_numpy(pend["fwd"][0]), self.cfg.dynamic_grow)
-                if self.cfg.dynamic_persist:
-                    self._kfs[sid].dyn_prior = (self._kfs[sid].dyn > 0).cpu()
-        if pend is not None and "fwd" in pend:  # the map-independent cue of the tracked flow (dynamic_masking.py)
-            self._keyframe_cue(pend, sid, frame)
+        if p.last_sid is not None and REUSE_TRACK_FLOW and p.last_sid == self._last_id():
+            a = p.last_sid
+            (tf, wf), (fwd, bwd) = p.fwd, p.flows
+            tb, wb, _ = self.pairs.direction(p.gray, self._kfs[a].gray, bwd, fwd, *p.ba_shape, p.plane)
+            self._put_edge((a, sid), tf, wf)
+            self._put_edge((sid, a), tb, wb)
+        self._kfs[sid] = _Keyframe(gray=p.gray, frame_index=frame.index)
+        if self.road is not None:
+            self.road.add_keyframe(sid, frame.index, p.last_sid, p.road, p.plane, p.ba_shape)
+        if self.masking is not None:
+            self.masking.add_keyframe(sid, seg, h, w, p.last_sid, None if p.fwd is None else p.fwd[0])
         self._pending = None
 
     # -------------------------------------------------------------------------------- graph listener --
     def on_keyframe_removed(self, kf_id: int) -> None:
         self._kfs.pop(kf_id, None)
-        self._road_removed(kf_id)  # (road_frontend.py)
+        if self.road is not None:
+            self.road.remove_keyframe(kf_id)
+        if self.masking is not None:
+            self.masking.remove_keyframe(kf_id)
         for key in [e for e in self._edges if kf_id in e]:
-            del self._edges[key]
+            self._drop_edge(key)
 
     def on_edges_retired(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
         for a, b in zip(src_ids.tolist(), dst_ids.tolist()):
-            self._edges.pop((a, b), None)
+            self._drop_edge((a, b))
             rev = self._edges.get((b, a))
             if rev is not None and not rev.requested:  # computed only alongside the retired direction
-                del self._edges[(b, a)]
+                self._drop_edge((b, a))
 
     def discard_pairs(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
         # both directions: a pair's flows are computed together, from the poses of the moment (reprojection init,
         # the road plane's rotation); observed before the map existed they would stay cached that way
         for a, b in zip(src_ids.tolist(), dst_ids.tolist()):
-            self._edges.pop((a, b), None)
-            self._edges.pop((b, a), None)
+            self._drop_edge((a, b))
+            self._drop_edge((b, a))
 
     def initial_depth(self, graph, kf_id: int) -> Optional[torch.Tensor]:
         """The newest keyframe's median inverse depth everywhere (:func:`pvslam_core.slam.graph.median_disp_map`)."""
         return median_disp_map(graph)
+
+    def depth_prior(self, graph, idx: torch.Tensor) -> Optional[DepthPrior]:
+        """The road's inverse depth at the camera height (:meth:`.road_prior.RoadPrior.depth_prior`), or None."""
+        return None if self.road is None else self.road.depth_prior(graph, idx)
+
+    def distance_prior(self, graph, idx: torch.Tensor) -> Optional[DistancePrior]:
+        """The road's distance between keyframes (:meth:`.road_prior.RoadPrior.distance_prior`), or None."""
+        return None if self.road is None else self.road.distance_prior(graph, idx)
 
     # --------------------------------------------------------------------------------------- observe --
     def observe(self, graph, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
@@ -369,14 +304,10 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
         unknown = sorted({k for key in keys for k in key if k not in self._kfs})
         if unknown:
             raise KeyError(f"observe: keyframe ids {unknown} were never added to this frontend")
-        missing = []
-        for e, key in enumerate(keys):
-            ent = self._edges.get(key)
-            if ent is None or tuple(ent.target.shape[-2:]) != (h, w):
-                missing.append(e)
+        missing = [e for e, key in enumerate(keys)
+                   if key not in self._edges or tuple(self._edges[key].target.shape[-2:]) != (h, w)]
         if missing:
             self._compute_edges(graph, ids, [ii_l[e] for e in missing], [jj_l[e] for e in missing], h, w)
-            self._edge_cues(graph, [keys[e] for e in missing])  # the new edges' own epipolar cue (dynamic_masking.py)
         entries = [self._edges[key] for key in keys]
         E = len(entries)
         if E == 0:
@@ -384,28 +315,12 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
             return EdgeObservations(ii, jj, z, z.clone(), torch.zeros(0, h, w, dtype=torch.float32, device=dev))
         target = torch.stack([en.target for en in entries]).to(dev)
         conf = torch.stack([en.conf for en in entries]).to(dev)
-        if self.cfg.dynamic_masking:
-            need = [e for e, en in enumerate(entries) if 1 <= en.rounds <= self.cfg.dynamic_updates]
-            if need:
-                self._update_dynamic(graph, ii, jj, need, entries, target)
-            zeros = torch.zeros(h, w)
-            # an edge not judged yet (first observation) takes its source keyframe's mask (dynamic.py)
-            kf_dyn = [self._kfs[k[0]].dyn for k in keys]
-            dyn = torch.stack([en.dynamic if en.dynamic is not None else (kd if kd is not None else zeros)
-                               for en, kd in zip(entries, kf_dyn)]).to(dev)
-            if self.cfg.convention == "paper":
-                # eq. 4 only changes dynamic pixels; static ones keep exactly their FB confidence (no 0.99 cap)
-                weight = conf.clone()
-                m = dyn > 0
-                if bool(m.any()):
-                    weight[m] = observed_flow_weight(conf[m], dyn[m], offset=self.cfg.panoptic_offset, convention="paper")
-            else:
-                weight = observed_flow_weight(conf, dyn, offset=self.cfg.panoptic_offset, convention=self.cfg.convention)
+        if self.masking is not None:
+            dyn, weight = self.masking.observe(graph, ii, jj, keys, target, conf)
         else:
             dyn = torch.zeros(E, h, w, dtype=torch.float32, device=dev)
             weight = conf
         for en in entries:
-            en.rounds += 1
             en.requested = True
         weight2 = weight[:, None].expand(E, 2, h, w).contiguous()
         return EdgeObservations(ii=ii, jj=jj, target=target.float(), weight=weight2.float(), dynamic=dyn.float())
@@ -417,10 +332,12 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
             pairs.setdefault((min(i, j), max(i, j)), None)
         plist = list(pairs)
         inits: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-        if self.cfg.use_reprojection_init and plist:
+        if USE_REPROJECTION_INIT and plist:
             inits = self._reprojection_inits(graph, plist, h, w)
-        # one job per pair and initialisation (independent: on flow_threads threads, lanes.py), then the choices
-        rots, priors = self._road_pairs(graph, ids, plist)  # the road plane's inputs (road_frontend.py), or Nones
+        # the road plane's inputs per pair (road_prior.py), or Nones
+        none = [None] * len(plist)
+        rots, priors = self.road.pair_inputs(graph, ids, plist) if self.road is not None else (none, none)
+        # one job per pair and initialisation (independent: on dis.threads threads, lanes.py), then the choices:
         # (a, b, initialised), (gray a, gray b, (init_f, init_b) or None, rotation a -> b, prior plane motion)
         keys, jobs = [], []
         for p, (a, b) in enumerate(plist):
@@ -429,15 +346,13 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
             if init is not None:
                 keys.append((a, b, True))
                 jobs.append((ga, gb, init, rots[p], priors[p]))
-            if init is None or b - a >= self.cfg.init_compare_min_gap:
+            if init is None or b - a >= INIT_COMPARE_MIN_GAP:
                 keys.append((a, b, False))
                 jobs.append((ga, gb, None, rots[p], priors[p]))
-        results = self._lanes.map(lambda job: self._pair_job(*job, h, w), jobs)
-        self.stats["dis_calls"] += 2 * len(jobs)
-        self.stats["dis_s"] += sum(r[2] for r in results)
+        results = self.pairs.map(lambda job: self._pair_job(*job, h, w), jobs)
+        self.pairs.count(2 * len(jobs), sum(r[2] for r in results))
         done = {key: r[:2] for key, r in zip(keys, results)}
         for (a, b) in plist:
-            sa, sb = ids[a], ids[b]
             if (a, b, True) in done:
                 fwd, bwd = done[(a, b, True)]
                 use = True
@@ -447,36 +362,35 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
                     if not use:
                         fwd, bwd = fwd0, bwd0
                 if use:
-                    self.stats["reprojection_init_used"] += 1
+                    self._counts["reprojection_init_used"] += 1
             else:
                 fwd, bwd = done[(a, b, False)]
-            self._edges[(sa, sb)] = _Edge(torch.from_numpy(fwd[0]), torch.from_numpy(fwd[1]))
-            self._edges[(sb, sa)] = _Edge(torch.from_numpy(bwd[0]), torch.from_numpy(bwd[1]))
-            self.stats["edges_computed"] += 2
+            self._put_edge((ids[a], ids[b]), fwd[0], fwd[1])
+            self._put_edge((ids[b], ids[a]), bwd[0], bwd[1])
+            self._counts["edges_computed"] += 2
 
     def _pair_job(self, ga: np.ndarray, gb: np.ndarray, init, R: Optional[np.ndarray], prior: Optional[np.ndarray],
                   h: int, w: int):
         """Both flows of a pair (from ``init = (init_f, init_b)`` or zero; with the road plane's where ``R``, the
         rotation a -> b, is given, searched from ``prior``) and both directions' BA targets, confidences and FB
         errors, on the calling thread's DIS objects: ``(fwd, bwd, dis seconds)``."""
-        (f, s0), (b, s1) = (self._lanes.flow(c) for c in self._pair_calls(ga, gb, *(init or (None, None))))
-        f, b, _, plane_f, plane_b = self._road_flows(ga, gb, f, b, R, prior)
-        return self._direction(ga, gb, f, b, h, w, plane_f), self._direction(gb, ga, b, f, h, w, plane_b), s0 + s1
+        p = self.pairs
+        (f, s0), (b, s1) = (p.lane_flow(c) for c in p.pair_calls(ga, gb, *(init or (None, None))))
+        plane_f = plane_b = None
+        if self.road is not None:
+            f, b, _, plane_f, plane_b = self.road.merge(ga, gb, f, b, R, prior)
+        return p.direction(ga, gb, f, b, h, w, plane_f), p.direction(gb, ga, b, f, h, w, plane_b), s0 + s1
 
     def _reprojection_inits(self, graph, plist, h, w):
         """Initial flows (flow resolution, both directions) for pairs ``(a < b)`` whose predicted mean flow is
         large: ``a -> b`` from the graph's reprojection of the older keyframe ``a`` (whose depth has been
         optimised), ``b -> a`` by inverting that field (the newer keyframe's depth may still be a guess)."""
         out = {}
-        try:
-            reproject = self._reproject()
-        except ImportError:  # geometry not available: zero init only
-            return out
         a = torch.tensor([p[0] for p in plist], dtype=torch.int64)
         b = torch.tensor([p[1] for p in plist], dtype=torch.int64)
         dev = graph.disps.device
         try:
-            coords, valid = reproject(graph.poses, graph.disps, graph.intrinsics, a.to(dev), b.to(dev))[:2]
+            coords, valid = self._reproject(graph.poses, graph.disps, graph.intrinsics, a.to(dev), b.to(dev))[:2]
         except Exception as exc:  # never let a bad estimate break flow computation
             LOG.warning("reprojection for DIS initialisation failed (%s); using zero init", exc)
             return out
@@ -488,7 +402,7 @@ class FlowFrontend(TrackStarts, DynamicMasking, RoadFlows, Frontend):
             if ok_f.mean() < 0.3:
                 continue
             mag = np.sqrt((coords[p, ..., 0] - xs) ** 2 + (coords[p, ..., 1] - ys) ** 2)[ok_f]
-            if float(mag.mean()) <= self.cfg.init_min_flow:
+            if float(mag.mean()) <= INIT_MIN_FLOW:
                 continue
             back, ok_b = F.invert_coords(coords[p], ok_f)
             g = self._kfs[int(graph.ids[i])].gray

@@ -1,15 +1,14 @@
-"""Independent DIS calls (and their forward-backward checks) on two threads (``flow_threads``).
+"""Independent DIS calls (and their forward-backward checks) on two threads (``dis.threads``).
 
 A new keyframe's edge flows (forward and backward of 2-4 keyframe pairs, some twice: from the reprojection and from
 zero) and a frame's two tracking flows do not depend on each other, and OpenCV releases the GIL inside
-``DISOpticalFlow.calc``, so on a machine with two cores half of them can run beside the other half.  DIS takes
-~2 ms a call at 160x120 and the driving loop makes ~6 calls per frame: ~12 ms of the pipeline thread's ~37; an
-edge's forward-backward check, photometric confidence and pooling (numpy and OpenCV, mostly outside the GIL) go
-with its pair (:meth:`DisLanes.map`).
+``DISOpticalFlow.calc``, so on a machine with two cores half of them can run beside the other half: DIS is a good
+part of the pipeline thread's time.  An edge's forward-backward check, photometric confidence and pooling (numpy and
+OpenCV, mostly outside the GIL) go with its pair (:meth:`DisLanes.map`).
 
 Each thread has its own DIS objects, one per *kind* of call (edge / track, with or without an initial flow): a DIS
-object that once got an initial flow keeps using it in later calls without one (see ``FlowFrontend.__init__``), so
-an object only ever serves one kind, and a call's result depends on its inputs alone - the same on either thread,
+object that once got an initial flow keeps using it in later calls without one (see :class:`.pair_flow.FlowPairs`),
+so an object only ever serves one kind, and a call's result depends on its inputs alone - the same on either thread,
 in any order (test: results bit-equal to one thread).
 """
 from __future__ import annotations

@@ -2,10 +2,10 @@
 
 DIS is a coarse-to-fine patch search; its coarsest level bounds the displacement it finds (a few tens of pixels at
 the flow resolution).  A head camera turning at 200-300 deg/s moves the whole image 20-50 flow px between two
-frames, and more against a keyframe several frames back: on the synthetic ``handheld_fast`` scenario 80-100 % of
-the pixels then failed the forward-backward check, the frame was declared lost, and four lost frames in a row
-re-initialised the map (a new fragment, a new scale).  The motion that fails is mostly *rotation*, and the image
-motion of a rotating camera is exactly a homography (``K R K^-1``), so:
+frames, and more against a keyframe several frames back: then most pixels fail the forward-backward check, the
+frame is declared lost, and a few lost frames in a row re-initialise the map (a new fragment, a new scale).  The
+motion that fails is mostly *rotation*, and the image motion of a rotating camera is exactly a homography
+(``K R K^-1``), so:
 
 1. corners of the reference (Shi-Tomasi) are followed into the frame by pyramidal Lucas-Kanade (``max_level``
    pyramid levels: displacements of ``~ 2^max_level x`` the window), kept when the backward track returns within
@@ -15,9 +15,9 @@ motion of a rotating camera is exactly a homography (``K R K^-1``), so:
    objects the homography does not explain.
 
 When the corners give no homography (a bare wall), :class:`MotionPredictor` extrapolates the last frames' image
-motion at constant rate instead.  The caller (``FlowFrontend._track``) keeps whichever of the plain and the recovered
-flows passes most pixels of the forward-backward check.  All arrays are at the flow resolution: ``uint8 [H, W]``
-images, ``float32 [H, W, 2]`` flows.
+motion at constant rate instead.  The caller (:class:`.track_starts.TrackStarts`) keeps whichever of the plain and
+the recovered flows passes most pixels of the forward-backward check.  All arrays are at the flow resolution:
+``uint8 [H, W]`` images, ``float32 [H, W, 2]`` flows.
 """
 from __future__ import annotations
 
@@ -73,8 +73,7 @@ def flow_homography(fwd: np.ndarray, ok: np.ndarray, stride: int = 4, ransac_px:
 
 class MotionPredictor:
     """The image motion of the next frame predicted at constant rate, for tracking recovery when the corners alone do
-    not give a homography (a fast turn over a scene with few corners: on ``handheld_fast`` 280 deg/s against a bare
-    wall left 23 RANSAC inliers, and four lost frames re-initialised the map).
+    not give a homography (a fast turn over a scene with few corners, such as a bare wall).
 
     Each tracked frame's flow against its reference is summarised by a homography (exact for a rotating camera, an
     approximation with parallax) and chained into ``G_t`` (a common image plane -> frame ``t``) along the references;

@@ -1,11 +1,9 @@
-"""The road's flow from a direct search of the ground plane's homography (``road_plane``, opt-in).
+"""The road's flow from a direct search of the ground plane's homography (``road.enabled``; its use: road_prior.py).
 
 Why: DIS is a patch matcher started at its coarsest pyramid level, and the near road of a car camera at speed is
 magnified and sheared between two views, has fine texture that vanishes at coarse levels, and moves tens of pixels:
-DIS settles on a small, wrong, self-consistent flow there (forward_low_parallax seed 2, 160x120, lower half, pixels
-that stay in view: 0.6-0.9 BA px median error at a 1-frame gap, 2.3 BA px at 2-3 frames).  That road is the one
-scale reference of a low-parallax forward drive: with ground-truth flow on the lower half of the keyframe edges 3+
-frames long, the highway's ATE falls from 5.5 / 4.9 % to 0.97 / 0.31 % (bench/RESULTS.md).
+DIS settles on a small, wrong, self-consistent flow there.  That road is the one scale reference of a low-parallax
+forward drive (docs/decisions.md: frontend.road.enabled).
 
 The ground ahead of a car camera is a plane whose normal is (close to) the camera's y axis, so its flow is the
 homography ``H = K (R + v n^T) K^-1`` with ``n = (0, 1, 0)``, ``R`` the rotation between the views (from the
@@ -110,7 +108,7 @@ class RoadPlane:
     def _grid_starts(self, g1f: np.ndarray, K: np.ndarray, level) -> list[np.ndarray]:
         """The best few distinct candidates of a grid: |v| on a log scale along -z (forward) and +z (reversing,
         straight only), the direction within ~7 deg of the optical axis.  The cost is noisy every 4th pixel of
-        fine texture, so the pattern search starts from several (distinct: |v| 20 % apart)."""
+        fine texture, so the pattern search starts from several (distinct: |v| at least a fifth apart)."""
         mags = np.geomspace(0.02, 8.0, 32)
         a = np.array([-0.12, 0.0, 0.12])
         ax, ay = np.meshgrid(a, a, indexing="ij")

@@ -17,6 +17,7 @@ from typing import Literal, Optional
 from pydantic import Field
 
 from pvslam_core.config_base import PluginConfig
+from pvslam_core.slam.dynamic_config import DynamicMaskingConfig
 
 PROFILES: dict[str, dict] = {
     # DROID-SLAM 2021 frontend: iters1 = 4 updates, (keyframe removal check), iters2 = 2 updates (anchors 1.5)
@@ -25,13 +26,42 @@ PROFILES: dict[str, dict] = {
 }
 
 
+class RaftGruDynamicConfig(DynamicMaskingConfig):
+    """``frontend.dynamic`` of ``raft_gru``: the shared dynamic-masking settings, with this frontend's defaults and the
+    mask head's own keys.  ``thresh`` and ``max_fraction`` are for variant droid's residual test (the residual is the
+    update's step ``|target - reprojection|``)."""
+
+    max_fraction: float = Field(
+        0.5, gt=0.0, le=1.0, description="droid: an edge with more dynamic pixels than this fraction gets no mask (the "
+        "estimate, not the scene, is off).")
+    vote_thresh: Optional[float] = Field(
+        None, ge=0.0, le=1.0, description="A segment becomes dynamic when more than this fraction of its pixels is; "
+        "null: 0.8 for pvo (PVO's segm_filter), 0.5 for droid (the flow frontend's).")
+    mask_thresh: float = Field(
+        0.5, gt=0.0, lt=1.0, description="pvo: a pixel is static when sigmoid(raw mask) >= this (PVO's dy_thresh).")
+    things_only: bool = Field(
+        True, description="Only movable thing segments vote; false: every segment, as PVO's segm_filter.")
+
+
 class RaftGruConfig(PluginConfig):
     """Learned correspondence frontend: RAFT-style encoders, correlation pyramid, ConvGRU update (DROID / PVO)."""
 
+    renamed = {
+        "dynamic_masking": "dynamic.enabled",
+        "panoptic_offset": "dynamic.panoptic_offset",
+        "convention": "dynamic.convention",
+        "dynamic_thresh": "dynamic.thresh",
+        "max_dynamic_fraction": "dynamic.max_fraction",
+        "vote_thresh": "dynamic.vote_thresh",
+        "mask_thresh": "dynamic.mask_thresh",
+        "things_only": "dynamic.things_only",
+    }
+    # constants of frontend.py now
+    retired = {"dynamic_rel_thresh": 3.0, "min_texture_std": 2.0}
+
     weights: Optional[str] = Field(
-        "droid", description="checkpoint: a catalogue name (`pvslam weights list`: droid, pvo-vo-vkitti2) or a file "
-        "path (droid.pth, a PVO checkpoint or this project's own); \"random\" (or null in Python) = RANDOM weights, "
-        "with a loud warning: only for tests and training from scratch")
+        "droid", description="checkpoint: a catalogue name (`pvslam weights list`) or a file path (droid.pth, a PVO or "
+        "a pvslam checkpoint); \"random\": random weights with a loud warning, for tests and training")
     variant: Optional[Literal["droid", "pvo"]] = Field(
         None, description="network variant; null = the checkpoint's (droid for random weights). 'pvo' adds PVO's "
         "dynamic update module: its mask head refines a per-edge dynamic mask (eq. 6) that sets eq. 4's M_d")
@@ -47,17 +77,14 @@ class RaftGruConfig(PluginConfig):
         None, ge=0, description="only edges with an end among the newest N keyframes (and new edges) get a GRU "
         "update per observe; the others return their last target/weight; 0 = every edge (DROID); null = profile")
     corr_impl: Optional[Literal["volume", "onthefly"]] = Field(
-        None, description="correlation: per-edge stored pyramid (built once per edge, fast lookups, ~4 B x (h w)^2 "
-        "x 1.33 per edge: 7.7 MB at 320x240) or on the fly from the keyframes' features (no per-edge memory, no "
-        "build, ~3.5x the time of a stored-volume lookup: bench/RESULTS.md); null = profile")
+        None, description="correlation: a stored pyramid per edge (built once, fast lookups, ~4 B x (h w)^2 x 1.33 "
+        "per edge) or on the fly from the features (no memory per edge, slower lookups); null = profile")
     keyframe_thresh: float = Field(
         2.4, gt=0, description="motion filter: a frame becomes a keyframe when the mean flow of one update step "
         "against the last keyframe exceeds this (BA px); DROID's filter_thresh (2.4 demo/EuRoC/TartanAir, 1.75 TUM)")
     track_iters: int = Field(
         1, ge=1, le=8, description="update steps of the motion filter (DROID: 1); more refine the flow used to place "
         "non-keyframes (each step re-looks up the correlation at the new estimate)")
-    min_texture_std: float = Field(
-        2.0, ge=0, description="tracking failure when the frame's grayscale std is below this (black/blank frame)")
     feature_cache: int = Field(
         64, ge=4, description="keyframes whose features (fmap, context, upsampling mask) stay in memory (LRU); an "
         "older keyframe keeps its uint8 image and gets its features recomputed when a loop edge needs them")
@@ -65,27 +92,9 @@ class RaftGruConfig(PluginConfig):
         True, description="keep each keyframe's convex-upsampling mask (learned, from the GRU states of its edges) "
         "for full-resolution inverse depth (RaftGruFrontend.upsampled_disp)")
 
-    # --- panoptic-aware confidence (PV-SLAM eq. 4) ----------------------------------------------------------------
-    dynamic_masking: bool = Field(
-        True, description="eq. 4 with a dynamic mask: variant pvo - the mask head's (eq. 6); variant droid - pixels "
-        "whose update still moves them (|target - reprojection|) after a BA round, as the flow frontend")
-    panoptic_offset: float = Field(10.0, ge=0, description="eq. 4's logit offset (the paper's eta = 10)")
-    convention: Literal["paper", "pvo_code"] = Field(
-        "paper", description="mask convention of eq. 4 (pvslam_core.slam.confidence): 'paper' down-weights dynamic "
-        "pixels; 'pvo_code' reproduces PVO's released code (static pixels get the raw logit), e.g. with PVO's "
-        "checkpoint")
-    mask_thresh: float = Field(0.5, gt=0, lt=1, description="pvo: a pixel is static when sigmoid(raw mask) >= this "
-                               "(PVO's dy_thresh)")
-    vote_thresh: Optional[float] = Field(
-        None, ge=0, le=1, description="a segment becomes dynamic when more than this fraction of its pixels is; "
-        "null = 0.8 for pvo (PVO's segm_filter), 0.5 for droid (the flow frontend's)")
-    things_only: bool = Field(True, description="only movable thing segments vote (PVO's segm_filter: every segment)")
-    dynamic_thresh: float = Field(1.0, gt=0, description="droid: residual (BA px) above which a pixel is dynamic")
-    dynamic_rel_thresh: float = Field(
-        3.0, ge=0, description="droid: ... and above this multiple of the edge's median residual (0 disables)")
-    max_dynamic_fraction: float = Field(
-        0.5, gt=0, le=1, description="droid: an edge with more dynamic pixels than this gets no mask (the estimate, "
-        "not the scene, is off)")
+    dynamic: RaftGruDynamicConfig = Field(
+        default_factory=RaftGruDynamicConfig, description="Dynamic masks and PV-SLAM eq. 4 weights (variant pvo: the "
+        "mask head's; droid: the residual test).")
 
     @property
     def random_weights(self) -> bool:

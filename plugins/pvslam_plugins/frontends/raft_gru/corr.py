@@ -4,7 +4,7 @@ Definitions (shapes for one batch element ``b`` and edge ``e = (ii[e] -> jj[e])`
 
 * level 0: ``C0[y1, x1, y2, x2] = <f_ii[:, y1, x1] / 4, f_jj[:, y2, x2] / 4>`` - each map is divided by 4 *before*
   the product (dot / 16, not RAFT's 1/sqrt(C); it also keeps fp16 products in range under autocast);
-* level l: level l-1 average-pooled 2x2, stride 2, over the **target** dims, floor for odd sizes (17 -> 8 -> 4 -> 2);
+* level l: level l-1 average-pooled 2x2, stride 2, over the **target** dims, floor for odd sizes (17, 8, 4, 2);
 * lookup at ``coords1[y1, x1] = (x, y)`` (target-frame pixels, 1/8 resolution): channel ``l*49 + a*7 + b``
   samples level ``l`` at ``(x / 2**l - 3 + a, y / 2**l - 3 + b)`` - the outer window index ``a`` runs over
   **x** (x-major, although volumes are indexed [y][x]) - bilinearly with pixel centres at integers and zeros
@@ -110,7 +110,7 @@ def _lookup_level(vol: torch.Tensor, xy: torch.Tensor, radius: int, ht: int, wd:
     The same arithmetic as :func:`_window` + :func:`_bilinear` (same products, same order of the four corner terms:
     bitwise equal results), laid out with the pixel index ``R`` innermost so that every elementwise op runs over
     contiguous rows with per-pixel weights broadcast along them (the ``(R, k, k)`` layout made each of the 16
-    multiplications a slow strided broadcast, ~40 % of the lookup time).
+    multiplications a slow strided broadcast, a large share of the lookup time).
     """
     x0, y0 = xy[0].floor(), xy[1].floor()
     dx, dy = xy[0] - x0, xy[1] - y0  # (R,)

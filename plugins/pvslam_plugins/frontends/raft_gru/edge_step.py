@@ -1,5 +1,6 @@
 """The per-edge pieces of one update step shared by the frontend and the trainer: the motion input of each variant,
-PVO's dynamic mask (eq. 6 + segment vote) and the confidences handed to the BA (eq. 4).
+PVO's dynamic mask (eq. 6 + segment vote), the confidences handed to the BA (eq. 4) and the panoptic ids they vote
+over.
 
 Shapes: ``E`` edges at 1/8 resolution ``h x w``, flow-like tensors channels-last ``(E, h, w, 2)`` (x, y) as
 upstream; a leading batch dimension ``B`` where the network wants one.
@@ -11,11 +12,12 @@ decides (``convention``) which of the two readings of eq. 4 is applied.
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import torch
 
 from pvslam_core.slam.confidence import observed_flow_weight, panoptic_aware_weight, segment_vote
+from pvslam_core.types import PanopticSegmentation
 
 from .net import droid_motion, pvo_motion
 
@@ -130,3 +132,25 @@ def droid_weight(conf: torch.Tensor, dynamic: Optional[torch.Tensor], offset: fl
             out[m] = observed_flow_weight(conf[m], dyn[m], offset=offset, convention="paper")
         return out
     return observed_flow_weight(conf, dyn, offset=offset, convention=convention)
+
+
+def keyframe_segments(seg: Optional[PanopticSegmentation], h: int, w: int, stride: int, device: Any):
+    """``(ids int64 [h, w], movable thing ids int64 [K])`` of a keyframe's segmentation at the feature resolution (the
+    block centres of ``stride``), or Nones without one."""
+    if seg is None or seg.ids is None:
+        return None, None
+    s = stride
+    ids = seg.ids.to(torch.int64)[s // 2:: s, s // 2:: s][:h, :w].contiguous().to(device)  # block centres
+    things = torch.tensor([x.id for x in seg.segments if x.isthing and x.movable], dtype=torch.int64)
+    return ids, things.to(device)
+
+
+def source_segments(srcs: list, h: int, w: int, things_only: bool, device: Any):
+    """``(E, h, w)`` panoptic ids of the edges' source keyframes ``srcs`` (:class:`.frontend_state.KeyframeState`;
+    zeros = void where a source has none) and, per source, the thing ids allowed to vote (None: every segment; per
+    source because ids are unique only within one frame: ``segment_vote``'s ``batch_things``)."""
+    if all(s.seg is None for s in srcs):
+        return None, None
+    zero = torch.zeros(h, w, dtype=torch.int64, device=device)
+    seg = torch.stack([s.seg if s.seg is not None else zero for s in srcs])
+    return seg, ([s.things for s in srcs] if things_only else None)

@@ -8,11 +8,11 @@ the network sees exactly the tensor upstream would have built from the BGR versi
 
 Layout of one encoder (parameter names equal upstream's, DIM = 32)::
 
-    conv1 7x7 s2 (3 -> 32) -> norm1 -> ReLU
+    conv1 7x7 s2 (3 to 32 ch), norm1, ReLU
     layer1 = 2 x ResidualBlock(32, stride 1)
-    layer2 = ResidualBlock(32 -> 64, stride 2, 1x1 stride-2 downsample) + ResidualBlock(64)
-    layer3 = ResidualBlock(64 -> 128, stride 2) + ResidualBlock(128)
-    conv2 1x1 (128 -> output_dim)
+    layer2 = ResidualBlock(32 to 64 ch, stride 2, 1x1 stride-2 downsample) + ResidualBlock(64)
+    layer3 = ResidualBlock(64 to 128 ch, stride 2) + ResidualBlock(128)
+    conv2 1x1 (128 ch to output_dim)
 
 ``fnet`` uses ``InstanceNorm2d(affine=False)`` (no parameters, no running stats, so train and eval agree) and
 ``cnet`` no normalisation; neither has norm entries in the state_dict.

@@ -50,13 +50,19 @@ from pvslam_core.slam.graph import median_disp_map
 
 from .config import RaftGruConfig
 from .corr import CorrVolume, OnTheFlyCorr, coords_grid
-from .edge_step import droid_weight, motion_input, pvo_dynamic, pvo_weight, residual_dynamic
+from .edge_step import (droid_weight, keyframe_segments, motion_input, pvo_dynamic, pvo_weight, residual_dynamic,
+                        source_segments)
 from .encoders import STRIDE
 from .frontend_state import (  # noqa: F401  (DAMPING_INIT, STAGES, RandomWeightsWarning: re-exported)
     DAMPING_INIT, STAGES, EdgeState, KeyframeState, RandomWeightsWarning, StageStats, load_network)
 from .net import RaftGruNet
 from .update import GateContext
 from .upsample import upsample_disp
+
+MIN_TEXTURE_STD = 2.0  # tracking failure when a frame's gray intensity std is below this (a black or blank frame)
+# variant droid: a pixel is dynamic only above this multiple of its edge's median residual too (robust to an estimate
+# that has not converged yet), as in the flow frontend
+DYNAMIC_REL_THRESH = 3.0
 
 
 class RaftGruFrontend(Frontend):
@@ -79,7 +85,7 @@ class RaftGruFrontend(Frontend):
         self.precision = self.cfg.resolved("precision")
         self.update_window = int(self.cfg.resolved("update_window"))
         self.corr_impl = self.cfg.resolved("corr_impl")
-        vt = self.cfg.vote_thresh
+        vt = self.cfg.dynamic.vote_thresh
         self.vote_thresh = vt if vt is not None else (0.8 if self.variant == "pvo" else 0.5)
         self._kfs: dict[int, KeyframeState] = {}  # stable id -> keyframe (insertion order = time order)
         self._lru: OrderedDict[int, None] = OrderedDict()  # ids whose features are in memory, least recent first
@@ -190,14 +196,6 @@ class RaftGruFrontend(Frontend):
             setattr(kf, attr, g)
         return g
 
-    def _seg_info(self, seg: Optional[PanopticSegmentation], h: int, w: int):
-        if seg is None or seg.ids is None:
-            return None, None
-        s = STRIDE
-        ids = seg.ids.to(torch.int64)[s // 2:: s, s // 2:: s][:h, :w].contiguous().to(self.device)  # block centres
-        things = torch.tensor([x.id for x in seg.segments if x.isthing and x.movable], dtype=torch.int64)
-        return ids, things.to(self.device)
-
     # -------------------------------------------------------------------------------------- public state --
     @property
     def num_keyframes(self) -> int:
@@ -209,17 +207,7 @@ class RaftGruFrontend(Frontend):
 
     def memory_bytes(self) -> int:
         """Bytes held in tensors (keyframe images/features/masks, per-edge states and volumes)."""
-        def nb(t):
-            return 0 if t is None else t.numel() * t.element_size()
-        n = 0
-        for kf in self._kfs.values():
-            n += sum(nb(t) for t in (kf.image, kf.damping, kf.fmap, kf.net0, kf.inp, kf.seg, kf.things, kf.upmask,
-                                     kf.disp_up, kf.disp_lo))
-            n += sum(nb(g.zrq) + nb(g.glo) for g in (kf.gates, kf.filter_gates) if g is not None)
-        for e in self._edges.values():
-            n += sum(nb(t) for t in (e.net, e.target, e.weight, e.dynamic, e.raw_mask, e.delta_dy))
-            n += e.corr.nbytes() if e.corr is not None else 0
-        return n
+        return sum(kf.nbytes() for kf in self._kfs.values()) + sum(e.nbytes() for e in self._edges.values())
 
     # ----------------------------------------------------------------------------------------- track --
     def track(self, frame: Frame, seg: Optional[PanopticSegmentation]) -> TrackResult:
@@ -233,10 +221,9 @@ class RaftGruFrontend(Frontend):
     def _track(self, frame: Frame) -> TrackResult:
         self._pending = None
         gray_std = float(frame.image.float().mean(0).std())
-        if not gray_std >= self.cfg.min_texture_std:
+        if not gray_std >= MIN_TEXTURE_STD:
             return TrackResult(is_keyframe=False, mean_flow=0.0, failed=True,
-                               message=f"no texture: intensity std {gray_std:.2f} < min_texture_std "
-                                       f"{self.cfg.min_texture_std}")
+                               message=f"no texture: intensity std {gray_std:.2f} < {MIN_TEXTURE_STD}")
         fmap = self._fnet(frame.image)
         self._pending = {"frame_index": frame.index, "fmap": fmap}
         if not self._kfs:
@@ -261,6 +248,7 @@ class RaftGruFrontend(Frontend):
         (the first with zero motion input, as upstream).  Returns ``target, weight (h, w, 2)``."""
         h, w = fmap.shape[-2:]
         coords0 = self._grid(h, w)
+        dc = self.cfg.dynamic
         with torch.no_grad(), self._autocast():
             vol = CorrVolume(last.fmap[None, None], fmap[None, None], pool="features")
             net, inp = last.net0[None, None], last.inp[None, None]
@@ -276,10 +264,10 @@ class RaftGruFrontend(Frontend):
                 target = coords1 + out.delta.float()
                 if self.variant == "pvo":
                     raw_mask = out.delta_m.float() if raw_mask is None else raw_mask + out.delta_m.float()
-                    dyn_c, _ = pvo_dynamic(raw_mask[0], self.cfg.mask_thresh)
+                    dyn_c, _ = pvo_dynamic(raw_mask[0], dc.mask_thresh)
                     delta_dy = out.delta_dy.float() * dyn_c[None]
-                    weight = pvo_weight(out.weight.float()[0], dyn_c if self.cfg.dynamic_masking else None,
-                                        self.cfg.panoptic_offset, self.cfg.convention)[None]
+                    weight = pvo_weight(out.weight.float()[0], dyn_c if dc.enabled else None, dc.panoptic_offset,
+                                        dc.convention)[None]
                 else:
                     weight = out.weight.float()
                 coords1 = target
@@ -294,7 +282,7 @@ class RaftGruFrontend(Frontend):
         fmap = pend["fmap"] if pend is not None else self._fnet(frame.image)
         net0, inp = self._cnet(frame.image)
         h, w = fmap.shape[-2:]
-        seg_ids, things = self._seg_info(seg, h, w)
+        seg_ids, things = keyframe_segments(seg, h, w, STRIDE, self.device)
         if self._kfs:  # only the newest keyframe is the motion filter's reference
             self._kfs[next(reversed(self._kfs))].filter_gates = None
         self._kfs[kf_id] = KeyframeState(image=frame.image.cpu(), frame_index=int(frame.index),
@@ -460,24 +448,24 @@ class RaftGruFrontend(Frontend):
         with self._timed("weights"):
             delta = out.delta[0].float()
             target = coords1 + delta
-            seg, things = self._sources_seg(srcs, h, w)
+            seg, things = source_segments(srcs, h, w, self.cfg.dynamic.things_only, self.device)
+            dc = self.cfg.dynamic
             if self.variant == "pvo":
                 raw_mask = raw_mask + out.delta_m[0].float()
-                dyn_c, dyn = pvo_dynamic(raw_mask, self.cfg.mask_thresh, seg, things, self.vote_thresh)
+                dyn_c, dyn = pvo_dynamic(raw_mask, dc.mask_thresh, seg, things, self.vote_thresh)
                 new_dy = out.delta_dy[0].float() * dyn_c
-                weight = pvo_weight(out.weight[0].float(), dyn_c if self.cfg.dynamic_masking else None,
-                                    self.cfg.panoptic_offset, self.cfg.convention)
-                dyn = dyn if self.cfg.dynamic_masking else None
+                weight = pvo_weight(out.weight[0].float(), dyn_c if dc.enabled else None, dc.panoptic_offset,
+                                    dc.convention)
+                dyn = dyn if dc.enabled else None
             else:
                 conf = out.weight[0].float()
                 dyn = None
                 seen = torch.tensor([e.updates > 0 for e in edges], device=self.device)
-                if self.cfg.dynamic_masking and bool(seen.any()):
-                    dyn = residual_dynamic(delta.norm(dim=-1), valid, self.cfg.dynamic_thresh,
-                                           self.cfg.dynamic_rel_thresh, self.cfg.max_dynamic_fraction, seg, things,
-                                           self.vote_thresh)
+                if dc.enabled and bool(seen.any()):
+                    dyn = residual_dynamic(delta.norm(dim=-1), valid, dc.thresh, DYNAMIC_REL_THRESH, dc.max_fraction,
+                                           seg, things, self.vote_thresh)
                     dyn = dyn * seen[:, None, None]  # an edge's first update has seen no BA yet
-                weight = droid_weight(conf, dyn, self.cfg.panoptic_offset, self.cfg.convention)
+                weight = droid_weight(conf, dyn, dc.panoptic_offset, dc.convention)
             net_new = out.net[0].float()
             for k, edge in enumerate(edges):
                 edge.net, edge.target, edge.weight = net_new[k], target[k], weight[k]
@@ -492,17 +480,6 @@ class RaftGruFrontend(Frontend):
                 kf.damping = eta[u]
                 if self.cfg.upsample:
                     kf.upmask = out.agg_features[0, u]
-
-    def _sources_seg(self, srcs: list[KeyframeState], h: int, w: int):
-        """``(E, h, w)`` panoptic ids of the edges' source keyframes (zeros = void where a source has none) and, per
-        source, the thing ids allowed to vote (None: every segment; per source because ids are unique only within
-        one frame: ``segment_vote``'s ``batch_things``)."""
-        if all(s.seg is None for s in srcs):
-            return None, None
-        zero = torch.zeros(h, w, dtype=torch.int64, device=self.device)
-        seg = torch.stack([s.seg if s.seg is not None else zero for s in srcs])
-        return seg, ([s.things for s in srcs] if self.cfg.things_only else None)
-
 
 def make_frontend(config: RaftGruConfig, context) -> RaftGruFrontend:
     """Registry factory: ``make_frontend(config, BuildContext)``."""

@@ -66,6 +66,12 @@ class KeyframeState:
     disp_up: Optional[torch.Tensor] = None  # float16 [H, W] upsampled inverse depth saved when the mask went
     disp_lo: Optional[torch.Tensor] = None  # float32 [h, w] the inverse depth disp_up was made from
 
+    def nbytes(self) -> int:
+        """Bytes held in its tensors."""
+        n = sum(_nb(t) for t in (self.image, self.damping, self.fmap, self.net0, self.inp, self.seg, self.things,
+                                 self.upmask, self.disp_up, self.disp_lo))
+        return n + sum(_nb(g.zrq) + _nb(g.glo) for g in (self.gates, self.filter_gates) if g is not None)
+
 
 @dataclass
 class EdgeState:
@@ -79,6 +85,15 @@ class EdgeState:
     delta_dy: Optional[torch.Tensor] = None  # pvo: float32 [h, w, 2] object flow on dynamic pixels
     corr: Optional[CorrVolume] = None  # corr_impl="volume": this edge's pyramid
     updates: int = 0  # GRU updates this edge received
+
+    def nbytes(self) -> int:
+        """Bytes held in its tensors and its correlation volume."""
+        n = sum(_nb(t) for t in (self.net, self.target, self.weight, self.dynamic, self.raw_mask, self.delta_dy))
+        return n + (self.corr.nbytes() if self.corr is not None else 0)
+
+
+def _nb(t: Optional[torch.Tensor]) -> int:
+    return 0 if t is None else t.numel() * t.element_size()
 
 
 STAGES = ("track", "fnet", "filter", "cnet", "gates", "reproject", "corr", "update", "weights", "recompute")

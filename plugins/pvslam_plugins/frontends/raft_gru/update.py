@@ -2,10 +2,10 @@
 
 Per edge ``e = (ii[e] -> jj[e])``, at 1/8 resolution (``h x w``)::
 
-    corr features   corr_encoder(lookup 196 ch)            1x1 196->128, ReLU, 3x3 128->128, ReLU
-    motion features flow_encoder(motion 4 | 8 ch)          7x7 ->128, ReLU, 3x3 128->64, ReLU
+    corr features   corr_encoder(lookup 196 ch)            1x1 196 to 128 ch, ReLU, 3x3 128 to 128, ReLU
+    motion features flow_encoder(motion 4 | 8 ch)          7x7 to 128 ch, ReLU, 3x3 128 to 64, ReLU
     hidden state    net' = ConvGRU(net, [inp 128, corr 128, motion 64])   (global-context gates)
-    heads           delta / weight (3x3 128->128, ReLU, 3x3 128->2, GradientClip [, Sigmoid for DROID's weight])
+    heads           delta / weight (3x3 128 to 128, ReLU, 3x3 128 to 2, GradientClip [, Sigmoid for DROID's weight])
                     PVO only: delta_dy (object flow), delta_mask (mask-logit increment), same layout
     per frame       GraphAgg: edges sharing a source frame are averaged -> eta (damping), upmask (576 logits)
 
@@ -64,7 +64,7 @@ class GradientClip(nn.Module):
 def _cat(tensors: list[torch.Tensor]) -> torch.Tensor:
     """Channel concatenation in the autocast dtype when autocast is on: the convolution that follows would cast the
     result to it anyway (same values), and a mixed bf16/fp32 list would otherwise be promoted to an fp32 copy that
-    is then cast back (on this CPU ~7 % of the frontend's time)."""
+    is then cast back, a noticeable share of the frontend's time on a CPU."""
     dev = tensors[0].device.type
     if torch.is_autocast_enabled(dev):
         dt = torch.get_autocast_dtype(dev)
@@ -241,7 +241,7 @@ class GraphAgg(nn.Module):
 
     ``conv1 + ReLU`` per edge; mean over edges with the same source ``ii`` (frames in ascending order, as
     ``torch.unique(sorted=True)`` + ``scatter_mean``); ``conv2 + ReLU``; ``eta = 0.01 * softplus(conv)``,
-    ``upmask = conv1x1 -> 576``.
+    ``upmask = conv1x1`` to 576 channels.
     """
 
     def __init__(self, upmask_name: str = "upmask") -> None:

@@ -66,9 +66,10 @@ def patch_segmentation(x0: int, y0: int, ph: int, pw: int, car_id: int = 26001, 
 
 
 def identity_reproject(h: int, w: int, valid=None):
-    """``(reproject_fn, coords)`` for ``FlowFrontend(reproject_fn=...)``: the estimate maps each of the ``h x w`` BA
-    pixels onto itself (``coords`` float64 ``[h, w, 2]``, (x, y)), and every pixel can be judged unless ``valid``
-    (bool ``[h, w]``) says otherwise.  An edge's residual is then its target's own shift (:func:`shifted_target`)."""
+    """``(reproject_fn, coords)`` for ``FlowFrontend(reproject_fn=...)`` or :func:`masking`: the estimate maps each of
+    the ``h x w`` BA pixels onto itself (``coords`` float64 ``[h, w, 2]``, (x, y)), and every pixel can be judged
+    unless ``valid`` (bool ``[h, w]``) says otherwise.  An edge's residual is then its target's own shift
+    (:func:`shifted_target`)."""
     ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     coords = torch.stack([xs, ys], -1)
     ok = torch.ones(h, w, dtype=torch.bool) if valid is None else valid
@@ -84,11 +85,28 @@ def shifted_target(coords: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
     return (coords + torch.stack([du, torch.zeros_like(du)], -1)).permute(2, 0, 1)
 
 
+def masking(h: int, w: int, keyframes: dict, reproject, **cfg):
+    """A :class:`~pvslam_plugins.frontends.flow.dynamic_masking.DynamicMasking` (``frontend.dynamic`` settings ``cfg``)
+    with keyframes ``{id: (ids int64 [h, w] or None, movable thing ids)}`` given at the BA resolution ``h x w``."""
+    from pvslam_core.slam.dynamic_config import DynamicMaskingConfig
+    from pvslam_plugins.frontends.flow.dynamic_masking import DynamicMasking
+
+    m = DynamicMasking(DynamicMaskingConfig(**cfg), reproject)
+    for sid, (ids, things) in keyframes.items():
+        seg = None
+        if ids is not None:
+            segs = [Segment(id=i, category_id=1, isthing=i in things) for i in ids.unique().tolist() if i != 0]
+            seg = PanopticSegmentation(ids=ids, segments=segs)
+        m.add_keyframe(sid, seg, h, w)
+    return m
+
+
 class TwoKeyframeGraph:
-    """The attributes the frontend's ``_dynamic_masks`` reads: two keyframes of ``h x w`` BA pixels with different
+    """The attributes the frontend's dynamic masking reads: two keyframes of ``h x w`` BA pixels with different
     poses (the second 1 m along z), unit inverse depth, intrinsics ``(10, 10, w / 2, h / 2)``."""
 
     def __init__(self, h: int, w: int):
+        self.ba_shape = (h, w)
         self.poses = torch.tensor([[0, 0, 0, 0, 0, 0, 1.0], [0, 0, 1.0, 0, 0, 0, 1.0]], dtype=torch.float64)
         self.disps = torch.ones(2, h, w, dtype=torch.float64)
         self.intrinsics = torch.tensor([10.0, 10.0, w / 2, h / 2], dtype=torch.float64)

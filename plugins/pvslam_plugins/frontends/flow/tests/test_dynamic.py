@@ -5,6 +5,7 @@ import torch
 
 from pvslam_core.slam.confidence import observed_flow_weight
 from pvslam_plugins.frontends.flow import dynamic as D
+from pvslam_plugins.frontends.flow import dynamic_masking as masking_module
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend
 
@@ -80,16 +81,17 @@ def _scene():
     return imgs, _graph([0.0, dx]), (x0 + int(dx) + 24, y0 + 10)
 
 
-def test_tracking_weights_follow_the_reference_keyframes_moving_region():
+def test_tracking_weights_follow_the_reference_keyframes_moving_region(monkeypatch):
     imgs, g, (x1, y1) = _scene()
     masked = {}
     for track in (False, True):
-        fe = FlowFrontend(FlowFrontendConfig(preset="medium", dynamic_track=track))
+        monkeypatch.setattr(masking_module, "DYNAMIC_TRACK", track)
+        fe = FlowFrontend(FlowFrontendConfig(dis={"preset": "medium"}))
         fe.add_keyframe(0, S.frame(imgs[0], 0), None)
         fe.add_keyframe(1, S.frame(imgs[1], 1), None)
         fe.observe(g, torch.tensor([0, 1]), torch.tensor([1, 0]))  # the BA's first round on both edges
         masked[track] = fe.track(S.frame(imgs[2], 2), None)
-        kf1 = fe._kfs[1]
+        kf1 = fe.masking.keyframe(1)
     car = torch.zeros(BA_H, BA_W, dtype=torch.bool)  # BA pixels fully inside the car in keyframe 1
     car[y1 // 8 + 1:(y1 + 72) // 8 - 1, x1 // 8 + 1:(x1 + 96) // 8 - 1] = True
     static = torch.ones(BA_H, BA_W, dtype=torch.bool)  # away from the car in keyframes 0 (disoccluded) and 1
@@ -104,15 +106,15 @@ def test_tracking_weights_follow_the_reference_keyframes_moving_region():
 
 def test_new_keyframe_starts_from_its_references_mask_moved_along_the_flow():
     imgs, g, (x1, y1) = _scene()
-    fe = FlowFrontend(FlowFrontendConfig(preset="medium"))
+    fe = FlowFrontend(FlowFrontendConfig(dis={"preset": "medium"}))
     fe.add_keyframe(0, S.frame(imgs[0], 0), None)
     fe.add_keyframe(1, S.frame(imgs[1], 1), None)
     fe.observe(g, torch.tensor([0, 1]), torch.tensor([1, 0]))
     r = fe.track(S.frame(imgs[2], 2), None)
     fe.add_keyframe(2, S.frame(imgs[2], 2), None)
-    new = fe._kfs[2]
+    new = fe.masking.keyframe(2)
     assert not new.dyn_judged and new.dyn is not None
-    ref = fe._kfs[1].dyn
+    ref = fe.masking.keyframe(1).dyn
     expected = D.warp_mask(ref, r.target, grow=1)  # the reference's mask along the tracked flow
     assert torch.equal(new.dyn, expected)
     x2, y2 = x1 + 40, y1 + 10  # the car in frame 2
@@ -130,7 +132,7 @@ def _graph3():
     return _graph([0.0, 16.0, 32.0])
 
 
-def test_no_masks_before_the_map_has_a_motion_estimate():
+def test_no_masks_before_the_map_has_a_motion_estimate(monkeypatch):
     """Before the initialisation every keyframe of a fragment has the same pose: the residual against that
     'estimate' is the whole flow, so nothing is judged (no edge or keyframe mask, tracking weights untouched);
     the same scene with the camera motion estimated masks the car (test above)."""
@@ -140,8 +142,9 @@ def test_no_masks_before_the_map_has_a_motion_estimate():
     g = _graph([0.0, 0.0])  # identical poses: no estimate yet
     # a lower relative threshold than the default, so that judged against the zero motion the car (5 BA px of
     # flow) would stand out from the background (2 BA px): what happened in a turning hand-held room
-    fe = FlowFrontend(FlowFrontendConfig(preset="medium", dynamic_rel_thresh=1.5))
-    ref = FlowFrontend(FlowFrontendConfig(preset="medium", dynamic_masking=False))
+    monkeypatch.setattr(masking_module, "DYNAMIC_REL_THRESH", 1.5)
+    fe = FlowFrontend(FlowFrontendConfig(dis={"preset": "medium"}))
+    ref = FlowFrontend(FlowFrontendConfig(dis={"preset": "medium"}, dynamic={"enabled": False}))
     for f in (fe, ref):
         f.add_keyframe(0, S.frame(imgs[0], 0), None)
         f.add_keyframe(1, S.frame(imgs[1], 1), None)
@@ -151,5 +154,6 @@ def test_no_masks_before_the_map_has_a_motion_estimate():
     assert float(obs.dynamic.abs().sum()) == 0.0
     torch.testing.assert_close(obs.weight, obs_ref.weight)
     r, r_ref = fe.track(S.frame(imgs[2], 2), None), ref.track(S.frame(imgs[2], 2), None)
-    assert fe._kfs[1].dyn is None or float(fe._kfs[1].dyn.sum()) == 0.0
+    kf1 = fe.masking.keyframe(1)
+    assert kf1.dyn is None or float(kf1.dyn.sum()) == 0.0
     torch.testing.assert_close(r.weight, r_ref.weight)

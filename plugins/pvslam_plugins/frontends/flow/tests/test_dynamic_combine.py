@@ -1,5 +1,5 @@
-"""How the flow frontend combines a segmenter's movable segments with the geometric evidence (issue 11).  With
-``vote_keeps_candidates = False`` a movable thing segment is masked only when the residuals inside it say it moves
+"""How the flow frontend combines a segmenter's movable segments with the geometric evidence.  With
+``VOTE_KEEPS_CANDIDATES = False`` a movable thing segment is masked only when the residuals inside it say it moves
 (a parked car stays static), pixels that cannot be judged neither vote for nor against, and isolated candidate
 pixels outside voted segments are left to the robust kernel exactly as without a segmenter; the default (True)
 is PVO's segm_filter, every raw candidate kept.  Checked against brute-force references written here, on a
@@ -8,10 +8,9 @@ import torch
 
 from pvslam_core.slam.confidence import segment_vote
 from pvslam_plugins.frontends.flow import dynamic as D
-from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
-from pvslam_plugins.frontends.flow.frontend import FlowFrontend, _Keyframe
+from pvslam_plugins.frontends.flow import dynamic_masking as masking_module
 
-import numpy as np
+import pytest
 import _flow_scenes as S
 
 H, W = 12, 16
@@ -37,16 +36,19 @@ def _scene():
     return seg, res, valid
 
 
-def _frontend(**cfg):
+@pytest.fixture
+def combine(monkeypatch):
+    """The rule with VOTE_KEEPS_CANDIDATES off."""
+    monkeypatch.setattr(masking_module, "VOTE_KEEPS_CANDIDATES", False)
+
+
+def _masking(**cfg):
     seg, res, valid = _scene()
     reproject, coords = S.identity_reproject(H, W, valid)  # the estimate maps each pixel onto itself
-    fe = FlowFrontend(FlowFrontendConfig(**cfg), reproject_fn=reproject)
-    gray = np.zeros((24, 32), np.uint8)
-    things = torch.tensor([PARKED, MOVING, LEAVING])
-    fe._kfs[0] = _Keyframe(gray=gray, frame_index=0, seg_ba=seg, thing_ids=things)
-    fe._kfs[1] = _Keyframe(gray=gray, frame_index=1, seg_ba=seg, thing_ids=things)
+    things = [PARKED, MOVING, LEAVING]
+    m = S.masking(H, W, {0: (seg, things), 1: (seg, things)}, reproject, **cfg)
     target = S.shifted_target(coords, res)[None]  # residual along u
-    return fe, target, seg, res, valid
+    return m, target, seg, res, valid
 
 
 def _reference(seg, res, valid, vote_thresh=0.5, keep_candidates=False):
@@ -65,9 +67,9 @@ def _reference(seg, res, valid, vote_thresh=0.5, keep_candidates=False):
     return out
 
 
-def test_movable_segment_is_masked_only_when_its_geometry_moves():
-    fe, target, seg, res, valid = _frontend(vote_keeps_candidates=False)
-    dyn, frac, nvalid = fe._dynamic_masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)
+def test_movable_segment_is_masked_only_when_its_geometry_moves(combine):
+    m, target, seg, res, valid = _masking()
+    dyn, frac, nvalid = m.masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)
     dyn = dyn[0].cpu()
     assert torch.equal(dyn, _reference(seg, res, valid))
     assert bool(dyn[seg == MOVING].all())  # 15 / 25 candidates: the whole car
@@ -79,9 +81,9 @@ def test_movable_segment_is_masked_only_when_its_geometry_moves():
 
 
 def test_keeping_the_candidates_is_pvos_segm_filter():
-    assert FlowFrontendConfig().vote_keeps_candidates  # the default (chosen on the moving-vehicles tune seeds)
-    fe, target, seg, res, valid = _frontend()
-    dyn = fe._dynamic_masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)[0][0].cpu()
+    assert masking_module.VOTE_KEEPS_CANDIDATES  # the default (docs/decisions.md: VOTE_KEEPS_CANDIDATES)
+    m, target, seg, res, valid = _masking()
+    dyn = m.masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)[0][0].cpu()
     # the old rule: every raw candidate, segments voted over all their pixels (the leaving car: 3 / 24, no vote)
     cand = (res > 1.0) & valid
     expected = D.group_regions(cand[None], 4, 1)[0] | cand | (seg == MOVING)
@@ -89,9 +91,9 @@ def test_keeping_the_candidates_is_pvos_segm_filter():
     assert bool(dyn[11, 0]) and bool(dyn[1, 1]) and not bool(dyn[seg == PARKED].all())
 
 
-def test_a_lower_vote_threshold_takes_a_partly_flagged_car():
-    fe, target, seg, res, valid = _frontend(vote_thresh=0.05, vote_keeps_candidates=False)
-    dyn = fe._dynamic_masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)[0][0].cpu()
+def test_a_lower_vote_threshold_takes_a_partly_flagged_car(combine):
+    m, target, seg, res, valid = _masking(vote_thresh=0.05)
+    dyn = m.masks(S.TwoKeyframeGraph(H, W), torch.tensor([0]), torch.tensor([1]), target)[0][0].cpu()
     assert torch.equal(dyn, _reference(seg, res, valid, vote_thresh=0.05))
     assert bool(dyn[seg == PARKED].all())  # 2 / 20 = 0.1 > 0.05
 

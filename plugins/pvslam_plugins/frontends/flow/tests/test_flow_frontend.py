@@ -6,6 +6,9 @@ import pytest
 import torch
 
 from pvslam_core.slam.confidence import observed_flow_weight
+from pvslam_plugins.frontends.flow import dynamic_masking as masking_module
+from pvslam_plugins.frontends.flow import frontend as frontend_module
+from pvslam_plugins.frontends.flow import pair_flow, track_starts
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend, make_frontend
 
@@ -40,11 +43,12 @@ def _frontend(**kw):
 
 
 # ------------------------------------------------------------------------------------------ track --
-def test_motion_filter_thresholds_and_targets():
+def test_motion_filter_thresholds_and_targets(monkeypatch):
     big = S.texture("astronaut")
     # the weights of the forward-backward and photometric checks alone: the texture term (on by default) lowers the
     # picture's flat parts, which test_texture_term_lowers_flat_regions_once_per_source_image covers
-    fe = _frontend(texture_tau=0.0)
+    monkeypatch.setattr(pair_flow, "TEXTURE_TAU", 0.0)
+    fe = _frontend()
     r0 = fe.track(S.frame(S.base(big), 0), None)
     assert r0.is_keyframe and not r0.failed  # the first frame is always a keyframe
     fe.add_keyframe(0, S.frame(S.base(big), 0), None)
@@ -62,7 +66,7 @@ def test_motion_filter_thresholds_and_targets():
     assert float((big_move.target[0] - xs - 3.0).abs()[ok].median()) < 0.1
     assert float((big_move.target[1] - ys - 0.5).abs()[ok].median()) < 0.1
     # a lower threshold turns the small motion into a keyframe
-    fe2 = _frontend(keyframe_thresh=0.5)
+    fe2 = _frontend(keyframes={"flow_thresh": 0.5})
     fe2.add_keyframe(0, S.frame(S.base(big), 0), None)
     assert fe2.track(S.frame(S.shifted(big, 8.0), 1), None).is_keyframe
 
@@ -99,11 +103,11 @@ def test_sudden_jump_fails():
 
 
 # -------------------------------------------------------------------------------------- observe --
-def test_observe_targets_and_track_reuse():
+def test_observe_targets_and_track_reuse(monkeypatch):
     big = S.texture("astronaut")
     shifts = [0.0, 20.0, 36.0]
     g = _graph(shifts)
-    fe = _frontend(dynamic_masking=False)  # default: the track flow is reused for (k-1, k)
+    fe = _frontend(dynamic={"enabled": False})  # default: the track flow is reused for (k-1, k)
     assert fe.rounds == 1
     for k, dx in enumerate(shifts):
         f = S.frame(S.shifted(big, dx), k)
@@ -132,8 +136,9 @@ def test_observe_targets_and_track_reuse():
     obs2 = fe.observe(g, ii, jj)
     assert fe.stats["edges_computed"] == 2
     assert torch.equal(obs2.target, obs.target)
-    # without reuse (e.g. when track runs cheaper settings) all three pairs are computed for the edges
-    fe3 = _frontend(dynamic_masking=False, reuse_track_flow=False)
+    # without reuse all three pairs are computed for the edges
+    monkeypatch.setattr(frontend_module, "REUSE_TRACK_FLOW", False)
+    fe3 = _frontend(dynamic={"enabled": False})
     for k, dx in enumerate(shifts):
         f = S.frame(S.shifted(big, dx), k)
         if k:
@@ -151,10 +156,10 @@ def test_keyframe_when_coverage_drops():
     zoom, _ = S.affine_view(big, np.array([[1.12, 0.0, 0.0], [0.0, 1.12, 0.0]]))
     r = fe.track(S.frame(zoom, 1), None)
     assert not r.failed and r.mean_flow < 2.0
-    lo = _frontend(keyframe_min_coverage=0.95)
+    lo = _frontend(keyframes={"min_coverage": 0.95})
     lo.add_keyframe(0, S.frame(S.base(big), 0), None)
     assert lo.track(S.frame(zoom, 1), None).is_keyframe
-    off = _frontend(keyframe_min_coverage=0.0)
+    off = _frontend(keyframes={"min_coverage": 0.0})
     off.add_keyframe(0, S.frame(S.base(big), 0), None)
     assert not off.track(S.frame(zoom, 1), None).is_keyframe
 
@@ -165,7 +170,7 @@ def test_state_follows_graph_notifications():
     big = S.texture("astronaut")
     shifts = [0.0, 12.0, 30.0, 44.0]
     g = _graph(shifts)
-    fe = _frontend(dynamic_masking=False)
+    fe = _frontend(dynamic={"enabled": False})
     g.add_listener(fe)
     for k, dx in enumerate(shifts):
         fe.add_keyframe(g.id_of(k), S.frame(S.shifted(big, dx), k), None)
@@ -198,14 +203,15 @@ def test_state_follows_graph_notifications():
         fe.observe(g, torch.tensor([0]), torch.tensor([4]))
 
 
-def test_reprojection_init_for_long_baseline_edge():
+def test_reprojection_init_for_long_baseline_edge(monkeypatch):
     big = S.texture("astronaut")
     shifts = [0.0, 130.0]  # 16 BA px: beyond what DIS finds from a zero initialisation here
     xs, ys = _grid()
 
     def run(use_init):
         g = _graph(shifts)
-        fe = _frontend(dynamic_masking=False, use_reprojection_init=use_init)
+        monkeypatch.setattr(frontend_module, "USE_REPROJECTION_INIT", use_init)
+        fe = _frontend(dynamic={"enabled": False})
         for k, dx in enumerate(shifts):
             fe.add_keyframe(k, S.frame(S.shifted(big, dx), k), None)
         obs = fe.observe(g, torch.tensor([0]), torch.tensor([1]))
@@ -227,7 +233,7 @@ def test_discarded_pairs_are_computed_afresh_from_the_next_observes_poses():
     shifts = [0.0, 130.0]  # 16 BA px: DIS needs the reprojection init here (the test above)
     xs, ys = _grid()
     ok = xs + shifts[1] / 8 < BA_W - 1  # pixels that stay in view
-    fe = _frontend(dynamic_masking=False)
+    fe = _frontend(dynamic={"enabled": False})
     for k, dx in enumerate(shifts):
         fe.add_keyframe(k, S.frame(S.shifted(big, dx), k), None)
     ii, jj = torch.tensor([0]), torch.tensor([1])
@@ -274,7 +280,7 @@ def _moving_patch_scene(convention, with_seg):
     seg0 = S.patch_segmentation(x0, y0, 72, 96) if with_seg else None
     seg1 = S.patch_segmentation(x0 + int(dx) + 24, y0 + 10, 72, 96) if with_seg else None
     g = _graph([0.0, dx])
-    fe = _frontend(convention=convention, preset="medium")  # a flow that tracks the object itself
+    fe = _frontend(dynamic={"convention": convention}, dis={"preset": "medium"})  # a flow that tracks the object
     assert fe.rounds == 1  # one round per keyframe; masks apply from an edge's second observation
     fe.add_keyframe(0, S.frame(i0, 0), seg0)
     fe.add_keyframe(1, S.frame(i1, 1), seg1)
@@ -330,18 +336,18 @@ def test_registered_plugin(monkeypatch):
     monkeypatch.setenv("PVSLAM_LOAD_PLUGINS", "")
     reg = build_registry(extra_modules=(flow_plugin,))
     spec = reg.get("frontend", "flow")
-    cfg = spec.config_model(preset="medium", flow_scale=1.0)
+    cfg = spec.config_model(dis={"preset": "medium", "scale": 1.0})
     fe = spec.factory(cfg, type("Ctx", (), {"device": torch.device("cpu"), "ba_downsample": 8})())
     assert isinstance(fe, FlowFrontend) and fe.rounds == 1
     assert spec.factory(spec.config_model(rounds=2), type("Ctx", (), {"device": torch.device("cpu")})()).rounds == 2
-    # renamed keys of earlier releases still load: eta -> panoptic_offset; ba_downsample comes from the graph now
+    # renamed keys of earlier releases still load (test_config.py); ba_downsample comes from the graph now
     old = spec.config_model.model_validate({"eta": 7.0, "ba_downsample": 4})
-    assert old.panoptic_offset == 7.0
+    assert old.dynamic.panoptic_offset == 7.0
     with pytest.raises(Exception):
-        spec.config_model(flow_scale=0.3)
+        spec.config_model(dis={"scale": 0.3})
     with pytest.raises(Exception):
         spec.config_model(presett="fast")
-    assert isinstance(make_frontend(FlowFrontendConfig(dynamic_masking=False), None), FlowFrontend)
+    assert isinstance(make_frontend(FlowFrontendConfig(dynamic={"enabled": False}), None), FlowFrontend)
 
 
 def test_memory_per_keyframe_bounded():
@@ -354,40 +360,39 @@ def test_memory_per_keyframe_bounded():
 
 
 def test_dynamic_mask_reestimated_only_dynamic_updates_times(monkeypatch):
-    """Each edge's mask is re-estimated on its 2nd .. (1 + dynamic_updates)-th observation, then kept."""
+    """Each edge's mask is re-estimated on its 2nd .. (1 + DYNAMIC_UPDATES)-th observation, then kept."""
     big = S.texture("astronaut")
     g = _graph([0.0, 16.0])
-    fe = _frontend(dynamic_updates=2)
+    monkeypatch.setattr(masking_module, "DYNAMIC_UPDATES", 2)
+    fe = _frontend()
     fe.add_keyframe(0, S.frame(S.base(big), 0), None)
     fe.add_keyframe(1, S.frame(S.shifted(big, 16.0), 1), None)
     calls = []
-    orig = fe._update_dynamic
-    monkeypatch.setattr(fe, "_update_dynamic", lambda *a, **k: (calls.append(list(a[3])), orig(*a, **k)))
+    orig = fe.masking._update
+    monkeypatch.setattr(fe.masking, "_update", lambda *a, **k: (calls.append(list(a[3])), orig(*a, **k)))
     ii, jj = torch.tensor([0, 1]), torch.tensor([1, 0])
     for _ in range(5):
         fe.observe(g, ii, jj)
     assert calls == [[0, 1], [0, 1]]
 
 
-def test_tracking_starts_from_the_previous_frames_motion():
+def test_tracking_starts_from_the_previous_frames_motion(monkeypatch):
     """A texture sliding 14 px a frame: from the second frame after a keyframe on, DIS starts from the previous
     frame's flow scaled to the new gap (constant velocity), and three frames out (42 px) far more pixels pass the
-    forward-backward check than from zero; a small motion (under track_init_min_flow) and the first frame after a
+    forward-backward check than from zero; a small motion (under TRACK_INIT_MIN_FLOW) and the first frame after a
     keyframe start from zero."""
-    from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
-    from pvslam_plugins.frontends.flow.frontend import FlowFrontend
-
     big = S.texture("astronaut")
-    step = 14.0  # px per frame (full resolution): 1.75 BA px, above track_init_min_flow = 1
+    step = 14.0  # px per frame (full resolution): 1.75 BA px, above TRACK_INIT_MIN_FLOW = 1
     confident = {}
     for vel in (True, False):
-        # the predicted start (track_predict_init) off: this compares the velocity init with zero
-        fe = FlowFrontend(FlowFrontendConfig(track_velocity_init=vel, track_predict_init=False, keyframe_thresh=50.0,
-                                             keyframe_min_coverage=0.0))
+        # the predicted start (TRACK_PREDICT_INIT) off: this compares the velocity init with zero
+        monkeypatch.setattr(track_starts, "TRACK_VELOCITY_INIT", vel)
+        monkeypatch.setattr(track_starts, "TRACK_PREDICT_INIT", False)
+        fe = FlowFrontend(FlowFrontendConfig(keyframes={"flow_thresh": 50.0, "min_coverage": 0.0}))
         fe.add_keyframe(0, S.frame(S.shifted(big, 0.0), 0), None)
         inits = []
-        orig = fe._velocity_init
-        fe._velocity_init = lambda *a: inits.append(orig(*a)[0] is not None) or orig(*a)
+        orig = fe.starts._velocity_init
+        fe.starts._velocity_init = lambda *a: inits.append(orig(*a)[0] is not None) or orig(*a)
         for t in range(1, 4):
             r = fe.track(S.frame(S.shifted(big, step * t), t), None)
         assert inits == ([False, True, True] if vel else [False, False, False])
@@ -395,18 +400,19 @@ def test_tracking_starts_from_the_previous_frames_motion():
         assert float((u[4:-4, 4:-4] - 3 * step / 8).abs().median()) < 0.05
         confident[vel] = float((r.weight[0] > 0.5).float().mean())
     assert confident[True] > confident[False] + 0.08, confident
+    monkeypatch.undo()
     slow = FlowFrontend()
     slow.add_keyframe(0, S.frame(S.shifted(big, 0.0), 0), None)
     calls = []
-    orig = slow._velocity_init
-    slow._velocity_init = lambda *a: calls.append(orig(*a)[0] is not None) or orig(*a)
+    orig = slow.starts._velocity_init
+    slow.starts._velocity_init = lambda *a: calls.append(orig(*a)[0] is not None) or orig(*a)
     for t in range(1, 3):
         slow.track(S.frame(S.shifted(big, 2.0 * t), t), None)  # 0.25 BA px a frame
     assert calls == [False, False]
 
 
 def test_texture_term_lowers_flat_regions_once_per_source_image(monkeypatch):
-    """With ``texture_tau`` the flow confidence of a flat region drops (its flow is an aperture-problem guess) and the
+    """With ``TEXTURE_TAU`` the flow confidence of a flat region drops (its flow is an aperture-problem guess) and the
     texture term of a keyframe's image is computed once, however many flows start from it."""
     import cv2
 
@@ -422,7 +428,8 @@ def test_texture_term_lowers_flat_regions_once_per_source_image(monkeypatch):
     monkeypatch.setattr(flow_ops, "texture_confidence", lambda *a, **k: calls.append(1) or real(*a, **k))
     weights = {}
     for tau in (0.0, 3e-4):
-        fe = FlowFrontend(FlowFrontendConfig(texture_tau=tau, texture_quantile=0.75))
+        monkeypatch.setattr(pair_flow, "TEXTURE_TAU", tau)
+        fe = FlowFrontend(FlowFrontendConfig())
         fe.add_keyframe(0, frames[0], None)
         calls.clear()
         for f in frames[1:]:

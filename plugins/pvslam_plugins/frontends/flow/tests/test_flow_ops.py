@@ -186,13 +186,13 @@ def test_zero_init_flow_does_not_depend_on_earlier_initialised_calls():
     rng = np.random.default_rng(0)
     base = cv2.GaussianBlur((rng.random((120, 160)) * 255).astype(np.uint8), (0, 0), 2.0)
     g0, g1 = base, np.roll(base, 3, axis=1)
-    fe = FlowFrontend()
-    clean = FlowFrontend()._flow("edge", g0, g1)
+    p = FlowFrontend().pairs
+    clean = FlowFrontend().pairs.flow("edge", g0, g1)
     init = rng.normal(0, 3, (120, 160, 2)).astype(np.float32)
-    fe._flows(fe._pair_calls(g1, g0, init, init))  # an initialised edge first
-    fe._flows(fe._pair_calls(g1, g0, init, init, kind="track"))
-    np.testing.assert_array_equal(fe._flow("edge", g0, g1), clean)
-    np.testing.assert_array_equal(fe._flow("track", g0, g1), clean)
+    p.flows(p.pair_calls(g1, g0, init, init))  # an initialised edge first
+    p.flows(p.pair_calls(g1, g0, init, init, kind="track"))
+    np.testing.assert_array_equal(p.flow("edge", g0, g1), clean)
+    np.testing.assert_array_equal(p.flow("track", g0, g1), clean)
 
 
 def _half_textured():

@@ -68,7 +68,7 @@ def test_frontend_observations_do_not_depend_on_flow_threads():
     k = Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
     out = []
     for threads in (1, 2):
-        fe = FlowFrontend(FlowFrontendConfig(flow_threads=threads), ba_downsample=8)
+        fe = FlowFrontend(FlowFrontendConfig(dis={"threads": threads}), ba_downsample=8)
         tracks = []
         for i, g in enumerate(imgs):
             frame = Frame(i, 0.1 * i, torch.from_numpy(np.stack([g, g, g])), k)
@@ -76,7 +76,7 @@ def test_frontend_observations_do_not_depend_on_flow_threads():
             tracks.append((r.is_keyframe, None if r.target is None else r.target.clone()))
             fe.add_keyframe(i, frame, None)
         out.append((tracks, dict(fe.stats)))
-        fe._lanes.close()
+        fe.pairs.close()
     (t1, s1), (t2, s2) = out
     assert s1["dis_calls"] == s2["dis_calls"] > 0
     for (k1, a), (k2, b) in zip(t1, t2):
@@ -91,7 +91,7 @@ def test_a_run_is_bit_equal_with_one_and_two_flow_threads(tmp_path):
     poses = []
     for threads in (1, 2):
         r = run_config(None, overrides=[
-            'dataset.scenario="driving_loop"', "dataset.num_frames=40", f"frontend.flow_threads={threads}",
+            'dataset.scenario="driving_loop"', "dataset.num_frames=40", f"frontend.dis.threads={threads}",
             f'run.output_dir="{(tmp_path / str(threads)).as_posix()}"', "run.progress=false",
             "evaluation.enabled=false", "outputs.ply=false", "outputs.plots=false", "outputs.panoptic_png=false"])
         poses.append(r.poses)

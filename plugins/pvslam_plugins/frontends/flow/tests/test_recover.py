@@ -6,6 +6,8 @@ import cv2
 import numpy as np
 import torch
 
+from pvslam_plugins.frontends.flow import pair_flow
+from pvslam_plugins.frontends.flow import track_starts as starts_module
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend
 from pvslam_plugins.frontends.flow.recover import homography_flow
@@ -42,16 +44,18 @@ def test_homography_flow_matches_a_known_homography():
     assert res is None or res[2] < 40
 
 
-def test_fast_turn_recovered_and_cut_still_fails():
+def test_fast_turn_recovered_and_cut_still_fails(monkeypatch):
     """A 64 px jump (32 flow px, like a 300 deg/s turn): DIS from zero loses the frame; with the recovery the frame
     tracks and its targets are the true shift (8 BA px); a cut to another image still fails."""
     big = S.texture("astronaut")
     dx, dy = 64.0, 20.0
     out = {}
+    # texture term off: the confident fraction below is the forward-backward check's (flat parts of the picture would
+    # be down-weighted whether or not the frame was recovered)
+    monkeypatch.setattr(pair_flow, "TEXTURE_TAU", 0.0)
     for frac in (1.0, 0.5):
-        # texture term off: the confident fraction below is the forward-backward check's (flat parts of the
-        # picture would be down-weighted whether or not the frame was recovered)
-        fe = FlowFrontend(FlowFrontendConfig(track_recover_fail_fraction=frac, texture_tau=0.0))
+        monkeypatch.setattr(starts_module, "TRACK_RECOVER_FAIL_FRACTION", frac)
+        fe = FlowFrontend(FlowFrontendConfig())
         fe.add_keyframe(0, S.frame(S.base(big), 0), None)
         r = fe.track(S.frame(S.shifted(big, dx, dy), 1), None)
         out[frac] = (r, fe.stats["track_recovered"])
@@ -63,6 +67,7 @@ def test_fast_turn_recovered_and_cut_still_fails():
     ok = r.weight[0] > 0.5
     assert float(ok.float().mean()) > 0.5
     assert float((u[ok] - dx / 8).abs().median()) < 0.1 and float((v[ok] - dy / 8).abs().median()) < 0.1
+    monkeypatch.undo()
     fe = FlowFrontend()
     fe.add_keyframe(0, S.frame(S.base(big), 0), None)
     r = fe.track(S.frame(S.base(S.texture("coffee")), 1), None)
@@ -106,16 +111,17 @@ def test_fast_pan_without_corners_tracks_from_the_predicted_motion(monkeypatch):
     """A pan of 64 px per frame (32 flow px: beyond DIS from zero): the first frames recover from the corners'
     homography; once the corners give none (a bare wall), the motion predicted at constant rate starts DIS and the
     frame tracks with its true targets; without the prediction most of its pixels fail."""
-    import pvslam_plugins.frontends.flow.track_starts as starts_module
-
     big = S.texture("astronaut", size=(S.H + 2 * S.PAD + 200, S.W + 2 * S.PAD + 400))
     dx, dy = -64.0, -16.0
     results = {}
     for predict in (True, False):
         monkeypatch.setattr(starts_module, "homography_flow", homography_flow)
-        # the first frame after a keyframe would start from the prediction anyway (track_predict_init): off here,
+        # the first frame after a keyframe would start from the prediction anyway (TRACK_PREDICT_INIT): off here,
         # this is the recovery's test
-        fe = FlowFrontend(FlowFrontendConfig(track_predict_recover=predict, track_predict_init=False, texture_tau=0.0))
+        monkeypatch.setattr(starts_module, "TRACK_PREDICT_RECOVER", predict)
+        monkeypatch.setattr(starts_module, "TRACK_PREDICT_INIT", False)
+        monkeypatch.setattr(pair_flow, "TEXTURE_TAU", 0.0)
+        fe = FlowFrontend(FlowFrontendConfig())
         fe.add_keyframe(0, S.frame(S.shifted(big, 0, 0), 0), None)
         for k in range(1, 4):
             if k == 3:  # no corners from here on
@@ -139,13 +145,13 @@ def test_fast_pan_without_corners_tracks_from_the_predicted_motion(monkeypatch):
 def test_the_predictor_observing_on_a_flow_worker_changes_nothing(monkeypatch):
     """With two flow threads each frame's predictor observation runs on the worker while the pipeline goes on; the
     recovery that reads it waits for it: targets, weights and the predictor's chain equal those of one thread."""
-    import pvslam_plugins.frontends.flow.track_starts as starts_module
-
+    monkeypatch.setattr(starts_module, "TRACK_PREDICT_INIT", False)
+    monkeypatch.setattr(pair_flow, "TEXTURE_TAU", 0.0)
     big = S.texture("astronaut", size=(S.H + 2 * S.PAD + 200, S.W + 2 * S.PAD + 400))
     out = {}
     for threads in (1, 2):
         monkeypatch.setattr(starts_module, "homography_flow", homography_flow)
-        fe = FlowFrontend(FlowFrontendConfig(flow_threads=threads, track_predict_init=False, texture_tau=0.0))
+        fe = FlowFrontend(FlowFrontendConfig(dis={"threads": threads}))
         fe.add_keyframe(0, S.frame(S.shifted(big, 0, 0), 0), None)
         tracks = []
         for k in range(1, 5):
@@ -156,9 +162,9 @@ def test_the_predictor_observing_on_a_flow_worker_changes_nothing(monkeypatch):
             tracks.append((r.failed, r.target, r.weight))
             if k < 3:
                 fe.add_keyframe(k, f, None)
-        pred = fe._predictor_ready()
+        pred = fe.starts.predictor()
         out[threads] = (tracks, {i: (c, g.copy()) for i, (c, g) in pred._g.items()}, fe.stats["track_recovered"])
-        fe._lanes.close()
+        fe.pairs.close()
     (t1, g1, n1), (t2, g2, n2) = out[1], out[2]
     assert n1 == n2 >= 3 and sorted(g1) == sorted(g2) and len(g1) >= 3
     for i in g1:
@@ -167,7 +173,7 @@ def test_the_predictor_observing_on_a_flow_worker_changes_nothing(monkeypatch):
         assert f1 == f2 and torch.equal(a1, a2) and torch.equal(w1, w2)
 
 
-def test_the_first_frame_after_a_keyframe_starts_from_the_predicted_motion():
+def test_the_first_frame_after_a_keyframe_starts_from_the_predicted_motion(monkeypatch):
     """A pan of 52 px per frame (6.5 BA px): frame 2 is the first after keyframe 1, so it has no velocity init. DIS
     from zero leaves half its pixels inconsistent (49 %: under the recovery's 50 %) and its mean flow short of the
     motion; started from the motion predicted at constant rate (frames 0 -> 1) it tracks as frame 1 did."""
@@ -175,8 +181,10 @@ def test_the_first_frame_after_a_keyframe_starts_from_the_predicted_motion():
     dx, dy = -52.0, -15.6
     true_flow = float(np.hypot(dx, dy)) / 8  # BA px
     out = {}
+    monkeypatch.setattr(pair_flow, "TEXTURE_TAU", 0.0)
     for on in (True, False):
-        fe = FlowFrontend(FlowFrontendConfig(track_predict_init=on, texture_tau=0.0))
+        monkeypatch.setattr(starts_module, "TRACK_PREDICT_INIT", on)
+        fe = FlowFrontend(FlowFrontendConfig())
         fe.add_keyframe(0, S.frame(S.shifted(big, 0, 0), 0), None)
         f1 = S.frame(S.shifted(big, dx, dy), 1)
         assert not fe.track(f1, None).failed

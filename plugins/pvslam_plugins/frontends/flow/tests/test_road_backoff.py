@@ -1,4 +1,4 @@
-"""The road search's back-off (road_frontend.py): without a road the tracking search from scratch never finds a
+"""The road search's back-off (road_prior.py): without a road the tracking search from scratch never finds a
 plane, so after ROAD_BACKOFF_AFTER consecutive misses it skips a doubling number of frames (at most
 ROAD_BACKOFF_MAX); a road coming into view is found again within that many frames and then searched every frame."""
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend
-from pvslam_plugins.frontends.flow.road_frontend import ROAD_BACKOFF_AFTER, ROAD_BACKOFF_MAX
+from pvslam_plugins.frontends.flow.road_prior import ROAD_BACKOFF_AFTER, ROAD_BACKOFF_MAX
 
 import _flow_scenes as S
 from test_road_depth import KFULL
@@ -24,19 +24,19 @@ def _track(fe, frames) -> list[int]:
     """Track ``(index, image)`` pairs; the indices of the frames the road was searched on."""
     searched = []
     for k, img in frames:
-        n = fe._road.stats["searches"]
+        n = fe.road.stats["searches"]
         fe.track(S.frame(img, k), None)
-        if fe._road.stats["searches"] > n:
+        if fe.road.stats["searches"] > n:
             searched.append(k)
     return searched
 
 
 def test_no_road_backs_off_and_a_road_is_found_again():
-    fe = FlowFrontend(FlowFrontendConfig())  # road_plane: the default
+    fe = FlowFrontend(FlowFrontendConfig())  # road.enabled: the default
     big = S.texture()
     fe.add_keyframe(0, S.frame(S.base(big), 0), None)
     searched = _track(fe, [(k, S.shifted(big, 0.4 * k, -0.3 * k)) for k in range(1, N_WALL + 1)])
-    st = fe._road.stats
+    st = fe.road.stats
     assert st["accepted"] == 0
     # every frame searched until ROAD_BACKOFF_AFTER misses, then 1, 2, 4, ... frames skipped, at most ROAD_BACKOFF_MAX
     n = ROAD_BACKOFF_AFTER

@@ -1,4 +1,4 @@
-"""The road's inverse-depth prior (``road_depth_weight``, road_frontend.py): the camera height is measured only when
+"""The road's inverse-depth prior (``road.depth_weight``, road_prior.py): the camera height is measured only when
 the map's road depth and its motion agree, and the prior sits on the verified road pixels at that height."""
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from pvslam_core.slam.graph import FrameGraph
+from pvslam_plugins.frontends.flow import road_prior as road_module
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
 from pvslam_plugins.frontends.flow.frontend import FlowFrontend
 
@@ -34,7 +35,7 @@ def _drive(cfg: FlowFrontendConfig):
 
 @pytest.fixture(scope="module")
 def drive():
-    return _drive(FlowFrontendConfig(road_depth_weight=A0))  # road_plane and road_verify: the defaults
+    return _drive(FlowFrontendConfig(road={"depth_weight": A0}))  # the road plane and its verification: defaults
 
 
 def _graph(zs, scale: float, depth_factor: float) -> FrameGraph:
@@ -61,21 +62,21 @@ def _observe(fe, g):
 
 def test_no_height_while_road_depth_and_motion_disagree(drive):
     fe, zs = drive
-    fe.road_height = None
-    fe.road_height_tries.clear()
+    fe.road.height = None
+    fe.road.height_tries.clear()
     assert _observe(fe, _graph(zs, scale=0.05, depth_factor=8.0)) is None  # the road 8x too far for the motion
-    assert fe.road_height is None
-    (n, by_motion, by_depth), = fe.road_height_tries
+    assert fe.road.height is None
+    (n, by_motion, by_depth), = fe.road.height_tries
     assert n == 8 and by_depth / by_motion == pytest.approx(8.0, rel=0.1)
 
 
 def test_height_and_prior_where_they_agree(drive):
     fe, zs = drive
-    fe.road_height = None
-    fe.road_height_tries.clear()
+    fe.road.height = None
+    fe.road.height_tries.clear()
     scale = 0.05
     prior, alpha = _observe(fe, _graph(zs, scale=scale, depth_factor=1.0))
-    assert fe.road_height == pytest.approx(CAM_H * scale, rel=0.05)
+    assert fe.road.height == pytest.approx(CAM_H * scale, rel=0.05)
     assert prior.shape == alpha.shape == (8, 30, 40)
     assert float(alpha[0].abs().sum()) == 0.0  # the first keyframe was never tracked: no road pixels known
     ray = ((torch.arange(30, dtype=torch.float32) - 14.5) / 36.0)[:, None].expand(30, 40)
@@ -84,7 +85,7 @@ def test_height_and_prior_where_they_agree(drive):
         on = alpha[k] > 0
         assert float(on[lower].float().mean()) > 0.6  # most of the near road is verified road
         assert not bool(on[ray <= 0].any())  # never above the horizon
-        torch.testing.assert_close(prior[k][on], (ray / fe.road_height)[on])
+        torch.testing.assert_close(prior[k][on], (ray / fe.road.height)[on])
         rel = alpha[k][on] * prior[k][on] ** 2 / A0  # the relative weight: the verification weight in [0, 1]
         assert float(rel.max()) <= 1.0 + 1e-5 and float(rel.median()) > 0.3
     # only the asked keyframes; none with road pixels: no prior
@@ -94,19 +95,20 @@ def test_height_and_prior_where_they_agree(drive):
     torch.testing.assert_close(p2, prior[[5, 2]])
     assert fe.depth_prior(_graph(zs, scale=scale, depth_factor=1.0), torch.tensor([0])) is None
     # measured once: a later map at another scale does not move it
-    h = fe.road_height
+    h = fe.road.height
     _observe(fe, _graph(zs, scale=0.2, depth_factor=1.0))
-    assert fe.road_height == h
+    assert fe.road.height == h
 
 
-def test_prior_without_the_verified_plane_does_nothing():
-    """road_depth_weight only acts on verified plane pixels: with road_verify off (no verification weights) or
-    road_plane off the frontend gives the BA no prior, and such a config loads (a saved run config has every key)."""
-    for cfg in (FlowFrontendConfig(road_verify=False), FlowFrontendConfig(road_plane=False)):
-        assert cfg.road_depth_weight > 0
+def test_prior_without_the_verified_plane_does_nothing(monkeypatch):
+    """road.depth_weight only acts on verified plane pixels: with the verification off (ROAD_VERIFY: no verification
+    weights) or road.enabled off the frontend gives the BA no prior, and such a config loads."""
+    for verify, cfg in ((False, FlowFrontendConfig()), (True, FlowFrontendConfig(road={"enabled": False}))):
+        monkeypatch.setattr(road_module, "ROAD_VERIFY", verify)
+        assert cfg.road.depth_weight > 0
         fe, zs = _drive(cfg)
-        assert fe._road_w == {}
-        assert _observe(fe, _graph(zs, 0.05, 1.0)) is None and fe.road_height is None
-    assert FlowFrontendConfig(road_depth_weight=0.0).road_depth_weight == 0.0
+        assert fe.road is None or not any(fe.road.has_road_pixels(k) for k in range(len(zs)))
+        assert _observe(fe, _graph(zs, 0.05, 1.0)) is None and (fe.road is None or fe.road.height is None)
+    assert FlowFrontendConfig(road={"depth_weight": 0.0}).road.depth_weight == 0.0
     with pytest.raises(ValueError, match="greater than or equal to 0"):
-        FlowFrontendConfig(road_depth_weight=-1.0)
+        FlowFrontendConfig(road={"depth_weight": -1.0})

@@ -79,7 +79,7 @@ def test_search_recovers_the_road_motion_where_dis_does_not(road_pair):
 def S_dis(g0, g1):
     cfg = FlowFrontendConfig()
     from pvslam_plugins.frontends.flow import flow_ops as F
-    return F.create_dis(cfg.preset, finest_scale=cfg.finest_scale).calc(g0, g1, None)
+    return F.create_dis(cfg.dis.preset, finest_scale=cfg.dis.finest_scale).calc(g0, g1, None)
 
 
 def test_apply_merges_the_plane_into_the_road_rows_only(road_pair):
@@ -158,7 +158,7 @@ def test_road_chain_composes_plane_motions():
 
 
 def test_frontend_tracking_follows_the_near_road(road_pair):
-    """The frontend with ``road_plane``: a 2 m step over the textured road; the tracked BA targets of the lower rows
+    """The frontend with ``road.enabled``: a 2 m step over the textured road; the tracked BA targets of the lower rows
     match the exact plane flow, where plain DIS's are off by pixels."""
     _, _, _, v_true, tex = road_pair
     Kfull = np.array([[288.0, 0, 159.5], [0, 288.0, 119.5], [0, 0, 1]])
@@ -166,7 +166,7 @@ def test_frontend_tracking_follows_the_near_road(road_pair):
             for z in (10.0, 12.0)]
     errs = {}
     for on in (False, True):
-        fe = FlowFrontend(FlowFrontendConfig(road_plane=on))
+        fe = FlowFrontend(FlowFrontendConfig(road={"enabled": on}))
         fe.add_keyframe(0, S.frame(imgs[0], 0), None)
         r = fe.track(S.frame(imgs[1], 1), None)
         tgt = r.target.numpy()  # [2, 30, 40] BA px

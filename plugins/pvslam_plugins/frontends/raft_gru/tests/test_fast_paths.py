@@ -130,7 +130,7 @@ def test_motion_filter_with_two_steps_equals_plain_calls(droid_net, droid_golden
     net = copy.deepcopy(droid_net)
     rgb = [f.contiguous() for f in droid_golden["images_uint8"][0, :, [2, 1, 0]]]
     intr = Intrinsics(110.0, 110.0, 67.5, 63.5, 136, 128)
-    fe = RaftGruFrontend(RaftGruConfig(weights="random", track_iters=2, dynamic_masking=False), model=net)
+    fe = RaftGruFrontend(RaftGruConfig(weights="random", track_iters=2, dynamic={"enabled": False}), model=net)
     fe.add_keyframe(0, Frame(index=0, timestamp=0.0, image=rgb[0], intrinsics=intr), None)
     got = fe.track(Frame(index=1, timestamp=0.1, image=rgb[2], intrinsics=intr), None)
     with torch.no_grad():

@@ -39,7 +39,7 @@ def frame(img: torch.Tensor, k: int) -> Frame:
 
 
 def frontend(model, **kw) -> RaftGruFrontend:
-    kw.setdefault("dynamic_masking", False)
+    kw.setdefault("dynamic", {"enabled": False})
     return RaftGruFrontend(RaftGruConfig(weights="random", **kw), model=model)
 
 
@@ -195,7 +195,7 @@ def test_pvo_mask_accumulates_and_eq4_convention(pvo_full_state_dict, rgb):
     model.load_state_dict(pvo_full_state_dict)
     g = graph_of(2)
     ii, jj = torch.tensor([0]), torch.tensor([1])
-    fes = {c: RaftGruFrontend(RaftGruConfig(weights="random", convention=c, things_only=False),
+    fes = {c: RaftGruFrontend(RaftGruConfig(weights="random", dynamic={"convention": c, "things_only": False}),
                               model=copy.deepcopy(model)) for c in ("paper", "pvo_code")}
     for fe in fes.values():
         for k in range(2):
@@ -234,7 +234,7 @@ def test_pvo_mask_accumulates_and_eq4_convention(pvo_full_state_dict, rgb):
 def test_segment_vote_spreads_the_mask(pvo_full_state_dict, rgb):
     model = RaftGruNet("pvo")
     model.load_state_dict(pvo_full_state_dict)
-    fe = RaftGruFrontend(RaftGruConfig(weights="random", vote_thresh=0.0), model=model)
+    fe = RaftGruFrontend(RaftGruConfig(weights="random", dynamic={"vote_thresh": 0.0}), model=model)
     ids = torch.full((H, W), 3000, dtype=torch.int64)
     ids[:, :64] = 11001  # a car on the left
     seg = PanopticSegmentation(ids, [Segment(3000, 3, False), Segment(11001, 11, True)])
@@ -302,6 +302,30 @@ def test_configuration_errors_and_warnings(net, rgb):
     assert (fast.resolved("rounds"), fast.resolved("precision"), fast.resolved("update_window")) == (3, "bf16", 2)
     with pytest.raises(Exception, match="extra"):
         RaftGruConfig(weights="random", roundz=3)
+
+
+def test_config_dynamic_table_and_old_keys():
+    """``frontend.dynamic`` is the shared dynamic-masking model (raft_gru's defaults and mask-head keys on top); the
+    flat keys of earlier releases land in it, and a retired key loads only at its fixed value."""
+    from pvslam_core.slam.dynamic_config import DynamicMaskingConfig
+    from pvslam_plugins.frontends.raft_gru import frontend as frontend_module
+
+    d = RaftGruConfig(weights="random").dynamic
+    assert isinstance(d, DynamicMaskingConfig)
+    assert (d.enabled, d.panoptic_offset, d.convention, d.thresh, d.max_fraction, d.vote_thresh, d.mask_thresh,
+            d.things_only) == (True, 10.0, "paper", 1.0, 0.5, None, 0.5, True)
+    old = RaftGruConfig.model_validate({
+        "weights": "random", "dynamic_masking": False, "panoptic_offset": 7.0, "convention": "pvo_code",
+        "dynamic_thresh": 2.0, "max_dynamic_fraction": 0.7, "vote_thresh": 0.3, "mask_thresh": 0.6,
+        "things_only": False, "dynamic_rel_thresh": 3.0, "min_texture_std": 2.0})
+    assert old.dynamic.model_dump() == {"enabled": False, "panoptic_offset": 7.0, "convention": "pvo_code",
+                                        "thresh": 2.0, "max_fraction": 0.7, "vote_thresh": 0.3, "mask_thresh": 0.6,
+                                        "things_only": False}
+    assert RaftGruConfig.retired == {"dynamic_rel_thresh": frontend_module.DYNAMIC_REL_THRESH,
+                                     "min_texture_std": frontend_module.MIN_TEXTURE_STD}
+    for key, other in (("dynamic_rel_thresh", 1.0), ("min_texture_std", 5.0)):
+        with pytest.raises(ValueError, match=f"'{key}' was retired"):
+            RaftGruConfig(weights="random", **{key: other})
 
 
 def test_corr_impls_agree_and_bf16_is_close(net, rgb):
