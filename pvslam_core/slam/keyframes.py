@@ -2,7 +2,8 @@
 
 The frontend's motion filter proposes a keyframe (``TrackResult.is_keyframe``) whenever tracking needs a recent
 reference; the map does not need all of them, and a keyframe that is removed right after paying for its edges and
-its window BA was wasted work.  The life of a proposal (:class:`KeyframePolicy`):
+its window BA was wasted work (docs/decisions.md: PROVISIONAL KEYFRAMES).  The life of a proposal
+(:class:`KeyframePolicy`):
 
 1. **proposal** (:meth:`~KeyframePolicy.propose`): first the provisional keyframe, if any, is settled (3.); then the
    new keyframe is *provisional* when its frame distance to the newest keyframe (that keyframe's depth, the new
