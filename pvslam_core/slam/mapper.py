@@ -63,7 +63,7 @@ class Mapper:
         observer = EdgeObserver(st.graph, frontend)
         self.window_ba = WindowBA(st, observer, optimizer, self.cfg.edges)
         self.bootstrap = Bootstrap(self.cfg.init, st, observer, frontend)
-        self.keyframes = KeyframePolicy(self.cfg.keyframes, st, self._connect)
+        self.keyframe_policy = KeyframePolicy(self.cfg.keyframes, st, self._connect)
         self.loop_closer = LoopCloser(pcfg.loop_closure, st, observer, optimizer, loop_detector,
                                       self.cfg.edges.active_window)
         self.optimizer = optimizer
@@ -115,7 +115,7 @@ class Mapper:
         g, fr = self.state.graph, self.state.fragments
         return {"active_edges": g.num_edges, "retired_edges": g.num_retired, "keyframes_added": g.next_id,
                 "keyframes_removed": g.next_id - g.n,
-                "keyframes_provisional_removed": self.keyframes.provisional_removed,
+                "keyframes_provisional_removed": self.keyframe_policy.provisional_removed,
                 "second_starts": self.window_ba.second_starts, "second_starts_kept": self.window_ba.second_starts_kept,
                 # stretches of keyframes whose depth was never measured (pvslam_core/slam/scale_gaps.py)
                 "scale_gaps": [gap.as_dict() for gap in self.scale_gaps],
@@ -144,7 +144,7 @@ class Mapper:
         t0 = thread_time()
         pose = new_keyframe.pose_guess(st, g.n - 1, track)  # against the tracking reference (maybe provisional)
         st.cpu["pose_guess"] += thread_time() - t0
-        provisional = self.keyframes.propose(pose, frame.timestamp)
+        provisional = self.keyframe_policy.propose(pose, frame.timestamp)
         a_id = g.id_of(-1)  # the previous keyframe that stays
         kf_id = self._add_keyframe(frame, seg, pose, provisional)
         entry = st.frames.entries[-1]
@@ -166,7 +166,7 @@ class Mapper:
         st.cpu["loops"] += thread_time() - t0
         st.place_frames(a_id)
         result = self._result(frame, entry, ref, track, kf_id=kf_id)  # before the reference may be removed
-        self.keyframes.remove_redundant(k)
+        self.keyframe_policy.remove_redundant(k)
         return result
 
     def _add_keyframe(self, frame: Frame, seg: Optional[PanopticSegmentation], pose: torch.Tensor,
@@ -184,7 +184,7 @@ class Mapper:
         st.add_thumbnail(kf_id, frame, seg)
         if self.loop_detector is not None:  # every keyframe is described; candidates are asked after the BA
             self.loop_detector.add_keyframe(kf_id, frame)
-        self.keyframes.added(kf_id, provisional)
+        self.keyframe_policy.added(kf_id, provisional)
         return kf_id
 
     def _connect(self, k: int) -> None:
@@ -238,7 +238,7 @@ class Mapper:
                                         failed=True)
             return self._result(frame, entry, ref, track)
         # Re-initialise: start a new map fragment at this frame, placed at the last known pose.
-        self.keyframes.settle(keep=True)  # the newest reference ends the old fragment as an ordinary keyframe
+        self.keyframe_policy.settle(keep=True)  # the newest reference ends the old fragment as an ordinary keyframe
         pose = self.trajectory()[1][-1]
         self.reinits += 1
         st.fragment_start = st.graph.n
@@ -254,7 +254,7 @@ class Mapper:
     def finalize(self) -> None:
         """The final global BA over every edge (active and retired) and the last frames' poses."""
         st, g = self.state, self.state.graph
-        self.keyframes.settle(keep=True)  # it holds the last frames' reference; the final BA optimises it
+        self.keyframe_policy.settle(keep=True)  # it holds the last frames' reference; the final BA optimises it
         if st.fragments.unmerged > 1:
             LOG.warning("%d map fragments were never joined by a loop (%d merged): the trajectory is in %d unrelated "
                         "frames", len(st.fragments.starts), st.fragments.merges, st.fragments.unmerged)

@@ -71,7 +71,8 @@ def test_each_retired_value_is_the_constant_the_code_uses():
     retired entry would make old files that state the old value load silently with another behaviour)."""
     constants = {
         "ba_min_focal": adapt.BA_MIN_FOCAL, "warmup_seconds": bootstrap.WARMUP_SECONDS,
-        "init_parallax_quantile": bootstrap.PARALLAX_QUANTILE, "init_relative_confidence": bootstrap.RELATIVE_CONFIDENCE,
+        "init_parallax_quantile": bootstrap.PARALLAX_QUANTILE,
+        "init_relative_confidence": bootstrap.RELATIVE_CONFIDENCE,
         "init_chain_tol": bootstrap.CHAIN_TOL, "init_chain_fallback": bootstrap.CHAIN_FALLBACK,
         "init_ambiguity_ratio": bootstrap.AMBIGUITY_RATIO, "init_tie_ratio": bootstrap.TIE_RATIO,
         "init_tries": bootstrap.INIT_TRIES, "init_window": bootstrap.INIT_WINDOW,

@@ -159,8 +159,8 @@ def _run_counted(frames, loop=None):
     provisional_had_edges = []
     for f in ds:
         r = m.process(f, None)
-        if m.keyframes.provisional is not None:  # the newest keyframe is provisional: no edge touches it yet
-            k = m.graph.index_of(m.keyframes.provisional)
+        if m.keyframe_policy.provisional is not None:  # the newest keyframe is provisional: no edge touches it yet
+            k = m.graph.index_of(m.keyframe_policy.provisional)
             provisional_had_edges.append(bool(((m.graph.ii == k) | (m.graph.jj == k)).any()))
     return m, ds, fe, provisional_had_edges
 
@@ -174,7 +174,7 @@ def test_provisional_keyframes_skip_the_work_of_redundant_ones(monkeypatch):
         m0, ds, _, _ = _run_counted(30)
     m1, ds, fe, had_edges = _run_counted(30)
     assert had_edges and not any(had_edges)  # provisional keyframes existed and never had edges
-    assert m1.keyframes.provisional_removed > 0 and m0.keyframes.provisional_removed == 0
+    assert m1.keyframe_policy.provisional_removed > 0 and m0.keyframe_policy.provisional_removed == 0
     assert len(m1.window_ba.optimizer.window_sizes) < len(m0.window_ba.optimizer.window_sizes)  # the point
     ids = m1.graph.ids.tolist()
     assert abs(len(ids) - len(m0.graph.ids)) <= 2  # about as many keyframes stay as with removal after the BA
@@ -183,7 +183,7 @@ def test_provisional_keyframes_skip_the_work_of_redundant_ones(monkeypatch):
     m1.finalize()
     ts, poses = m1.trajectory()
     gt = torch.stack([f.gt_pose for f in ds])
-    assert len(ts) == len(gt) and m1.keyframes.provisional is None
+    assert len(ts) == len(gt) and m1.keyframe_policy.provisional is None
     ate = umeyama_ate(poses[:, :3], gt[:, :3])
     assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate
 
@@ -194,7 +194,7 @@ def test_provisional_keyframe_that_is_not_redundant_becomes_ordinary():
     det = VerifiedLoop()
     m, ds, fe, _ = _run_counted(24, loop=det)
     g = m.graph
-    last = g.n - 1 if m.keyframes.provisional is None else g.n - 2
+    last = g.n - 1 if m.keyframe_policy.provisional is None else g.n - 2
     for k in range(1, last + 1):  # every settled keyframe has edges
         assert bool(((g.ii == k) | (g.jj == k)).any()), k
     assert det.added == g.ids.tolist()
