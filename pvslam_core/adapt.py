@@ -14,15 +14,11 @@ A segmenter the user chose that needs no labels is never touched.
 The BA resolution (``graph.ba_downsample``, default 1/8) follows the camera: every threshold the frame graph and
 the frontend express in BA pixels (keyframe flow, redundancy, proximity edges, dynamic residuals) was chosen with
 the 320x240 synthetic camera at 1/8, whose focal length is 272 / 8 = 34 BA pixels per radian, and a flow in BA
-pixels is that focal length times an angle of motion.  On a 160x120 camera (17 at 1/8) the hand-held room never
-initialised and the driving loop reached 9.4 % instead of 0.4 % (bench/RESULTS.md, issue 13).  Unless the user set
-``graph.ba_downsample`` or the frontend registered a fixed one (the registration extra ``ba_downsample``: a
-network's feature stride), it is halved while ``min(fx, fy) / ba_downsample`` is below ``graph.ba_min_focal`` (24,
-about 34 / sqrt(2): halve where that lands nearer 34; a power-of-two divisor of the old factor, so the reader's crop
-stays valid).  Why the focal length and not the image height (the first version of this rule, which required 30
-rows): a wide image of few rows is not a coarse one -- KITTI at half size (616x184, fx 354: 44 at 1/8) was halved
-by the row count, which quadrupled its BA grid, made every frame a keyframe and cut its speed from ~20 to 7
-frames/s without a better map (bench/RESULTS.md, session 2026-12-03).
+pixels is that focal length times an angle of motion.  Unless the user set ``graph.ba_downsample`` or the frontend
+registered a fixed one (the registration extra ``ba_downsample``: a network's feature stride), it is halved while
+``min(fx, fy) / ba_downsample`` is below :data:`BA_MIN_FOCAL` (a power-of-two divisor of the old factor, so the
+reader's crop stays valid).  The focal length and not the image height: a wide image of few rows is not a coarse
+one (docs/decisions.md: BA_MIN_FOCAL).
 
 Each change is one line on the ``pvslam.notice`` logger, which the command line prints on the console (and
 log.txt keeps).
@@ -36,6 +32,9 @@ from .config import DISABLED, Component, ResolvedConfig
 from .types import SequenceInfo
 
 NOTICE = logging.getLogger("pvslam.notice")  # choices made for the user; the CLI shows them on the console
+# the BA resolution is halved while the focal length at it (BA px per radian) would be below this: about 34 / sqrt(2),
+# so that it lands nearest the 34 every BA-pixel threshold was chosen at (docs/decisions.md: BA_MIN_FOCAL)
+BA_MIN_FOCAL = 24.0
 
 
 def _ready_segmenters(registry, exclude: str) -> list[str]:
@@ -63,7 +62,7 @@ def fit_to_sequence(resolved: ResolvedConfig, info: SequenceInfo, registry) -> t
 
 def _fit_ba_resolution(resolved: ResolvedConfig, info: SequenceInfo, registry) -> tuple[ResolvedConfig, list[str]]:
     g = resolved.pipeline.graph
-    if "ba_downsample" in g.model_fields_set or g.ba_min_focal <= 0:
+    if "ba_downsample" in g.model_fields_set:
         return resolved, []
     fe = resolved.pipeline.frontend
     if fe.enabled and registry.get("frontend", fe.plugin).extras.get("ba_downsample") is not None:
@@ -71,14 +70,14 @@ def _fit_ba_resolution(resolved: ResolvedConfig, info: SequenceInfo, registry) -
     intr = info.intrinsics
     f, ds = min(float(intr.fx), float(intr.fy)), g.ba_downsample
     new = ds
-    while new % 2 == 0 and f / new < g.ba_min_focal:
+    while new % 2 == 0 and f / new < BA_MIN_FOCAL:
         new //= 2
     if new == ds:
         return resolved, []
     pcfg = resolved.pipeline.model_copy(deep=True)
     pcfg.graph.ba_downsample = new
     note = (f"graph.ba_downsample: {new} (at 1/{ds} the {int(intr.width)}x{int(intr.height)} camera's focal length "
-            f"{f:.0f} px is {f / ds:.1f} BA px, below graph.ba_min_focal = {g.ba_min_focal:g}; set "
+            f"{f:.0f} px is {f / ds:.1f} BA px, below {BA_MIN_FOCAL:g}; set "
             f"graph.ba_downsample to keep 1/{ds})")
     NOTICE.warning(note)
     return ResolvedConfig(pcfg, dict(resolved.models), resolved.source), [note]

@@ -26,6 +26,7 @@ from typing import Any, ClassVar, Literal, Optional
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_serializer, model_validator
 
 from .config_base import PluginConfig
+from .slam.config import GraphSection, LoopClosureSection  # noqa: F401 - the SLAM path's sections, next to their code
 
 try:
     import tomllib
@@ -98,165 +99,6 @@ class RunSection(PluginConfig):
         return check_name(v)
 
 
-class GraphSection(PluginConfig):
-    """Keyframe and edge policy of the frame graph (DROID-SLAM style; anchors 1.5)."""
-
-    ba_downsample: int = Field(8, ge=1, description="BA resolution = image size / ba_downsample")
-    ba_min_focal: float = Field(
-        24.0, ge=0, description="unless graph.ba_downsample is set explicitly, it is halved (8 -> 4 -> 2 -> 1) while "
-        "the focal length at BA resolution, min(fx, fy) / ba_downsample in BA pixels per radian, would be below this: "
-        "every threshold in BA pixels was chosen at 272 / 8 = 34 (the 320x240 synthetic camera), and a flow in BA "
-        "pixels is that focal length times an angle; 24 ~ 34 / sqrt(2) halves where that lands nearer 34 (160x120: 17 "
-        "-> 34) and keeps 1/8 on KITTI at half size (44); 0 = never (pvslam_core/adapt.py)")
-    # ba_min_rows (a row count) was replaced by ba_min_focal: run directories' config.json that still carry it load,
-    # with a warning, and the focal rule applies
-    renamed: ClassVar[dict[str, Any]] = {"ba_min_rows": None}
-    warmup: int = Field(5, ge=2, description="keyframes collected before the map is initialised")
-    warmup_seconds: float = Field(
-        0.65, ge=0, description="...or fewer (at least 3) once they span this many seconds of video (0: off). A slow "
-        "camera over a textureless room made its 5th keyframe only 1.4-2.1 s into the motion; on the 10-12 frames/s "
-        "driving sequences (a keyframe every ~2 frames) 5 keyframes come first (pvslam_core/slam/bootstrap.py)")
-    init_min_parallax_deg: float = Field(
-        0.5, gt=0, description="two-view initialisation needs at least this parallax (degrees, at "
-        "graph.init_parallax_quantile of its points); KITTI 01's "
-        "highway frames give 0.7-0.8 deg between nearby keyframes (far, forward-looking points)")
-    init_parallax_quantile: float = Field(
-        0.75, gt=0, lt=1, description="...at this quantile of the pair's triangulated points' parallax (0.5: the "
-        "median). With graph.init_chain_tol the near road of a fast forward drive, which gave the pair its "
-        "parallax, is removed as unmatched, and the far field and the focus of expansion hold the median down "
-        "(pvslam_core/slam/initializer.py, bench/RESULTS.md)")
-    init_relative_confidence: bool = Field(
-        True, description="two-view initialisation counts a correspondence as confident above half of the pair's "
-        "90th-percentile weight (at most 0.5, at least initializer.RELATIVE_FLOOR = 0.05) instead of above 0.5 "
-        "(false): a frontend whose weights sit lower, such as the flow frontend with its texture term, would "
-        "otherwise start the map seconds late")
-    init_chain_tol: float = Field(
-        1.0, ge=0, description="two-view initialisation keeps a correspondence of its pair (a, m) only where the "
-        "flows of the keyframes between, chained a -> a+1 -> ... -> m, stay in view and land within this many BA "
-        "px of it (0: off). On a fast forward drive the near road leaves the view within the pair, yet its flow "
-        "passes the forward-backward check and corrupts the two-view choice; with the check the parallax is read "
-        "at graph.init_parallax_quantile (pvslam_core/slam/bootstrap.py, bench/RESULTS.md)")
-    init_chain_fallback: bool = Field(
-        True, description="with graph.init_chain_tol: when the direct flow of a pair keeps fewer confident "
-        "correspondences than the initialisation needs, the pair's correspondences are its links' chained flows "
-        "instead. Before the map exists nothing starts a direct flow from the motion, and DIS from zero loses a "
-        "pair a few keyframes apart when the image moves fast (a 45 deg lens on a hand-held camera: pvslam_core/"
-        "slam/bootstrap.py, bench/RESULTS.md)")
-    unobserved_weight: float = Field(
-        0.3, gt=0, le=1, description="confidence factor, in the window BA (and a new keyframe's motion-only pose "
-        "guess when it keeps every pixel), of the depth pixels no edge with parallax has measured yet (a new "
-        "keyframe's filled holes; 1: off; pvslam_core/slam/observed.py, bench/RESULTS.md)")
-    guess_min_measured: float = Field(
-        0.5, ge=0, le=1, description="a new keyframe's motion-only pose guess uses only the measured depth pixels of "
-        "its reference (graph.unobserved_weight) when they are at least this fraction of its tracked pixels (1: "
-        "never)")
-    second_start: bool = Field(
-        True, description="when the two keyframes before a new one are mostly unmeasured (below "
-        "graph.guess_min_measured: after a pan), run its window BA also from its centre at constant velocity from "
-        "the last measured keyframes and keep the lower flow cost (pvslam_core/slam/motion_start.py)")
-    second_start_span: float = Field(0.25, gt=0, description="seconds between the two measured keyframes whose "
-                                     "motion graph.second_start continues")
-    second_start_horizon: float = Field(1.0, gt=0, description="graph.second_start predicts at most this many "
-                                        "seconds past the last measured keyframe")
-    observed_parallax: float = Field(
-        1.0, ge=0, description="translation-only flow (BA px) an edge must give a pixel of its source keyframe to "
-        "count its depth as measured (graph.unobserved_weight; a pixel farther than the keyframe's median depth is "
-        "read at the median)")
-    init_ambiguity_ratio: float = Field(
-        3.0, ge=0, description="two-view initialisation declines a pair (and waits for the next) when the chosen "
-        "motion, the best fit among those with most points in front, fits this many times worse (truncated Sampson "
-        "cost) than another with enough points in front (the initialiser's min_inliers, 60): with little parallax "
-        "a forward drive's points near the focus of expansion fall behind by noise, and a sideways motion wins "
-        "(0: off; pvslam_core/slam/initializer.py, bench/RESULTS.md)")
-    init_tie_ratio: float = Field(
-        1.25, ge=0, description="two-view initialisation declines a pair (and waits for the next) when another motion "
-        "with >= 90 % of the chosen one's points in front fits within this factor of its cost and heads more than "
-        "20 deg away: the pair cannot tell them apart (0: off; pvslam_core/slam/initializer.py)")
-    init_tries: int = Field(3, ge=1, description="two-view initialisation pairs tried per new keyframe, all ending "
-                            "at the newest: from the window's first keyframe, from the middle, from two back (fast "
-                            "motion breaks the flow of the farthest pair; pvslam_core/slam/bootstrap.py)")
-    init_window: int = Field(
-        8, ge=1, description="the first view of an initialisation pair is at most this many keyframes before the "
-        "newest (a sliding window: a hand-held camera that turned away never overlaps the fragment's first "
-        "keyframe again; pvslam_core/slam/bootstrap.py)")
-    neighbours: int = Field(3, ge=1, description="edges to the previous `neighbours` keyframes of each new keyframe")
-    proximity_window: int = Field(25, ge=0, description="look back this many keyframes for proximity edges")
-    proximity_thresh: float = Field(16.0, gt=0, description="max frame distance (BA px) for a proximity edge")
-    proximity_nms: int = Field(1, ge=0, description="suppress proximity edges within this index distance of another")
-    max_proximity_edges: int = Field(2, ge=0, description="proximity edges added per new keyframe")
-    active_window: int = Field(10, ge=2, description="edges touching the last N keyframes are observed in each update")
-    remove_redundant: bool = Field(True, description="drop a keyframe that is too close to its predecessor")
-    redundant_thresh: float = Field(1.5, ge=0, description="frame distance (BA px) under which a keyframe is redundant")
-    redundant_max_flow: float = Field(
-        4.0, ge=0, description="...and the 90th percentile of the same per-pixel distance must also be under this "
-        "(BA px; 0: the mean alone): where most of the image is far (a wide street, a highway) the mean stays small "
-        "while the near field moves several BA px, and keyframes 13 m apart were judged redundant "
-        "(pvslam_core/slam/keyframing.py)")
-    fill_row_min_frac: float = Field(
-        0.25, ge=0, le=1, description="a new keyframe's depth is the previous one's moved into it; a row with at "
-        "least this fraction of its pixels known fills its holes with its own median, the others with the image's "
-        "(0: the image's median everywhere; pvslam_core/geometry/projective.py fill_holes)")
-    max_keyframe_gap_s: float = Field(
-        0.5, gt=0, description="a keyframe whose removal would leave more than this many seconds between the "
-        "keyframes around it is never redundant, whatever the estimate says (ORB-SLAM keeps one at least every "
-        "second): when the estimate "
-        "underrates the motion (a far scene, a textureless road) the frame distance stays small and the kept "
-        "keyframes were 38 m apart on the synthetic street, with the scale collapsing in between")
-    provisional_keyframes: bool = Field(
-        True, description="a new keyframe whose frame distance to the last one (under its motion-only pose guess) is "
-        "below redundant_thresh stays provisional: the tracking reference of the next frames, but no edges, BA or "
-        "loop query until the next keyframe removes it (still redundant) or makes it an ordinary one. About half "
-        "the driving loop's keyframes used to pay for edges and a BA and then be removed as redundant")
-    reinit_after: int = Field(4, ge=1, description="consecutive failed frames before the map is re-initialised")
-    max_active_edges: int = Field(
-        256, ge=8, description="cap on active edges: beyond it the oldest edges not touching the newest keyframe "
-        "retire (their last observations stay for the final BA). Edges also retire when they no longer touch the "
-        "last `active_window` keyframes, which normally keeps far fewer active")
-    retired_margin: Optional[int] = Field(
-        None, ge=0, description="window BAs also use the last observations of retired edges whose both ends are at "
-        "most this many keyframes before the active window, as frozen constraints (DROID-SLAM's inactive edges, "
-        "t0 - 3; 3 there); None: only active edges. Helps a fast forward drive's scale, costs others (bench/RESULTS.md)")
-    max_edge_age: int = Field(
-        25, ge=1, description="an edge retires after taking part in this many optimisation rounds (DROID-SLAM's "
-        "frontend max_age)")
-    bidirectional: bool = Field(True, description="add edges in both directions")
-    motion_robust: Optional[Literal["none", "huber", "cauchy"]] = Field(
-        "cauchy", description="robust kernel of the motion-only BA that places non-keyframes and guesses new "
-        "keyframe poses ('none': least squares)")
-    motion_robust_scale: float = Field(1.0, gt=0, description="its scale in BA-resolution pixels")
-    proximity_max_flow: float = Field(
-        8.0, ge=0, description="keep a proximity edge only when the 90th percentile of its induced "
-        "translation-only flow (the parallax; both directions, BA px, under the current estimate) is at most this; "
-        "0: no limit. Proximity edges are chosen on "
-        "the mean flow, and a forward-driving camera's keyframes 4-25 back qualify while the near road between them "
-        "moves 10-50 BA px, which DIS does not find but reports as consistent: on the synthetic moving_vehicles "
-        "street those edges made the scale grow 2x over 200 frames (pvslam_core/slam/keyframing.py)")
-
-
-class LoopClosureSection(PluginConfig):
-    """Which loop candidates close a loop (the one loop policy; see :mod:`pvslam_core.slam.loops`)."""
-
-    accept_unverified: bool = Field(
-        True, description="accept candidates the detector did not verify geometrically (verified = None: a "
-        "retrieval-only detector, accepted on its similarity score); candidates that failed verification are never "
-        "accepted")
-    consecutive: int = Field(
-        1, ge=1, description="require candidates to the same place from this many consecutive keyframes (DPVO uses 3)")
-    consecutive_tolerance: int = Field(
-        3, ge=0, description="keyframe slack when checking that consecutive candidates point at the same place")
-    nms_keyframes: int = Field(
-        5, ge=0, description="skip a candidate (i, j) when an accepted loop (i', j') from an earlier keyframe has "
-        "|i - i'| <= n and |j - j'| <= n, in keyframe indices (0 disables); detectors use it to skip verification")
-    max_rotation_deg: float = Field(
-        60.0, gt=0, le=180,
-        description="reject a loop whose two keyframes' current orientations differ by more than this (look-alike "
-                    "places seen from opposite directions); rotation drift is far smaller than this")
-    ba_min_gap: int = Field(
-        8, ge=0, description="a loop accepted fewer than this many keyframes after the last loop BA only adds its "
-        "edges (the window BA uses them); on repeated laps nearly every keyframe closes a loop and a loop BA each "
-        "made later frames 2x slower")
-
-
 class OutputsSection(PluginConfig):
     trajectory_kitti: bool = Field(False, description="also write trajectory_kitti.txt")
     ply: bool = Field(True, description="write cloud_rgb.ply and cloud_panoptic.ply")
@@ -305,8 +147,10 @@ class PipelineConfig(PluginConfig):
     loop: Component = Field(default_factory=lambda: Component(plugin="classical"))
     optimizer: Component = Field(default_factory=lambda: Component(plugin="online_ba"))
     vps: Component = Field(default_factory=lambda: Component(plugin="warp_iou"))
-    graph: GraphSection = Field(default_factory=GraphSection)
-    loop_closure: LoopClosureSection = Field(default_factory=LoopClosureSection)
+    graph: GraphSection = Field(default_factory=GraphSection, description="the frame graph: BA resolution, map "
+                                "initialisation, keyframe and edge policy")
+    loop_closure: LoopClosureSection = Field(default_factory=LoopClosureSection,
+                                             description="which loop candidates close a loop")
     outputs: OutputsSection = Field(default_factory=OutputsSection)
     evaluation: EvaluationSection = Field(default_factory=EvaluationSection)
 

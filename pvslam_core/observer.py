@@ -10,33 +10,10 @@ Observers must not modify what they are given and should copy what they keep: te
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Optional, Sequence
 
-import torch
-
+from .slam.map_state import KeyframeSnapshot  # noqa: F401 - what a viewer is given of the map's keyframes
 from .types import Category, Frame, FrameResult, LoopClosure, PanopticSegmentation, RunResult, SequenceInfo
-
-
-@dataclass
-class KeyframeSnapshot:
-    """The map's keyframes at one moment (CPU tensors at the bundle-adjustment resolution ``h x w``)."""
-
-    ids: torch.Tensor  # int64 [K] stable keyframe ids
-    frame_index: torch.Tensor  # int64 [K] input-frame index of each keyframe
-    poses: torch.Tensor  # float64 [K, 7] T_wc
-    disps: torch.Tensor  # float32 [K, h, w] inverse depth (map units)
-    intrinsics: torch.Tensor  # float32 [4] fx fy cx cy at the BA resolution
-    images: dict[int, torch.Tensor]  # id -> uint8 [3, h, w] RGB
-    segs: dict[int, Optional[PanopticSegmentation]]  # id -> ids [h, w] (None without a segmenter)
-    initialized: bool = True
-
-    @classmethod
-    def of(cls, mapper) -> "KeyframeSnapshot":
-        g = mapper.graph
-        return cls(ids=g.ids.cpu(), frame_index=g.frame_index.cpu(), poses=g.poses.double().cpu(),
-                   disps=g.disps.float().cpu(), intrinsics=g.intrinsics.float().cpu(), images=mapper.kf_images,
-                   segs=mapper.kf_segs, initialized=bool(mapper.initialized))
 
 
 class RunObserver:

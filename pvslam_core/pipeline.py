@@ -200,7 +200,7 @@ class Pipeline:
         if self.outputs is not None:
             self.outputs.frame(frame, seg)
             if result.is_keyframe and self.mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
-                self.outputs.checkpoint(self.mapper, self.frames_done + 1)
+                self.outputs.checkpoint(self.mapper.snapshot(), self.frames_done + 1)
         if self.observer is not None:
             self._observe(frame, result, panoptic)
         self.frames_done += 1
@@ -220,17 +220,15 @@ class Pipeline:
         self.outputs.panoptic_now(frame, self.vps_state.panoptic)
 
     def _observe(self, frame: Frame, result: FrameResult, panoptic: Optional[PanopticSegmentation]) -> None:
-        from .observer import KeyframeSnapshot
-
         self._notify("on_frame", frame, result, panoptic)
         mapper = self.mapper
         snap = None
         if result.is_keyframe and mapper.initialized:
-            snap = KeyframeSnapshot.of(mapper)
+            snap = mapper.keyframes_snapshot()
             self._notify("on_keyframes", snap)
         loops = mapper.loops
         for loop in loops[self._loops_seen:]:
-            self._notify("on_loop", loop, snap or KeyframeSnapshot.of(mapper))
+            self._notify("on_loop", loop, snap or mapper.keyframes_snapshot())
         self._loops_seen = len(loops)
 
     def _notify(self, method: str, *args) -> None:
@@ -252,11 +250,11 @@ class Pipeline:
         self.stage_cpu["finalize"] = time.thread_time() - c_fin
         elapsed = time.perf_counter() - self.t_start
         cpu = time.process_time() - self.cpu_start
-        ts, poses = mapper.trajectory()
-        g = mapper.graph
+        snap = mapper.snapshot()
+        kf = snap.keyframes
         timing = {
             "frames": self.frames_done,
-            "keyframes": g.n,
+            "keyframes": len(kf.ids),
             "seconds": elapsed,
             "fps": self.frames_done / elapsed if elapsed > 0 else float("nan"),
             "tracking_failures": mapper.failures,
@@ -266,17 +264,7 @@ class Pipeline:
             "stage_cpu_seconds": {k: round(v, 3) for k, v in self.stage_cpu.items()},  # the pipeline thread's
             "map_cpu_seconds": {k: round(v, 3) for k, v in sorted(mapper.cpu.items())},  # parts of "map"
         }
-        tracking = {"initialized": bool(self.ever_initialized), "active_edges": g.num_edges,
-                    "retired_edges": g.num_retired, "keyframes_added": g.next_id,
-                    "keyframes_removed": g.next_id - g.n,
-                    "keyframes_provisional_removed": mapper.provisional_removed,
-                    "second_starts": mapper.second_starts, "second_starts_kept": mapper.second_starts_kept,
-                    # stretches of keyframes whose depth was never measured (pvslam_core/slam/scale_gaps.py)
-                    "scale_gaps": [gap.as_dict() for gap in mapper.scale_gaps],
-                    # map fragments (a re-initialisation starts one; a verified loop merges it back): "maps" is how
-                    # many separate frames the trajectory ends in (1 = one trajectory in one frame)
-                    "fragments": len(mapper.fragments.starts), "fragment_merges": mapper.fragments.merges,
-                    "maps": mapper.fragments.unmerged}
+        tracking = {"initialized": bool(self.ever_initialized), **mapper.stats()}
         if not self.ever_initialized:
             LOG.error("no motion was estimated: the map never initialised (too little parallax, too few frames or "
                       "no texture); the trajectory holds placeholder poses")
@@ -284,25 +272,23 @@ class Pipeline:
         if self.outputs is not None:
             from .outputs.metrics import MetricsFile
 
-            self.outputs.checkpoint(mapper)
-            self.outputs.close(mapper)
+            self.outputs.checkpoint(snap)
+            self.outputs.close(snap)
             # before the evaluation: it reads tracking.scale_gaps (ate_segments)
             MetricsFile(self.run_dir / "metrics.json").update({"tracking": tracking})
-            metrics = {**self.outputs.evaluate(mapper, timing, self.dataset), "tracking": tracking}
+            metrics = {**self.outputs.evaluate(timing, self.dataset), "tracking": tracking}
         result = RunResult(
             run_dir=str(self.run_dir) if self.run_dir else None,
-            timestamps=ts,
-            poses=poses,
-            keyframe_indices=g.frame_index.cpu().clone(),
-            keyframe_poses=g.poses.double().cpu().clone(),
+            timestamps=snap.timestamps,
+            poses=snap.poses,
+            keyframe_indices=kf.frame_index.clone(),
+            keyframe_poses=kf.poses.clone(),
             metrics=metrics,
-            loops=list(mapper.loops),
+            loops=list(snap.loops),
             frame_seconds=self.frame_seconds,
         )
         if self.observer is not None:
-            from .observer import KeyframeSnapshot
-
-            self._notify("on_finish", result, KeyframeSnapshot.of(mapper))
+            self._notify("on_finish", result, mapper.keyframes_snapshot())
         return result
 
     def abort(self, exc: BaseException) -> None:
@@ -312,8 +298,9 @@ class Pipeline:
             return
         with _signals_deferred():
             # each save on its own: a failing write (disk full) must not stop metrics.json from being written
-            for save in (lambda: self.outputs.checkpoint(self.mapper, self.frames_done),
-                         lambda: self.outputs.close(self.mapper, partial=True, frames_done=self.frames_done)):
+            for save in (lambda: self.outputs.checkpoint(self.mapper.snapshot(), self.frames_done),
+                         lambda: self.outputs.close(self.mapper.snapshot(trajectory=False), partial=True,
+                                                    frames_done=self.frames_done)):
                 try:
                     save()
                 except Exception as inner:  # never mask the original error

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import numpy as np
 import torch
@@ -20,6 +20,9 @@ import torch
 from .config import PipelineConfig, ResolvedConfig
 from .outputs.trajectory_io import TrajectoryWriter, write_tum
 from .types import Category, Frame, PanopticSegmentation, SequenceInfo
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .slam.map_state import MapSnapshot
 
 LOG = logging.getLogger("pvslam")
 
@@ -92,10 +95,11 @@ class RunOutputs:
         if self.behind is not None:
             self.behind.drain()
 
-    def checkpoint(self, mapper, frames_done: Optional[int] = None) -> None:
-        """Rewrite the trajectory files; ``frames_done``: only the first so many frames (a run stopped mid-frame
-        keeps the frames it completed, so trajectory.txt, groundtruth.txt and the log agree)."""
-        ts, poses = mapper.trajectory()
+    def checkpoint(self, snap: "MapSnapshot", frames_done: Optional[int] = None) -> None:
+        """Rewrite the trajectory files from the map's snapshot (:meth:`~.slam.mapper.Mapper.snapshot`);
+        ``frames_done``: only the first so many frames (a run stopped mid-frame keeps the frames it completed, so
+        trajectory.txt, groundtruth.txt and the log agree)."""
+        ts, poses = snap.timestamps, snap.poses
         if frames_done is not None:
             ts, poses = ts[:frames_done], poses[:frames_done]
         if len(ts) == 0:
@@ -107,19 +111,20 @@ class RunOutputs:
         if self.traj_kitti is not None:
             self.traj_kitti.update(ts.numpy(), poses.numpy())
             self._write("trajectory_kitti.txt", self.traj_kitti.flush)
-        g = mapper.graph
-        if g.n:
-            self._write("keyframes.txt", write_tum, self.dir / "keyframes.txt", g.timestamps.double().cpu().numpy(),
-                        g.poses.double().cpu().numpy())
+        kf = snap.keyframes
+        if len(kf.ids):
+            self._write("keyframes.txt", write_tum, self.dir / "keyframes.txt", kf.timestamps.numpy(),
+                        kf.poses.numpy())
         if self.gt_ts:
             self._write("groundtruth.txt", write_tum, self.dir / "groundtruth.txt", np.array(self.gt_ts),
                         torch.stack(self.gt_poses).numpy())
-        self._write("loops.json", write_loops, self.dir / "loops.json", mapper.loops)
+        self._write("loops.json", write_loops, self.dir / "loops.json", snap.loops)
         self._raise_write_errors()
 
-    def close(self, mapper, partial: bool = False, frames_done: Optional[int] = None) -> None:
-        """Final files: segments.json, the point clouds, keyframe depth; with ``partial`` a metrics.json that says
-        the run stopped early. Write failures are collected as in :meth:`checkpoint`."""
+    def close(self, snap: "MapSnapshot", partial: bool = False, frames_done: Optional[int] = None) -> None:
+        """Final files: segments.json, the point clouds, keyframe depth (from the map's snapshot, which need not hold
+        the trajectory); with ``partial`` a metrics.json that says the run stopped early. Write failures are
+        collected as in :meth:`checkpoint`."""
         behind, self.behind = self.behind, None
         try:
             if behind is not None:
@@ -127,17 +132,17 @@ class RunOutputs:
         finally:
             if self.pan_writer is not None:
                 self._write("panoptic/segments.json", self.pan_writer.close)
-        g = mapper.graph
-        if g.n and mapper.initialized and (self.cfg.outputs.ply or self.cfg.outputs.keyframe_depth):
-            poses, disps, intr = g.poses.double().cpu(), g.disps.float().cpu(), g.intrinsics.cpu()
-            ids = g.ids.tolist()
+        kf = snap.keyframes
+        if len(kf.ids) and kf.initialized and (self.cfg.outputs.ply or self.cfg.outputs.keyframe_depth):
+            poses, disps, intr = kf.poses, kf.disps, kf.intrinsics
+            ids = kf.ids.tolist()
             if self.cfg.outputs.ply:
                 from .outputs.cloud import write_clouds
 
-                images = torch.stack([mapper.kf_images[i] for i in ids])
-                segs = [mapper.kf_segs.get(i) for i in ids]
+                images = torch.stack([kf.images[i] for i in ids])
+                segs = [kf.segs.get(i) for i in ids]
                 stats = self._write("cloud_rgb.ply", write_clouds, self.dir, poses, disps, intr, images, segs,
-                                    self.categories, g.frame_index.cpu(), self.cfg.outputs)
+                                    self.categories, kf.frame_index, self.cfg.outputs)
                 if stats:
                     LOG.info("point cloud: %d of %d keyframe depth pixels kept (relative depth, edges, multi-view "
                              "consistency, categories), %d points written", stats["kept"], stats["valid"],
@@ -145,11 +150,11 @@ class RunOutputs:
             if self.cfg.outputs.keyframe_depth:
                 from .outputs.keyframes_io import write_keyframes
 
-                fi = g.frame_index.cpu()
-                self._write("keyframes/keyframes.json", write_keyframes, self.dir, fi, g.timestamps.cpu(), poses,
+                fi = kf.frame_index
+                self._write("keyframes/keyframes.json", write_keyframes, self.dir, fi, kf.timestamps, poses,
                             disps, intr, self.info.intrinsics, [self.names.get(int(i), "") for i in fi.tolist()])
         if partial or self.write_errors:
-            done = len(mapper.frames) if frames_done is None else frames_done
+            done = snap.frames if frames_done is None else frames_done
             self._partial_metrics({"frames_written": done})
         self._raise_write_errors()
 
@@ -185,7 +190,7 @@ class RunOutputs:
         lines = [f"{p}: {m}" for p, m in dict(self.write_errors).items()]  # a copy: the writer thread may add
         raise OutputWriteError("could not write " + "; ".join(lines))
 
-    def evaluate(self, mapper, timing: dict, dataset) -> dict[str, Any]:
+    def evaluate(self, timing: dict, dataset) -> dict[str, Any]:
         return evaluate_saved_run(self.dir, None, timing, dataset=dataset, pcfg=self.cfg)
 
 

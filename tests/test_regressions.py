@@ -30,7 +30,7 @@ from pvslam_core.api import run_config
 pytestmark = pytest.mark.slow
 
 BA_OFF = ["optimizer.iters=0", "optimizer.final.iters=0", "optimizer.loop.iters=0"]
-ROBUST_OFF = ['optimizer.robust="none"', 'graph.motion_robust="none"']
+ROBUST_OFF = ['optimizer.robust="none"']  # and the motion-only BA's kernel: map_state.MOTION_ROBUST (robust_off)
 LOOP_OFF = ["loop.plugin=none"]
 MASK_OFF = ["frontend.dynamic.enabled=false"]
 ROAD_OFF = ["frontend.road.enabled=false"]  # no road plane, so no road depth prior: the map's scale may drift
@@ -91,8 +91,12 @@ def test_default_drive_within_bound(drive_good):
 
 
 @pytest.mark.parametrize("broken", [BA_OFF, ROBUST_OFF], ids=["ba_off", "robust_off"])
-def test_bound_catches_broken_drive(tmp_path, drive140, broken):
+def test_bound_catches_broken_drive(tmp_path, drive140, broken, monkeypatch):
     """Test of the test above: with the piece switched off, the same bound fails (the run itself still works)."""
+    if broken is ROBUST_OFF:
+        from pvslam_core.slam import map_state
+
+        monkeypatch.setattr(map_state, "MOTION_ROBUST", "none")  # least squares in the motion-only BA too
     res = _run(tmp_path, drive140, *NO_SEG, *broken)
     assert res.poses.shape[0] == DRIVE_FRAMES and np.isfinite(res.poses.numpy()).all()
     ate = _ate(res)
@@ -281,7 +285,7 @@ def test_loop_test_catches_loop_closure_off(block_off, drift_off):
 # --------------------------------------------------------------------------------------- dynamic masking --
 MV_FRAMES = 120  # busy_street: buses and cars up to a third of the image crossing and driving alongside
 # ATE, % of the path, oracle labels (the masking is the frontend's eq. 4 on the labelled things), 120 frames, seeds
-# 0 / 1 / 2 (measured by helper H1, session 2026-12-02, with graph.proximity_max_flow; texture term off):
+# 0 / 1 / 2 (measured by helper H1, session 2026-12-02, with edges.PROXIMITY_MAX_FLOW; texture term off):
 #   busy_street      masking on 7.70 / 1.27 / 3.49   off 19.64 / 2.66 / 9.55
 #   moving_vehicles  masking on 0.81 / 0.25 / 0.25   off  0.62 / 0.35 / 1.08
 # moving_vehicles was this test's street until its scale drift (long proximity edges over the near road) was

@@ -1,33 +1,26 @@
 """Map initialisation of a fragment: which keyframe pairs are tried, and how the fragment's keyframes are placed.
 
-Before, the two-view initialisation paired the fragment's *first* keyframe with the newest ones only.  A hand-held
-camera that turns away from where it started never overlaps that keyframe again: on the synthetic room (seed 5)
-the map initialised after 19.8 s, when the camera came back.  Here the first view of a pair slides with the
-newest keyframe ``k``: ``a = max(first, k - init_window)`` and the pairs ``(a, k)``, ``((a + k) // 2, k)`` and
-``(k - 2, k)`` are tried (``init_tries`` of them), the farthest first (the most parallax), the nearest last: a
-turning hand-held camera (synthetic room, tune seed 1, a keyframe every ~3 frames at 15 fps) shares no confident
-flow with a keyframe 4 back, and with ``(a, k - 1)`` as the third try instead of ``(k - 2, k)`` it never
-initialised.  Each try goes through the model selection of :func:`~.initializer.two_view_init_why` (homography or
-essential matrix).
+The first view of a pair slides with the newest keyframe ``k``: ``a = max(first, k - INIT_WINDOW)`` and the pairs
+``(a, k)``, ``((a + k) // 2, k)`` and ``(k - 2, k)`` are tried (``INIT_TRIES`` of them), the farthest first (the most
+parallax), the nearest last.  A hand-held camera that turns away from where it started never overlaps the
+fragment's first keyframe again, and a turning camera may share no confident flow with a keyframe a few back
+(docs/decisions.md: INIT_WINDOW).  Each try goes through the model selection of
+:func:`~.initializer.two_view_init_why` (homography or essential matrix).
 
 When a pair ``(a, m)`` initialises: keyframe ``a`` gets the triangulated depth, ``m`` the two-view pose; the
 keyframes after ``a`` are interpolated / extrapolated in time between ``a`` and ``m`` (the window BA that follows
 refines them); those before ``a`` (the camera turned, they no longer overlap ``m``) are placed by motion-only BA
 against ``a`` from their own flow to it, else left at ``a``'s pose.
 
-Pairs are tried once ``warmup`` keyframes are collected, or at least 3 that span ``warmup_seconds`` of video: a
-slow camera over a textureless room makes keyframes rarely (indoor_textureless, tune seed 1: at 0, 0.17, 0.37, 0.67
-and 1.37 s), and the 5th came up to 2.1 s into the motion; on the 10-12 frames/s driving sequences (a keyframe every
-~2 frames) the count comes first, as before.
+Pairs are tried once ``graph.init.warmup`` keyframes are collected, or at least 3 that span ``WARMUP_SECONDS`` of
+video: a slow camera over a textureless room makes keyframes rarely, while a driving camera collects the count first
+(docs/decisions.md: WARMUP_SECONDS).
 
 A pair more than one keyframe apart is checked against its links, the pairs of consecutive keyframes between it,
-chained (:func:`chain_checked`, ``graph.init_chain_tol``).  When its own flow keeps too few confident
-correspondences, the chained links give them instead (:func:`chain_follow`, ``graph.init_chain_fallback``): before
-the map exists nothing starts a far pair's flow from the motion, and DIS from zero finds a few tens of pixels at
-most.  Through a 45 deg lens a hand-held camera (synthetic room, seed 147, 15 fps) moves the image 1.4x as far as
-through the default 61 deg one: every pair two or more keyframes apart came back with 0-69 confident pixels while
-each link had 400-660; the map started 27 frames in, on keyframes 7-9, 22 deg / 61 deg off (rotation / direction
-of motion), and the run ended at 3.9 % of the path (0.1 % with the chained links; bench/RESULTS.md, 12-04 e).
+chained (:func:`chain_checked`, ``CHAIN_TOL``).  When its own flow keeps too few confident correspondences, the
+chained links give them instead (:func:`chain_follow`, ``CHAIN_FALLBACK``): before the map exists nothing starts a
+far pair's flow from the motion, and DIS from zero finds a few tens of pixels at most, while each link is fine
+(docs/decisions.md: CHAIN_FALLBACK).
 
 While it cannot initialise, the reason is printed (INFO) about once per second of video, so a user sees why (too
 little parallax, no overlap, too few points in front of the cameras) while it keeps trying.  Poses are T_wc.
@@ -35,17 +28,35 @@ little parallax, no overlap, too few points in front of the cameras) while it ke
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import torch
 
 from ..geometry.lie import se3_interpolate, se3_mul
-from .initializer import TwoViewInit, confident_mask, two_view_init_why
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .mapper import Mapper
+from ..geometry.projective import pixel_grid
+from .config import InitConfig
+from .initializer import TwoViewInit, TwoViewOptions, confidence_threshold, confident_mask, two_view_init_why
+from .map_state import MapState
+from .observe import EdgeObserver
 
 LOG = logging.getLogger("pvslam")
+
+WARMUP_SECONDS = 0.65  # ... or at least 3 keyframes spanning this many seconds (docs/decisions.md: WARMUP_SECONDS)
+INIT_WINDOW = 8  # the first view of a pair is at most this many keyframes before the newest
+INIT_TRIES = 3  # pairs tried per new keyframe, all ending at the newest (docs/decisions.md: INIT_WINDOW)
+# a chained pair keeps a correspondence only where its links' chained flows land within this many BA px of it (0: no
+# chain check; docs/decisions.md: CHAIN_TOL)
+CHAIN_TOL = 1.0
+# a pair whose direct flow lost its pixels takes its chained links' instead (docs/decisions.md: CHAIN_FALLBACK)
+CHAIN_FALLBACK = True
+# a correspondence is confident relative to the pair's own high weights (initializer.confidence_threshold), not above
+# a fixed 0.5 (docs/decisions.md: RELATIVE_CONFIDENCE)
+RELATIVE_CONFIDENCE = True
+PARALLAX_QUANTILE = 0.75  # graph.init.min_parallax_deg holds at this quantile (docs/decisions.md: PARALLAX_QUANTILE)
+AMBIGUITY_RATIO = 3.0  # two_view_init_why's ambiguity_ratio (docs/decisions.md: AMBIGUITY_RATIO)
+TIE_RATIO = 1.25  # two_view_init_why's tie_ratio (docs/decisions.md: TIE_RATIO)
+INIT_MIN_INLIERS = 60  # confident correspondences a pair needs (two_view_init_why's min_inliers)
+SAY_EVERY_S = 1.0  # "not initialised yet" is printed at most once per this many seconds of video
 
 
 def init_pairs(first: int, k: int, window: int, tries: int) -> list[tuple[int, int]]:
@@ -66,9 +77,6 @@ def chain_follow(chain_target: torch.Tensor, chain_weight: torch.Tensor, relativ
     a -> a+1, ..., m-1 -> m, BA px): ``(pos [2, h, w], ok [h, w], conf [h, w])``, where it lands in view ``m``,
     whether every link started in view and was confident about it (initializer.confidence_threshold) -- and, with
     ``land_in_view``, whether it lands in view ``m`` too -- and the least confidence of its links (0 where not ok)."""
-    from ..geometry.projective import pixel_grid
-    from .initializer import confidence_threshold
-
     h, w = chain_target.shape[-2:]
     pos = pixel_grid(h, w, chain_target.device).permute(2, 0, 1)  # [2, h, w] where each view-a pixel is, link by link
     ok = torch.ones(h, w, dtype=torch.bool, device=chain_target.device)
@@ -101,96 +109,101 @@ def chain_checked(target: torch.Tensor, weight: torch.Tensor, chain_target: torc
     leave the view, pass a pixel they are not confident about (initializer.confidence_threshold) or land more than
     ``tol`` BA px from it.
 
-    Why: a direct flow between views far apart matches what has left the view too.  On a fast forward drive
-    (highway, 23 m/s, frames 0-5) the near road is behind the camera by the pair's second view, yet DIS matches it to
-    the road still in view, forward-backward consistent: 255 of the 321 confident correspondences of the highway's
-    init pair (unseen seed 69) had no true match, and the cheirality test then favoured sideways or reversed motions
-    (bench/RESULTS.md, 12-03 g).  Each short link keeps most of its pixels in view and the chain follows them out."""
+    Why: a direct flow between views far apart matches what has left the view too.  On a fast forward drive the
+    near road is behind the camera by the pair's second view, yet DIS matches it to the road still in view,
+    forward-backward consistent, and the cheirality test then favours sideways or reversed motions.  Each short link
+    keeps most of its pixels in view and the chain follows them out (docs/decisions.md: CHAIN_TOL)."""
     pos, ok, _ = chain_follow(chain_target, chain_weight, relative_weight)
     ok &= (target.float() - pos).norm(dim=0) <= tol
     return weight * ok[None].to(weight.dtype)
 
 
-INIT_MIN_INLIERS = 60  # confident correspondences a pair needs (two_view_init_why's min_inliers)
-
-
 class Bootstrap:
-    """Initialises the mapper's current fragment (``Mapper._try_initialise`` delegates here)."""
+    """Initialises the current map fragment (see the module docstring)."""
 
-    def __init__(self, cfg) -> None:
-        self.cfg = cfg  # GraphSection
+    def __init__(self, cfg: InitConfig, state: MapState, observer: EdgeObserver, frontend) -> None:
+        self.cfg = cfg
+        self.state = state
+        self.observer = observer
+        self.frontend = frontend
         self.last_reason = ""
         self._said_at: Optional[float] = None  # timestamp of the last "not initialised yet" message
 
-    def try_initialise(self, mapper: "Mapper", k: int) -> bool:
-        g = mapper.graph
-        first = mapper.fragment_start
-        if not self.warmed_up(mapper, k):
+    def options(self) -> TwoViewOptions:
+        """How a pair's motion is chosen and checked."""
+        return TwoViewOptions(min_inliers=INIT_MIN_INLIERS, min_parallax_deg=self.cfg.min_parallax_deg,
+                              relative_weight=RELATIVE_CONFIDENCE, parallax_quantile=PARALLAX_QUANTILE,
+                              ambiguity_ratio=AMBIGUITY_RATIO or None, tie_ratio=TIE_RATIO or None)
+
+    def try_initialise(self, k: int) -> bool:
+        """Try the pairs ending at the newest keyframe ``k`` (graph index); on success the fragment's keyframes are
+        placed and True is returned."""
+        first = self.state.fragment_start
+        if not self.warmed_up(k):
             return False
         init, pair, reasons = None, None, []
-        for a, m in init_pairs(first, k, self.cfg.init_window, self.cfg.init_tries):
-            obs = mapper._observe(torch.tensor([a]), torch.tensor([m]))
-            mapper._release_pairs(torch.tensor([a]), torch.tensor([m]))  # not an edge: not observed again
-            target, weight = obs.target[0], obs.weight[0]
-            if self.cfg.init_chain_tol > 0 and m - a > 1:
-                # the pairs between are odometry edges: observed now, before the map exists, their flows must not
-                # stay cached (the window BA's first observation starts them from the map's poses)
-                ii, jj = torch.arange(a, m, device=g.device), torch.arange(a + 1, m + 1, device=g.device)
-                chain = mapper.frontend.observe(g, ii, jj)
-                mapper.frontend.discard_pairs(g.ids[ii], g.ids[jj])
-                weight = chain_checked(target, weight, chain.target, chain.weight, self.cfg.init_chain_tol,
-                                       self.cfg.init_relative_confidence)
-                if (self.cfg.init_chain_fallback
-                        and int(confident_mask(target, weight, self.cfg.init_relative_confidence).sum())
-                        < INIT_MIN_INLIERS):
-                    # the direct flow lost the pair (DIS from zero, no map yet to start it from): its links did not
-                    pos, ok, conf = chain_follow(chain.target, chain.weight, self.cfg.init_relative_confidence,
-                                                 land_in_view=True)
-                    if int(ok.sum()) >= INIT_MIN_INLIERS:
-                        target, weight = pos.to(target.dtype), conf[None].expand(2, -1, -1).to(weight.dtype)
-            init, why = two_view_init_why(target, weight, g.intrinsics, min_inliers=INIT_MIN_INLIERS,
-                                          min_parallax_deg=self.cfg.init_min_parallax_deg,
-                                          relative_weight=self.cfg.init_relative_confidence,
-                                          parallax_quantile=self.cfg.init_parallax_quantile,
-                                          ambiguity_ratio=self.cfg.init_ambiguity_ratio or None,
-                                          tie_ratio=self.cfg.init_tie_ratio or None)
+        for a, m in init_pairs(first, k, INIT_WINDOW, INIT_TRIES):
+            target, weight = self._correspondences(a, m)
+            init, why = two_view_init_why(target, weight, self.state.graph.intrinsics, self.options())
             if init is not None:
                 pair = (a, m)
                 break
             reasons.append(f"pair {a}-{m}: {why}")
         if init is None:
-            self._say(mapper, k, "; ".join(reasons))
+            self._say(k, "; ".join(reasons))
             return False
-        self._place(mapper, k, pair, init)
+        self._place(k, pair, init)
         LOG.info("map initialised with keyframes %d..%d (pair %d-%d, %s model: %d inliers, parallax %.2f deg)",
                  first, k, pair[0], pair[1], init.model, init.inliers, init.parallax_deg)
         self._said_at = None
         return True
 
-    def warmed_up(self, mapper: "Mapper", k: int) -> bool:
-        """Enough keyframes to try: ``warmup`` of them, or at least 3 spanning ``warmup_seconds`` of video."""
-        count = k - mapper.fragment_start + 1
+    def _correspondences(self, a: int, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(target, weight)`` ``[2, h, w]`` of pair ``(a, m)``: its direct flow, checked against its chained links
+        (and replaced by them when the direct flow lost the pair)."""
+        g = self.state.graph
+        obs = self.observer.observe_pair(a, m)  # not an edge: not observed again
+        target, weight = obs.target[0], obs.weight[0]
+        if CHAIN_TOL > 0 and m - a > 1:
+            # the pairs between are odometry edges: observed now, before the map exists, their flows must not stay
+            # cached (the window BA's first observation starts them from the map's poses)
+            ii, jj = torch.arange(a, m, device=g.device), torch.arange(a + 1, m + 1, device=g.device)
+            chain = self.frontend.observe(g, ii, jj)
+            self.frontend.discard_pairs(g.ids[ii], g.ids[jj])
+            weight = chain_checked(target, weight, chain.target, chain.weight, CHAIN_TOL, RELATIVE_CONFIDENCE)
+            if CHAIN_FALLBACK and int(confident_mask(target, weight, RELATIVE_CONFIDENCE).sum()) < INIT_MIN_INLIERS:
+                # the direct flow lost the pair (DIS from zero, no map yet to start it from): its links did not
+                pos, ok, conf = chain_follow(chain.target, chain.weight, RELATIVE_CONFIDENCE, land_in_view=True)
+                if int(ok.sum()) >= INIT_MIN_INLIERS:
+                    target, weight = pos.to(target.dtype), conf[None].expand(2, -1, -1).to(weight.dtype)
+        return target, weight
+
+    def warmed_up(self, k: int) -> bool:
+        """Enough keyframes to try: ``warmup`` of them, or at least 3 spanning ``WARMUP_SECONDS`` of video."""
+        first = self.state.fragment_start
+        count = k - first + 1
         if count >= self.cfg.warmup:
             return True
-        if count < 3 or self.cfg.warmup_seconds <= 0:
+        if count < 3 or WARMUP_SECONDS <= 0:
             return False
-        ts = mapper.graph.timestamps
-        return float(ts[k] - ts[mapper.fragment_start]) >= self.cfg.warmup_seconds
+        ts = self.state.graph.timestamps
+        return float(ts[k] - ts[first]) >= WARMUP_SECONDS
 
-    def _say(self, mapper: "Mapper", k: int, reason: str) -> None:
-        g = mapper.graph
+    def _say(self, k: int, reason: str) -> None:
+        g = self.state.graph
         self.last_reason = reason
         now = float(g.timestamps[k])
-        if self._said_at is None or now - self._said_at >= 1.0:
-            span = now - float(g.timestamps[mapper.fragment_start])
+        if self._said_at is None or now - self._said_at >= SAY_EVERY_S:
+            first = self.state.fragment_start
+            span = now - float(g.timestamps[first])
             LOG.info("map not initialised yet (keyframes %d..%d, %.1f s of video); still trying. %s",
-                     mapper.fragment_start, k, span, reason)
+                     first, k, span, reason)
             self._said_at = now
 
-    def _place(self, mapper: "Mapper", k: int, pair: tuple[int, int], init: TwoViewInit) -> None:
+    def _place(self, k: int, pair: tuple[int, int], init: TwoViewInit) -> None:
         """Poses and depths of the fragment's keyframes from the two-view result of ``pair``."""
-        g = mapper.graph
-        first = mapper.fragment_start
+        g = self.state.graph
+        first = self.state.fragment_start
         a, m = pair
         dev = g.disps.device
         t_a = g.poses[a].double().cpu()
@@ -207,13 +220,12 @@ class Bootstrap:
         if len(rest):
             g.set_disps(rest, torch.full((len(rest),) + tuple(g.ba_shape), med, device=dev))
         for j in range(a - 1, first - 1, -1):  # keyframes before the pair: their own flow to `a`
-            obs = mapper._observe(torch.tensor([a]), torch.tensor([j]))
-            mapper._release_pairs(torch.tensor([a]), torch.tensor([j]))
+            obs = self.observer.observe_pair(a, j)
             pose = None
             # clone: .double().cpu() of a float64 CPU graph is a view, and writing a view of poses[j + 1] into
             # poses[j] is an overlapping in-place write (torch refuses it)
             nxt = g.poses[j + 1].double().cpu().clone()
             if float(obs.weight[0].mean()) > 0.2:
-                pose = mapper.frames.motion_only(nxt.clone(), g.poses[a].double(), g.disps[a],
-                                                 g.intrinsics, obs.target[0], obs.weight[0])
+                pose = self.state.frames.motion_only(nxt.clone(), g.poses[a].double(), g.disps[a],
+                                                     g.intrinsics, obs.target[0], obs.weight[0])
             g.set_poses(torch.tensor([j]), (pose if pose is not None else nxt)[None])

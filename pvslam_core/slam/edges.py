@@ -1,25 +1,28 @@
-"""Which frame-graph edges a new keyframe gets and which edges retire (DROID-SLAM style; DROID-SLAM reference
-notes, shared/reference/anchors.md section 1.5).
+"""The edge policy: which frame-graph edges a new keyframe gets and which edges retire (DROID-SLAM's policy;
+``[graph.edges]``).
 
 * neighbour edges to the previous ``neighbours`` keyframes;
 * proximity edges to older keyframes inside ``proximity_window`` whose frame distance (mean induced flow at the
-  BA resolution, under the current estimate) is below ``proximity_thresh``, greedily by distance with index NMS;
-* loop edges ``(i, j-1), (i, j), (i, j+1)`` for a detected loop ``i <-> j`` (the paper adds the two outer ones).
-
-* frozen: retired edges just behind the active window, whose stored observations join the window BA
-  (``retired_margin``, off by default);
-
+  BA resolution, under the current estimate) is below ``proximity_thresh``, greedily by distance with index NMS,
+  kept only where their parallax stays within what the frontend's flow can follow (:func:`reliable_proximity`);
+* loop edges ``(i, j-1), (i, j), (i, j+1)`` for a detected loop ``i <-> j`` (the paper adds the two outer ones);
 * retirement: edges that no longer touch the last ``active_window`` keyframes (the window BAs would never use
-  them again), edges older than ``max_edge_age`` optimisation rounds, and beyond ``max_active_edges`` the oldest.
+  them again), edges older than ``max_age`` optimisation rounds, and beyond ``max_active`` the oldest.
 
-The edge functions return ``(ii, jj)`` int64 tensors; with ``bidirectional`` both directions are included.
+Every edge is added in both directions.  The edge functions return ``(ii, jj)`` int64 tensors of graph indices.
 """
 from __future__ import annotations
 
 import torch
 
-from ..config import GraphSection
-from .graph import FrameGraph
+from .config import EdgesConfig
+from .flow_distance import pair_flow_quantile
+from .graph import EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph
+
+PROXIMITY_NMS = 1  # a proximity edge is not added within this many keyframes (index distance) of a chosen one
+# a proximity edge is kept only when the 90th percentile of its translation-only flow (BA px) is at most this: the
+# frontend's flow does not follow a near field that moves farther (docs/decisions.md: PROXIMITY_MAX_FLOW)
+PROXIMITY_MAX_FLOW = 8.0
 
 
 def _both(ii: torch.Tensor, jj: torch.Tensor, bidirectional: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -28,19 +31,22 @@ def _both(ii: torch.Tensor, jj: torch.Tensor, bidirectional: bool) -> tuple[torc
     return torch.cat([ii, jj]), torch.cat([jj, ii])
 
 
-def neighbour_edges(k: int, cfg: GraphSection, first: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def neighbour_edges(k: int, cfg: EdgesConfig, first: int = 0,
+                    bidirectional: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Edges from keyframe ``k`` to ``k-1 .. k-neighbours`` (not below ``first``, the fragment start)."""
     jj = torch.arange(max(first, k - cfg.neighbours), k, dtype=torch.int64)
     ii = torch.full_like(jj, k)
-    return _both(ii, jj, cfg.bidirectional)
+    return _both(ii, jj, bidirectional)
 
 
-def proximity_edges(graph: FrameGraph, k: int, cfg: GraphSection, first: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Up to ``max_proximity_edges`` edges from ``k`` to older keyframes that look at the same place."""
+def proximity_edges(graph: FrameGraph, k: int, cfg: EdgesConfig, first: int = 0, nms: int = PROXIMITY_NMS,
+                    bidirectional: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Up to ``max_proximity`` edges from ``k`` to older keyframes that look at the same place, none within ``nms``
+    keyframes of another."""
     lo = max(first, k - cfg.proximity_window)
     hi = k - cfg.neighbours  # exclusive: neighbours are connected already
     empty = torch.zeros(0, dtype=torch.int64)
-    if cfg.max_proximity_edges == 0 or hi <= lo:
+    if cfg.max_proximity == 0 or hi <= lo:
         return empty, empty
     cand = torch.arange(lo, hi, dtype=torch.int64)
     src = torch.full_like(cand, k)
@@ -48,15 +54,50 @@ def proximity_edges(graph: FrameGraph, k: int, cfg: GraphSection, first: int = 0
     order = torch.argsort(d)
     chosen: list[int] = []
     for idx in order.tolist():
-        if float(d[idx]) > cfg.proximity_thresh or len(chosen) >= cfg.max_proximity_edges:
+        if float(d[idx]) > cfg.proximity_thresh or len(chosen) >= cfg.max_proximity:
             break
         j = int(cand[idx])
-        if all(abs(j - c) > cfg.proximity_nms for c in chosen):
+        if all(abs(j - c) > nms for c in chosen):
             chosen.append(j)
     if not chosen:
         return empty, empty
     jj = torch.tensor(chosen, dtype=torch.int64)
-    return _both(torch.full_like(jj, k), jj, cfg.bidirectional)
+    return _both(torch.full_like(jj, k), jj, bidirectional)
+
+
+def reliable_proximity(graph: FrameGraph, ii: torch.Tensor, jj: torch.Tensor, first: int, active_window: int,
+                       max_flow: float = PROXIMITY_MAX_FLOW) -> tuple[torch.Tensor, torch.Tensor]:
+    """The proximity edges ``(ii, jj)`` whose pair's 90th-percentile parallax (:func:`.flow_distance.
+    pair_flow_quantile`, both directions, current estimate) is at most ``max_flow`` BA px (0: all).
+
+    A proximity edge is a long baseline chosen on the *mean* flow, and the near field of a forward-moving camera
+    moves farther than the frontend's flow can follow.  A fragment younger than ``active_window`` keyframes keeps
+    them all: its depths are still the initialisation's guess, and the long edges are what holds its scale."""
+    if max_flow <= 0 or ii.numel() == 0 or int(ii.max()) - first < active_window:
+        return ii, jj
+    keep = {}
+    for a, b in zip(ii.tolist(), jj.tolist()):
+        pair = (min(a, b), max(a, b))
+        if pair not in keep:  # both directions share the decision
+            poses = torch.stack([graph.poses[pair[0]].double(), graph.poses[pair[1]].double()])
+            keep[pair] = pair_flow_quantile(poses, graph.disps[pair[0]], graph.disps[pair[1]],
+                                            graph.intrinsics) <= max_flow
+    mask = torch.tensor([keep[(min(a, b), max(a, b))] for a, b in zip(ii.tolist(), jj.tolist())], dtype=torch.bool)
+    return ii[mask], jj[mask]
+
+
+def connect_keyframe(graph: FrameGraph, k: int, cfg: EdgesConfig, first: int, initialized: bool) -> None:
+    """Neighbour edges of keyframe ``k`` (the newest) and, once the map is initialised, its reliable proximity
+    edges; none for the first keyframe of a fragment (``first``)."""
+    if k <= first:
+        return
+    ii, jj = neighbour_edges(k, cfg, first=first)
+    graph.add_edges(ii, jj, EDGE_ODOMETRY)
+    if initialized:
+        ii, jj = proximity_edges(graph, k, cfg, first=first)
+        ii, jj = reliable_proximity(graph, ii, jj, first, cfg.active_window, PROXIMITY_MAX_FLOW)
+        if ii.numel():
+            graph.add_edges(ii, jj, EDGE_PROXIMITY)
 
 
 def loop_edges(i: int, j: int, n: int, bidirectional: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,23 +116,7 @@ def active_edges(graph: FrameGraph, k: int, window: int) -> tuple[torch.Tensor, 
     return graph.ii[mask], graph.jj[mask]
 
 
-def frozen_edges(graph: FrameGraph, k: int, cfg: GraphSection, first: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Retired edges (with a stored observation) whose both ends lie at most ``cfg.retired_margin`` keyframes
-    before the active window ending at ``k`` (and not before ``first``, the fragment start); empty when
-    ``retired_margin`` is None.  The window BA uses their last observations as frozen constraints, as DROID-SLAM's
-    frontend keeps its inactive edges with both ends >= t0 - 3.  Why: the keyframes just behind the window have
-    fixed poses but free depths, and without these edges nothing ties those depths to the fixed poses, so the
-    window's scale and the depths it is anchored to can drift together.  Off by default: on the synthetic highway
-    it holds the scale (forward_low_parallax tune seeds 2.0-19.0 -> 2.5-3.9 % of the path with a margin of 8), on
-    the moving_vehicles street it pulls the scale down as steadily (0.3 -> 0.6-0.9 %, with oracle masks too);
-    bench/RESULTS.md, "DROID-SLAM's inactive edges as frozen constraints"."""
-    if cfg.retired_margin is None:
-        empty = torch.zeros(0, dtype=torch.int64, device=graph.device)
-        return empty, empty.clone()
-    return graph.retired_edges(max(first, k - cfg.active_window + 1 - cfg.retired_margin))
-
-
-def retirement_mask(graph: FrameGraph, k: int, cfg: GraphSection) -> torch.Tensor:
+def retirement_mask(graph: FrameGraph, k: int, cfg: EdgesConfig) -> torch.Tensor:
     """bool ``[num_edges]``: active edges to retire before keyframe ``k``'s window BA (see the module docstring).
     Edges touching ``k`` itself never retire here (they were just added or are about to be observed)."""
     if graph.num_edges == 0:
@@ -99,8 +124,8 @@ def retirement_mask(graph: FrameGraph, k: int, cfg: GraphSection) -> torch.Tenso
     lo = k - cfg.active_window + 1
     touches_new = (graph.ii == k) | (graph.jj == k)
     mask = ~((graph.ii >= lo) | (graph.jj >= lo))
-    mask |= (graph.edge_age >= cfg.max_edge_age) & ~touches_new
-    excess = int((~mask).sum()) - cfg.max_active_edges
+    mask |= (graph.edge_age >= cfg.max_age) & ~touches_new
+    excess = int((~mask).sum()) - cfg.max_active
     if excess > 0:  # the oldest of the remaining ones (by the keyframe count when they were added)
         cand = torch.nonzero(~mask & ~touches_new).squeeze(1)
         order = torch.argsort(graph.edge_born[cand], stable=True)

@@ -1,6 +1,6 @@
 """Map fragments and their merging (ORB-SLAM3 Atlas style).
 
-After a tracking loss the mapper starts a new *fragment* (:meth:`~.mapper.Mapper._failed`): a map of its own,
+After a tracking loss the mapper starts a new *fragment* (:class:`~.mapper.Mapper`): a map of its own,
 placed at the last known pose but with its own scale (a new two-view initialisation) and an unknown offset.  The
 frame graph holds every fragment, one after the other in keyframe order; :class:`Fragments` knows which keyframe
 ids belong to which one (a fragment is a contiguous id range from its first keyframe; merged fragments share a
@@ -21,7 +21,8 @@ fragment there:
    of the fragment (poses; inverse depths divided by ``s``) and the relative translations of the frames anchored to
    them are multiplied by ``s`` (their rotations are unchanged).
 
-The loop edges and the loop BA that follow (the mapper's ordinary loop path) then refine the join.  The loop
+The loop edges and the loop BA that follow (the loop closer's ordinary path, :mod:`.loop_closer`) then refine the
+join.  The loop
 policy's orientation check does not apply to such a loop (the two fragments' frames are unrelated until merged:
 the loop that ends a fragment's isolation would otherwise be rejected for the very offset it corrects).
 
@@ -40,7 +41,8 @@ from ..geometry.lie import quat_mul, quat_rotate, se3_exp, se3_interpolate, se3_
 from ..geometry.projective import edge_transforms, project_points
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .mapper import Mapper
+    from .frame_poses import FramePoses
+    from .graph import FrameGraph
 
 LOG = logging.getLogger("pvslam")
 
@@ -179,18 +181,17 @@ def apply_sim3(poses: torch.Tensor, q: torch.Tensor, t: torch.Tensor, s: float) 
     return torch.cat([pos, rot / rot.norm(dim=-1, keepdim=True)], dim=-1)
 
 
-def align_fragment(mapper: "Mapper", idx: torch.Tensor, k: int, reloc: Relocalisation) -> None:
+def align_fragment(g: "FrameGraph", frames: "FramePoses", idx: torch.Tensor, k: int, reloc: Relocalisation) -> None:
     """Move keyframes ``idx`` (graph indices of the current fragment, ``k`` among them) by the Sim(3) that takes
     ``k`` to ``reloc.pose`` with scale ``reloc.scale``; rescale the relative translations of the frames anchored
     to them (a frame's rotation relative to its anchor is unchanged by a similarity)."""
-    g = mapper.graph
     s = reloc.scale
     idx = torch.as_tensor(idx, dtype=torch.int64)
     q, t = sim3_between(g.poses[k].double().cpu(), reloc.pose, s)
     g.set_poses(idx, apply_sim3(g.poses[idx.to(g.device)].double().cpu(), q, t, s))
     g.set_disps(idx, g.disps[idx.to(g.device)] / s)
     ids = set(int(x) for x in g.ids[idx.to(g.device)].tolist())
-    for e in mapper.frames.entries:
+    for e in frames.entries:
         if e.anchor in ids and not e.is_keyframe:
             e.rel = torch.cat([e.rel[:3] * s, e.rel[3:]])
 
@@ -201,21 +202,20 @@ def fragment_indices(graph, fragments: Fragments, kf_id: int) -> torch.Tensor:
     return torch.tensor([k for k, x in enumerate(graph.ids.tolist()) if fragments.of(x) == root], dtype=torch.int64)
 
 
-def replace_gap_frames(mapper: "Mapper", first: int) -> int:
+def replace_gap_frames(g: "FrameGraph", frames: "FramePoses", first: int) -> int:
     """After a merge: the frames that failed between the previous fragment's last keyframe (``first - 1``) and the
     merged fragment's first keyframe (``first``) were extrapolated from the former; both ends are now in one frame,
     so place them by interpolation in time between the two.  Returns how many were moved."""
-    g = mapper.graph
     if first <= 0 or first >= g.n:
         return 0
     a_id, b_id = g.id_of(first - 1), g.id_of(first)
     ts_a, ts_b = float(g.timestamps[first - 1]), float(g.timestamps[first])
-    gap = [e for e in mapper.frames.entries if e.failed and e.anchor == a_id and ts_a < e.timestamp < ts_b]
+    gap = [e for e in frames.entries if e.failed and e.anchor == a_id and ts_a < e.timestamp < ts_b]
     if not gap or ts_b <= ts_a:
         return 0
     t_a, t_b = g.poses[first - 1].double().cpu(), g.poses[first].double().cpu()
     alpha = torch.tensor([(e.timestamp - ts_a) / (ts_b - ts_a) for e in gap], dtype=torch.float64)
     poses = se3_interpolate(t_a.expand(len(gap), 7), t_b.expand(len(gap), 7), alpha)
     for e, pose in zip(gap, poses):  # held between the two from now on: they follow both
-        mapper.frames.hold_between(e, a_id, b_id, pose)
+        frames.hold_between(e, a_id, b_id, pose)
     return len(gap)

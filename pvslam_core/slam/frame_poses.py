@@ -11,12 +11,11 @@ before it (the graph tells, see :meth:`on_keyframe_removed`).  Poses are T_wc ``
 
 A frame whose anchor was removed has lost its correspondences (they referred to the removed keyframe's pixels), so
 no refill re-estimates it.  Held rigidly to the keyframe before, it would not follow the map's scale, which moves
-after it is placed (window BAs, the loop pose graph's Sim(3)): on indoor_handheld/78 (used seed) such frames, placed
-at a map scale of 0.31 (est / true) and read at the final 0.45, sat 40-100 mm off a track within 8-15 mm.  Such a
-frame is therefore held *between* the keyframes around it (``FrameEntry.upto``): its pose is the time interpolation
-of the two (:func:`~..geometry.lie.se3_interpolate`) composed with the small relative pose it had from that
-interpolation when it lost its correspondences, and it follows whatever moves or rescales the two (bench/RESULTS.md,
-session 2026-12-04, also for what was tried first).
+after it is placed (window BAs, the loop pose graph's Sim(3)).  Such a frame is therefore held *between* the
+keyframes around it (``FrameEntry.upto``): its pose is the time interpolation of the two
+(:func:`~..geometry.lie.se3_interpolate`) composed with the small relative pose it had from that interpolation when
+it lost its correspondences, and it follows whatever moves or rescales the two (docs/decisions.md: FRAMES HELD
+BETWEEN KEYFRAMES).
 """
 from __future__ import annotations
 
@@ -195,6 +194,25 @@ class FramePoses:
         pose, _cost = motion_only_ba(init_wc.to(t_a.device), t_a, kf_disp, intr, target, weight, iters=iters,
                                      robust=self.robust, robust_scale=self.robust_scale)
         return pose.double().cpu() if bool(torch.isfinite(pose).all()) else None
+
+    def place_pending(self, anchor: int) -> bool:
+        """Queue one batched motion-only BA (:meth:`refine_many_later`) for the non-keyframes anchored at keyframe id
+        ``anchor`` that have correspondences, once its depth is refined: each starts from the time interpolation
+        between the anchor and the keyframe after it.  Returns whether there were any."""
+        pend = [e for e in self.pending(anchor) if e.target is not None]
+        if not pend:
+            return False
+        g = self.graph
+        a = g.index_of(anchor)
+        t_a = g.poses[a].double().cpu()
+        nxt = g.poses[a + 1].double().cpu() if a + 1 < g.n else t_a
+        ts_a = float(g.timestamps[a])
+        ts_b = float(g.timestamps[a + 1]) if a + 1 < g.n else ts_a
+        alpha = torch.tensor([0.0 if ts_b <= ts_a else (e.timestamp - ts_a) / (ts_b - ts_a) for e in pend],
+                             dtype=torch.float64)
+        inits = se3_interpolate(t_a.expand(len(pend), 7), nxt.expand(len(pend), 7), alpha)
+        self.refine_many_later(pend, inits)
+        return True
 
     def refine(self, e: FrameEntry, init_wc: torch.Tensor, iters: int = 4) -> bool:
         """Motion-only BA of entry ``e`` against its anchor keyframe, starting from ``init_wc``; stores the new

@@ -1,41 +1,34 @@
 """The loop policy: which of a detector's candidates close a loop, and whether a closure runs a loop BA.
 
 Detectors only *propose* (retrieval, optionally geometric verification).  Every acceptance rule lives here, in one
-place, configured by the ``[loop_closure]`` table:
+place, configured by the ``[loop_closure]`` table and the constants below:
 
 1. verification: ``verified is True`` is accepted; ``verified is None`` (a retrieval-only detector) only with
    ``accept_unverified``; ``verified is False`` never;
 2. consecutive hits: the last ``consecutive - 1`` keyframes must also have proposed (not necessarily accepted) a
-   candidate within ``consecutive_tolerance + m`` keyframes of the same place (DPVO's rule);
-3. suppression: a candidate within ``nms_keyframes`` (both ends) of a loop accepted from an earlier keyframe is
+   candidate within ``CONSECUTIVE_TOLERANCE + m`` keyframes of the same place (DPVO's rule);
+3. suppression: a candidate within ``NMS_KEYFRAMES`` (both ends) of a loop accepted from an earlier keyframe is
    dropped - along a revisit every keyframe would close a loop with its neighbour of the last lap.  On repeated
-   laps that is not enough: a place seen on laps 1..L is closed again to *each* earlier lap (301 closures in
-   3000 frames of the driving loop, 2.4x slower later laps).  So accepted closures also build *places*: connected
-   components (union-find over keyframe ids) of closure endpoints, where a closure joins its two keyframes and
-   every earlier endpoint within ``nms_keyframes`` of either (the temporal neighbourhood).  A candidate ``(i, j)``
-   is dropped when a closure accepted within ``PLACE_RECENT x nms_keyframes`` keyframes before ``i`` belongs to
-   a place of more than two keyframes (tied to more than one earlier view) that has an endpoint within
-   ``PLACE_RECENT x nms_keyframes`` of ``j``: the new keyframe is already tied to that place, whichever lap
-   ``j`` is on.  :meth:`LoopPolicy.suppressed` is also handed to the detector as ``skip`` so it need not verify
-   such candidates;
+   laps that is not enough: a place seen on laps 1..L would be closed again to *each* earlier lap.  So accepted
+   closures also build *places*: connected components (union-find over keyframe ids) of closure endpoints, where a
+   closure joins its two keyframes and every earlier endpoint within ``NMS_KEYFRAMES`` of either (the temporal
+   neighbourhood).  A candidate ``(i, j)`` is dropped when a closure accepted within ``PLACE_RECENT x
+   NMS_KEYFRAMES`` keyframes before ``i`` belongs to a place of more than two keyframes (tied to more than one
+   earlier view) that has an endpoint within ``PLACE_RECENT x NMS_KEYFRAMES`` of ``j``: the new keyframe is already
+   tied to that place, whichever lap ``j`` is on (docs/decisions.md: PLACE_RECENT).  :meth:`LoopPolicy.suppressed`
+   is also handed to the detector as ``skip`` so it need not verify such candidates;
 4. orientation: the two keyframes' current orientations must differ by at most ``max_rotation_deg`` (look-alike
    places seen from opposite directions) - except between two map fragments not merged yet (see
    :mod:`.fragments`): their frames are unrelated until the loop merges them, so only a geometrically verified
-   candidate (``verified is True``) is accepted there, flagged ``merge`` for the mapper to relocalise and align;
+   candidate (``verified is True``) is accepted there, flagged ``merge`` for the loop closer to relocalise and align;
 5. at most one closure per keyframe: the best remaining candidate of the *most recent* visit (within 2 x
-   ``nms_keyframes`` of the newest ``j``), before any older lap's, whatever their scores.  The loop BA's Sim(3)
+   ``NMS_KEYFRAMES`` of the newest ``j``), before any older lap's, whatever their scores.  The loop BA's Sim(3)
    pose graph sees only the new loop and the odometry chain from ``j`` to ``i``: it bends every keyframe in
    between and none before ``j``.  Closing to lap 1 from lap 4 bends laps 1-3 away from the closures that tie them
-   together; closing to lap 3 bends laps 3-4 only.  On the first 1560 frames of the 3000-frame driving loop the
-   best-score choice alternated between laps and the estimate's scale fell from ~35 to 12 within a lap (1.59 % ATE
-   online at frame 1540); most recent visit first: scale 39-45 in every 250-frame window, 0.40 % ATE;
-6. loop BA gating: a closure accepted fewer than ``ba_min_gap`` keyframes after the last loop BA only adds its edges
-   (the window BA of the following keyframes includes them); a merge of two map fragments always runs its loop
-   BA.  (Tried: letting a re-closure - into a place closed before - only add its edges as well.  On the 3000-frame
-   driving loop the scale then ran away on lap 3, 0.1 -> 0.56 map units between keyframes within 120 frames, from
-   the first such closure on: loop edges to old keyframes (poses fixed, depths free) in the window BAs alone do not
-   hold the scale.  With the place rule above, closures on later laps come every ~11 keyframes, so most of them run
-   their loop BA and the scale stays.)
+   together; closing to lap 3 bends laps 3-4 only (docs/decisions.md: MOST RECENT VISIT FIRST);
+6. loop BA gating: a closure accepted fewer than ``LOOP_BA_MIN_GAP`` keyframes after the last loop BA only adds its
+   edges (the window BA of the following keyframes includes them); a merge of two map fragments always runs its loop
+   BA (docs/decisions.md: LOOP_BA_MIN_GAP).
 
 Keyframes are named by stable id; index distances are taken in the current graph.  Poses are T_wc.
 """
@@ -44,22 +37,25 @@ from __future__ import annotations
 import bisect
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import torch
 
 from ..types import LoopCandidate, LoopClosure
-
-if TYPE_CHECKING:  # pragma: no cover
-    from ..config import LoopClosureSection
-    from .fragments import Fragments
-    from .graph import FrameGraph
+from .config import LoopClosureSection
+from .fragments import Fragments
+from .graph import FrameGraph
 
 LOG = logging.getLogger("pvslam")
 
-# A closure suppresses candidates into its place from keyframes up to PLACE_RECENT x nms_keyframes after it: the
-# plain rule (nms_keyframes) lets a continuous revisit close every nms_keyframes + 1 keyframes, which is what a
-# first revisit needs (the drift since the last lap); a place already tied to earlier laps needs half as many.
+CONSECUTIVE_TOLERANCE = 3  # keyframe slack when checking that consecutive candidates point at the same place
+NMS_KEYFRAMES = 5  # suppression radius (keyframes, both ends) around accepted loops (0: none)
+# a loop accepted fewer than this many keyframes after the last loop BA only adds its edges: on repeated laps nearly
+# every keyframe closes a loop, and a loop BA for each slows the run down (docs/decisions.md: LOOP_BA_MIN_GAP)
+LOOP_BA_MIN_GAP = 8
+# A closure suppresses candidates into its place from keyframes up to PLACE_RECENT x NMS_KEYFRAMES after it: the
+# plain rule lets a continuous revisit close every NMS_KEYFRAMES + 1 keyframes, which is what a first revisit needs
+# (the drift since the last lap); a place already tied to earlier laps needs half as many.
 PLACE_RECENT = 2
 
 
@@ -104,7 +100,7 @@ class LoopDecision:
 class LoopPolicy:
     """Accepts loop closures (see the module docstring); keeps the accepted closures and the proposal history."""
 
-    def __init__(self, cfg: "LoopClosureSection", graph: "FrameGraph") -> None:
+    def __init__(self, cfg: LoopClosureSection, graph: FrameGraph, fragments: Optional[Fragments] = None) -> None:
         self.cfg = cfg
         self.graph = graph
         self.closures: list[LoopClosure] = []
@@ -112,7 +108,7 @@ class LoopPolicy:
         self._last_loop_ba_n: Optional[int] = None  # graph size at the last loop BA
         self.places = _Places()  # rule 3: places of accepted closures
         self._endpoints: list[int] = []  # sorted stable ids of accepted closures' keyframes
-        self.fragments: Optional["Fragments"] = None  # the mapper's map fragments (rule 4), if it keeps them
+        self.fragments = fragments  # the map fragments (rule 4), if any
 
     # ------------------------------------------------------------------------------------------- rules --
     def _index(self, kf_id: int) -> int:
@@ -124,10 +120,10 @@ class LoopPolicy:
             return -1
 
     def endpoints_near(self, j: int, radius: Optional[int] = None) -> list[int]:
-        """Ids of accepted closures' keyframes within ``radius`` (default ``nms_keyframes``) of graph index ``j``
+        """Ids of accepted closures' keyframes within ``radius`` (default ``NMS_KEYFRAMES``) of graph index ``j``
         (ids grow with the index, so the id range of ``[j - n, j + n]`` is a bisection of the sorted endpoint ids)."""
         g = self.graph
-        n = self.cfg.nms_keyframes if radius is None else radius
+        n = NMS_KEYFRAMES if radius is None else radius
         if j < 0 or not self._endpoints:
             return []
         lo, hi = g.id_of(max(0, j - n)), g.id_of(min(g.n - 1, j + n))
@@ -135,9 +131,9 @@ class LoopPolicy:
         return [e for e in self._endpoints[a:b] if self._index(e) >= 0]
 
     def suppressed(self, i_id: int, j_id: int) -> bool:
-        """Rule 3: within ``nms_keyframes`` of a loop accepted from an earlier keyframe, or into the place of a
+        """Rule 3: within ``NMS_KEYFRAMES`` of a loop accepted from an earlier keyframe, or into the place of a
         closure accepted shortly before (see the module docstring)."""
-        n = self.cfg.nms_keyframes
+        n = NMS_KEYFRAMES
         if n <= 0 or not self.closures:
             return False
         i, j = self._index(i_id), self._index(j_id)
@@ -167,7 +163,7 @@ class LoopPolicy:
                 return False
             hits = self._proposed.get(g.id_of(i - m), [])
             idx = [self._index(h) for h in hits]
-            if not any(jp >= 0 and abs(j - jp) <= self.cfg.consecutive_tolerance + m for jp in idx):
+            if not any(jp >= 0 and abs(j - jp) <= CONSECUTIVE_TOLERANCE + m for jp in idx):
                 return False
         return True
 
@@ -184,11 +180,11 @@ class LoopPolicy:
             self._proposed[i_id] = [c.j for c in ok]
             if len(self._proposed) > 4 * max(self.cfg.consecutive, 8):  # only the last few keyframes are read
                 del self._proposed[next(iter(self._proposed))]
-        # rule 5: the candidates of the most recent visit (within 2 x nms_keyframes of the newest one) first, in the
+        # rule 5: the candidates of the most recent visit (within 2 x NMS_KEYFRAMES of the newest one) first, in the
         # detector's order (best first), then the others in the detector's order
         if len(ok) > 1:
             newest = max(self._index(c.j) for c in ok)
-            span = 2 * max(self.cfg.nms_keyframes, 1)
+            span = 2 * max(NMS_KEYFRAMES, 1)
             ok = sorted(ok, key=lambda c: self._index(c.j) < newest - span)  # stable: keeps the order within
         for c in ok:
             i, j = self._index(c.i), self._index(c.j)
@@ -204,7 +200,7 @@ class LoopPolicy:
                 LOG.info("loop %d <-> %d rejected: current orientations differ by %.0f deg", i, j, rot)
                 continue
             n = g.n
-            recent_ba = self._last_loop_ba_n is not None and 0 <= n - self._last_loop_ba_n < self.cfg.ba_min_gap
+            recent_ba = self._last_loop_ba_n is not None and 0 <= n - self._last_loop_ba_n < LOOP_BA_MIN_GAP
             run_ba = merge or not recent_ba
             closure = LoopClosure(int(g.frame_index[i]), int(g.frame_index[j]), c.i, c.j, c.score, c.verified,
                                   c.inliers, loop_ba=run_ba)

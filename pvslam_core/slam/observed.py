@@ -1,12 +1,9 @@
 """Which pixels of a keyframe's depth have been measured, and how much they count before they are.
 
-A new keyframe's inverse depth starts as the previous keyframe's moved into it (:meth:`.mapper.Mapper._warped_depth`);
-the pixels nothing lands on are *filled* (:func:`~pvslam_core.geometry.projective.fill_holes`), a guess.  Only an
-edge with parallax (translation-induced flow) measures a pixel's depth; through a fast pan or a turn on the spot
-there is none, so a run of keyframes can be mostly filled guesses.  When the camera then moves again, the
-motion-only pose guess and the window BA fit the pose to those guesses: on the synthetic head camera the rotation
-came out wrong by about the true rotation and the depth followed it (handheld_fast seeds 82, 88; bench/RESULTS.md,
-12-04).
+A new keyframe's inverse depth starts as the previous keyframe's moved into it (:mod:`.new_keyframe`); the pixels
+nothing lands on are *filled* (:func:`~pvslam_core.geometry.projective.fill_holes`), a guess.  Only an edge with
+parallax (translation-induced flow) measures a pixel's depth; through a fast pan or a turn on the spot there is
+none, so a run of keyframes can be mostly filled guesses, and a pose fitted to those guesses turns with them.
 
 :class:`ObservedMasks` keeps one bool map ``[h, w]`` per keyframe id (BA resolution): ``True`` = measured.  A warped
 keyframe inherits the flag of the pixels that land on it; after each window BA a pixel of an edge's source keyframe
@@ -16,17 +13,25 @@ Keyframes of a fresh two-view initialisation are measured everywhere (their dept
 uses, each off at 1:
 
 * the window BA (and the pose guess below when it keeps every pixel) multiplies the confidence of a source pixel
-  not measured yet by ``weight`` (``graph.unobserved_weight``).  A weight, not a mask: the pixel's depth is a BA
+  not measured yet by ``weight`` (:data:`UNOBSERVED_WEIGHT`).  A weight, not a mask: the pixel's depth is a BA
   variable, and its update must still come from the first edge with parallax while the measured pixels hold the
   poses;
 * the motion-only guess of a new keyframe's pose (depth fixed) uses the measured pixels only when they are at least
-  ``guess_min`` of the confident ones (``graph.guess_min_measured``; :meth:`ObservedMasks.guess_weight`).
+  ``guess_min`` of the confident ones (:data:`GUESS_MIN_MEASURED`; :meth:`ObservedMasks.guess_weight`).
 """
 from __future__ import annotations
 
 import torch
 
 from ..geometry.projective import edge_transforms, pixel_grid, project_points
+
+# confidence factor, in the window BA, of a depth pixel no edge with parallax has measured yet
+# (docs/decisions.md: UNOBSERVED_WEIGHT)
+UNOBSERVED_WEIGHT = 0.3
+# a new keyframe's pose guess uses only its reference's measured pixels when they are at least this share of the
+# tracked ones (docs/decisions.md: GUESS_MIN_MEASURED)
+GUESS_MIN_MEASURED = 0.5
+OBSERVED_PARALLAX = 1.0  # translation-only flow (BA px) an edge must give a pixel to count its depth as measured
 
 
 class ObservedMasks:
@@ -50,9 +55,8 @@ class ObservedMasks:
         measured pixels when they are at least ``guess_min`` of the confident ones, else all of them with the
         unmeasured ones at ``self.weight``.  Why none at all: with the depth fixed, a guessed depth's residual is
         wrong by its parallax, and a camera with a narrow field of view trades rotation for translation along an
-        almost flat direction of the cost; any weight left on those pixels moves the pose along it (a keyframe
-        whose depth is guessed 3x off on half its pixels: 4.0 deg of rotation error at weight 1 and at 0.1,
-        0.03 deg without them; tests/slam/test_mapper.py)."""
+        almost flat direction of the cost; any weight left on those pixels moves the pose along it
+        (tests/slam/test_mapper.py shows it on a keyframe whose depth is guessed 3x off on half its pixels)."""
         m = self.masks.get(int(kf_id))
         if m is None:
             return weight
@@ -107,9 +111,8 @@ class ObservedMasks:
         R, t = edge_transforms(poses_wc.double(), ii, jj)
         d = disps[ii].reshape(ii.numel(), -1).double()  # [E, P]
         # a pixel farther than the source's median depth counts at the median: its small inverse depth is measured
-        # by a baseline that moves the median depth by `parallax` (else the sky and the far road never were, and the
-        # pixels that hold a car camera's rotation stayed down-weighted: KITTI 01 / 06 0.263 / 0.058 -> 0.398 / 0.078
-        # %, with this 0.353 / 0.047 %; bench/RESULTS.md, 12-04 b)
+        # by a baseline that moves the median depth by `parallax` (else the sky and the far road never are, and the
+        # pixels that hold a car camera's rotation stay down-weighted; docs/decisions.md: OBSERVED_PARALLAX)
         d = torch.maximum(d, d.median(dim=1, keepdim=True).values)
         tr = project_points(R, t, d, intr.double(), h, w, min_depth=1e-3, translation_only=True)
         grid = pixel_grid(h, w, d.device, torch.float64).reshape(1, -1, 2)

@@ -3,14 +3,10 @@
 Why.  A monocular map measures depth only through parallax.  Through a turn on the spot (a pan from a tripod, a
 person turning in place with the camera near the turning axis) no edge has any: each new keyframe's depth is the
 previous one's moved into it, with the part of the view that is new filled by rows, a guess (:mod:`.observed`).
-Once the turn has taken the measured part out of view, the scale of the map after the turn is the guessed depth's.
-On the synthetic head camera (stop-and-spins of 60-140 deg) the map's scale changed by 1.3-2.2x across the
-stop-and-spins of the three fresh seeds that missed the benchmark target (handheld_fast 111, 123, 125) and of tune
-seeds 2 and 6, where the scene's own median depth changes by 1.36x over such a turn (median over 170 turns of the
-generator): no depth guess can carry the scale, and a walker's-pace prior did not either (bench/RESULTS.md, session
-12-04 d).
-The run therefore says where it happened (``metrics.json``: ``tracking.scale_gaps``, and a warning), and the
-evaluation aligns the parts on either side on their own too (``ate_segments``,
+Once the turn has taken the measured part out of view, the scale of the map after the turn is the guessed depth's,
+and the scene's own depth may differ on the other side: no depth guess can carry the scale (docs/decisions.md:
+SCALE GAPS).  The run therefore says where it happened (``metrics.json``: ``tracking.scale_gaps``, and a warning),
+and the evaluation aligns the parts on either side on their own too (``ate_segments``,
 :func:`pvslam_core.evaluation.trajectory.ate_segments`).
 
 A gap is a stretch of consecutive keyframes of one fragment that holds at least one *unmeasured* keyframe (at most
@@ -19,10 +15,9 @@ its depth was when the next keyframes were placed against it) and is bounded on 
 keyframe of the same fragment (at least ``WELL_MEASURED``); the keyframes in between are all under that.  Its
 ``turn_deg`` is the estimated rotation between the two bounding keyframes; ``beyond_fov``, whether that turn is wider
 than the camera's horizontal field of view: then nothing whose depth was measured before the gap is in view after
-it.  Those gaps warn and cut ``ate_segments``.  On the head camera (tune seeds 1, 2, 6, 7, 8 and the used 111, 123,
-125) 18 of 22 gaps were beyond the view, and the scale changed by more than 15 % across 9 of them (0.46-1.71x) and
-across 1 of the 4 others (a 50 deg turn, 0.76x).  Whether the camera stood cannot be told from the map: through such
-a gap its translation is unobserved too (three of the stands moved 0.8-1.9x the walking pace before them).
+it.  Those gaps warn and cut ``ate_segments``: most gaps of a head camera's stop-and-spins are beyond the view, and
+the scale often changes across them.  Whether the camera stood cannot be told from the map: through such a gap its
+translation is unobserved too.
 """
 from __future__ import annotations
 
@@ -40,7 +35,7 @@ from .loops import rotation_deg
 LOG = logging.getLogger("pvslam")
 
 MAX_SHARE = 0.05  # a keyframe with at most this share of its pixels measured counts as unmeasured
-WELL_MEASURED = 0.5  # ... with at least this share, as well measured (graph.guess_min_measured's default)
+WELL_MEASURED = 0.5  # ... with at least this share, as well measured (observed.GUESS_MIN_MEASURED)
 
 
 @dataclass(frozen=True)

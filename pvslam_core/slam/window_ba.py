@@ -1,11 +1,10 @@
-"""Observing edges and the window BA of a new keyframe: a part of :class:`~.mapper.Mapper` (a mixin that uses its
-``graph``, ``frontend``, ``optimizer``, ``observed``, ``cfg``, ``cpu``, ``ba_shape``, ``fragment_start`` and
-``second_starts`` / ``second_starts_kept``).
+"""The window BA of a new keyframe: the online bundle adjustment of the last ``graph.edges.active_window``
+keyframes.
 
-Per window BA: ``rounds`` x (the frontend's observations of the active edges, the stored ones of the retired edges
-near the window (:func:`.edges.frozen_edges`), the frontend's depth and distance priors, the measured-depth factor
-(:mod:`.observed`); one optimizer step); then the pixels the edges measured are marked.  After a stretch without
-parallax the window BA of a new keyframe also runs from a second start (:mod:`.motion_start`).
+Per window BA: edges that left the window retire (:func:`.edges.retirement_mask`), then ``rounds`` x (the
+frontend's observations of the active edges with its depth and distance priors, the measured-depth factor
+(:mod:`.observed`); one optimizer step; the edges age); then the pixels the edges measured are marked.  After a
+stretch without parallax the window BA of a new keyframe also runs from a second start (:mod:`.motion_start`).
 """
 from __future__ import annotations
 
@@ -18,105 +17,52 @@ import torch
 
 from ..geometry.ba import weighted_cost
 from ..types import EdgeObservations
-from .edges import active_edges, frozen_edges, retirement_mask
-from .motion_start import constant_velocity_centre
+from . import motion_start
+from .config import EdgesConfig
+from .edges import active_edges, retirement_mask
+from .map_state import MapState
+from .observe import EdgeObserver
 
 LOG = logging.getLogger("pvslam")
 
+SECOND_START = True  # run a new keyframe's window BA also from its constant-velocity centre after a pan
+
 
 class WindowBA:
-    """Edge observations and the window BA of :class:`~.mapper.Mapper` (see the module docstring)."""
+    """Runs the optimizer over the active window (see the module docstring); counts the second starts."""
 
-    def _observe(self, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
-        """The frontend's observations of edges ``ii -> jj`` with the depth prior of their sources."""
-        return self._with_prior(self._observe_edges(ii, jj))
+    def __init__(self, state: MapState, observer: EdgeObserver, optimizer, cfg: EdgesConfig) -> None:
+        self.state = state
+        self.observer = observer
+        self.optimizer = optimizer
+        self.cfg = cfg
+        self.second_starts = 0  # window BAs also run from the constant-velocity centre (.motion_start) ...
+        self.second_starts_kept = 0  # ... and those whose second start won
 
-    def _observe_edges(self, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
-        """The frontend's observations (recorded in the graph), without the depth prior: for callers that join
-        them with stored ones first and then ask for the prior of the joined sources once."""
-        dev = self.graph.device
-        obs = self.frontend.observe(self.graph, ii.to(dev), jj.to(dev))
-        self.graph.record_observations(obs)
-        return obs
+    def optimize(self, k: int, rounds: int) -> None:
+        """The window BA ending at keyframe ``k`` (graph index), ``rounds`` optimizer steps."""
+        self.state.graph.retire_edges(retirement_mask(self.state.graph, k, self.cfg))
+        self._mark(self._rounds(k, rounds)[1])
 
-    def _with_prior(self, obs: EdgeObservations) -> EdgeObservations:
-        """``obs`` with the frontend's inverse-depth prior (:meth:`Frontend.depth_prior`) for its depth sources and
-        its distance prior (:meth:`Frontend.distance_prior`) for the keyframes of its edges."""
-        if obs.ii.numel() == 0:
-            return obs
-        src = torch.unique(obs.ii)
-        prior = self.frontend.depth_prior(self.graph, src)
-        if prior is not None:
-            obs = replace(obs, disp_prior=prior)
-        dist = self.frontend.distance_prior(self.graph, torch.unique(torch.cat([obs.ii, obs.jj])))
-        if dist is not None:
-            obs = replace(obs, dist_prior=dist)
-        return obs
-
-    def _release_pairs(self, ii: torch.Tensor, jj: torch.Tensor) -> None:
-        """Tell the frontend that observed pairs which are not active edges (initialisation) are done with."""
-        not_edge = ~self.graph.has_edges(ii, jj)
-        if bool(not_edge.any()):
-            ids = self.graph.ids
-            dev = self.graph.device
-            self.frontend.on_edges_retired(ids[ii.to(dev)[not_edge]], ids[jj.to(dev)[not_edge]])
-
-    def _optimize_window(self, k: int, rounds: int) -> None:
-        self.graph.retire_edges(retirement_mask(self.graph, k, self.cfg))
-        self._mark(self._window_rounds(k, rounds)[1])
-
-    def _window_rounds(self, k: int, rounds: int) -> tuple[list[EdgeObservations], Optional[EdgeObservations]]:
-        """``rounds`` x (observe the active edges of the window ending at ``k``, one optimizer step; the edges age).
-        Returns each round's observations as given to the optimizer and the last round's before the measured-depth
-        factor (.observed; None without edges)."""
-        given, seen = [], None
-        for _ in range(rounds):
-            ii, jj = active_edges(self.graph, k, self.cfg.active_window)
-            if ii.numel() == 0:
-                break
-            t0 = thread_time()
-            obs = seen = self._with_prior(self._with_frozen(self._observe_edges(ii, jj), k))
-            if self.observed.weight < 1.0:
-                f = self.observed.factor(self.graph.ids[obs.ii].tolist(), self.ba_shape, obs.weight.device)
-                obs = replace(obs, weight=obs.weight * f)
-            given.append(obs)
-            t1 = thread_time()
-            self._step(k, obs)
-            self.cpu["edges"] += t1 - t0
-            self.graph.age_edges(ii, jj)
-        return given, seen
-
-    def _step(self, k: int, obs: EdgeObservations) -> None:
-        t0 = thread_time()
-        report = self.optimizer.step(self.graph, obs)
-        self.cpu["ba"] += thread_time() - t0
-        if report.rejected:
-            LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
-
-    def _mark(self, seen: Optional[EdgeObservations]) -> None:
-        """After a window BA: the depth pixels its last observations ``seen`` measured (:mod:`.observed`)."""
-        if self.observed.active and seen is not None:
-            g = self.graph
-            self.observed.mark(g.poses, g.disps, g.intrinsics, g.ids.tolist(), seen.ii, seen.jj, seen.weight)
-
-    def _optimize_new(self, k: int, rounds: int) -> None:
+    def optimize_new(self, k: int, rounds: int) -> None:
         """The window BA of a new keyframe ``k``; after a stretch without parallax also from its constant-velocity
         centre (:mod:`.motion_start`).  The second run reuses the first one's observations round by round (the
         frontend is not asked again: a frontend's observations may depend on how often, and at which estimate, it was
         asked) and the result with the lower flow cost under the first round's observations, those from the common
         start, is kept."""
-        c = self.cfg
+        st = self.state
         centre = None
-        if c.second_start and self.observed.active:
-            centre = constant_velocity_centre(self.graph, k, self.observed.fraction, c.guess_min_measured,
-                                              c.second_start_span, c.second_start_horizon, first=self.fragment_start)
+        if SECOND_START and st.observed.active:
+            centre = motion_start.constant_velocity_centre(st.graph, k, st.observed.fraction, st.observed.guess_min,
+                                                           motion_start.SPAN, motion_start.HORIZON,
+                                                           first=st.fragment_start)
         if centre is None:
-            self._optimize_window(k, rounds)
+            self.optimize(k, rounds)
             return
-        g = self.graph
-        g.retire_edges(retirement_mask(g, k, c))
+        g = st.graph
+        g.retire_edges(retirement_mask(g, k, self.cfg))
         start = (g.poses.clone(), g.disps.clone())
-        given, seen = self._window_rounds(k, rounds)  # from the pose guess
+        given, seen = self._rounds(k, rounds)  # from the pose guess
         if not given:
             return
         cost_guess = weighted_cost(g, given[0])
@@ -134,42 +80,38 @@ class WindowBA:
             g.disps.copy_(guess_result[1])
         self._mark(seen)
 
-    def _with_frozen(self, obs: EdgeObservations, k: int) -> EdgeObservations:
-        """``obs`` plus the stored observations of the retired edges :func:`.edges.frozen_edges` selects (no depth
-        prior: the caller asks for the joined sources', :meth:`_with_prior`)."""
-        ri, rj = frozen_edges(self.graph, k, self.cfg, first=self.fragment_start)
-        if ri.numel() == 0:
-            return obs
-        frozen = self.graph.retired_observations(ri, rj)
-        return _concat([obs, frozen], torch.arange(obs.ii.numel() + ri.numel()))
+    def _rounds(self, k: int, rounds: int) -> tuple[list[EdgeObservations], Optional[EdgeObservations]]:
+        """``rounds`` x (observe the active edges of the window ending at ``k``, one optimizer step; the edges age).
+        Returns each round's observations as given to the optimizer and the last round's before the measured-depth
+        factor (.observed; None without edges)."""
+        st, g = self.state, self.state.graph
+        given, seen = [], None
+        for _ in range(rounds):
+            ii, jj = active_edges(g, k, self.cfg.active_window)
+            if ii.numel() == 0:
+                break
+            t0 = thread_time()
+            obs = seen = self.observer.observe(ii, jj)
+            if st.observed.weight < 1.0:
+                f = st.observed.factor(g.ids[obs.ii].tolist(), st.ba_shape, obs.weight.device)
+                obs = replace(obs, weight=obs.weight * f)
+            given.append(obs)
+            t1 = thread_time()
+            self._step(k, obs)
+            st.cpu["edges"] += t1 - t0
+            g.age_edges(ii, jj)
+        return given, seen
 
-    def observe_any(self, ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
-        """Observations of any edges: retired ones from the graph's store, the others from the frontend."""
-        g = self.graph
-        ii, jj = ii.to(g.device), jj.to(g.device)
-        retired = g.is_retired(ii, jj).to(g.device) & ~g.has_edges(ii, jj)
-        if not bool(retired.any()):
-            return self._observe(ii, jj)
-        live = torch.nonzero(~retired).squeeze(1)
-        dead = torch.nonzero(retired).squeeze(1)
-        parts = [self._observe_edges(ii[live], jj[live])] if len(live) else []
-        parts.append(g.retired_observations(ii[dead], jj[dead]))
-        order = torch.argsort(torch.cat([live, dead]))
-        return self._with_prior(_concat(parts, order))
+    def _step(self, k: int, obs: EdgeObservations) -> None:
+        t0 = thread_time()
+        report = self.optimizer.step(self.state.graph, obs)
+        self.state.cpu["ba"] += thread_time() - t0
+        if report.rejected:
+            LOG.warning("keyframe %d: optimizer rejected an update: %s", k, report.message)
 
-
-def _concat(parts: list[EdgeObservations], order: torch.Tensor) -> EdgeObservations:
-    """Concatenate observations and reorder the edges by ``order`` (a permutation of the concatenated rows)."""
-    def cat(name):
-        vals = [getattr(p, name) for p in parts]
-        if any(v is None for v in vals):
-            if name != "dynamic":
-                return None
-            vals = [v if v is not None else torch.zeros(p.target.shape[0], *p.target.shape[-2:], device=p.target.device)
-                    for v, p in zip(vals, parts)]
-        return torch.cat([v.to(parts[0].target.device) for v in vals])[order.to(parts[0].target.device)]
-
-    damping = next((p.depth_damping for p in parts if p.depth_damping is not None), None)
-    # (no depth prior: it is per depth source, and the caller asks for the joined edges' sources, _with_prior)
-    return EdgeObservations(cat("ii"), cat("jj"), cat("target"), cat("weight"), dynamic=cat("dynamic"),
-                            depth_damping=damping)
+    def _mark(self, seen: Optional[EdgeObservations]) -> None:
+        """After a window BA: the depth pixels its last observations ``seen`` measured (:mod:`.observed`)."""
+        observed = self.state.observed
+        if observed.active and seen is not None:
+            g = self.state.graph
+            observed.mark(g.poses, g.disps, g.intrinsics, g.ids.tolist(), seen.ii, seen.jj, seen.weight)

@@ -204,9 +204,11 @@ plugin = "recording"
 [vps]
 plugin = "pass"
 [graph]
-warmup = 3
 ba_downsample = 4
-remove_redundant = false
+[graph.init]
+warmup = 3
+[graph.keyframes]
+redundant_thresh = 0.0
 [outputs]
 plots = false
 """

@@ -4,12 +4,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 
 from pvslam_core.api import run_config
 from pvslam_core.observer import KeyframeSnapshot, RunObserver
+from pvslam_core.slam import loops
 
-LOOPS = ['loop.plugin="every_kf"', "dataset.frames=16", "loop_closure.nms_keyframes=0"]
+LOOPS = ['loop.plugin="every_kf"', "dataset.frames=16"]
+
+
+@pytest.fixture(autouse=True)
+def _no_loop_suppression(monkeypatch):
+    monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)  # every keyframe closes a loop
 
 
 class Recorder(RunObserver):

@@ -8,6 +8,7 @@ import fakes
 from pvslam_core.api import run_ablation, run_config
 from pvslam_core.config import load_config
 from pvslam_core.outputs.trajectory_io import read_tum
+from pvslam_core.slam import bootstrap, loops
 
 
 def test_run_directory_contents(fake_registry, fake_config_file):
@@ -90,12 +91,15 @@ def test_failure_midway_keeps_what_was_written(tmp_path, fake_registry, monkeypa
 
 
 @pytest.mark.parametrize("tries, initialised", [(1, False), (3, True)])
-def test_initialisation_falls_back_to_a_nearer_pair(fake_registry, fake_config_file, tries, initialised):
+def test_initialisation_falls_back_to_a_nearer_pair(fake_registry, fake_config_file, tries, initialised,
+                                                   monkeypatch):
     """Fast motion: the flow from the first keyframe to the newest fails; a nearer partner still initialises (with
-    the chained links of the far pair off: graph.init_chain_fallback, the next test)."""
+    the chained links of the far pair off: bootstrap.CHAIN_FALLBACK, the next test)."""
+    monkeypatch.setattr(bootstrap, "INIT_TRIES", tries)
+    monkeypatch.setattr(bootstrap, "CHAIN_FALLBACK", False)
     res = run_config(fake_config_file, registry=fake_registry,
-                     overrides=["frontend.max_pair_gap=1", f"graph.init_tries={tries}", "graph.warmup=3",
-                                "graph.init_min_parallax_deg=0.3", "graph.init_chain_fallback=false"])
+                     overrides=["frontend.max_pair_gap=1", "graph.init.warmup=3",
+                                "graph.init.min_parallax_deg=0.3"])
     log = (__import__("pathlib").Path(res.run_dir) / "log.txt").read_text()
     # the pairs all end at the newest keyframe (pvslam_core/slam/bootstrap.py): (0, 2) fails, (1, 2) initialises
     assert ("map initialised with keyframes 0..2 (pair 1-2" in log) == initialised, log
@@ -105,26 +109,28 @@ def test_initialisation_falls_back_to_a_nearer_pair(fake_registry, fake_config_f
         assert x[2] != x[1] and abs((x[2] - x[1]) - (x[1] - x[0])) < 1e-3 * abs(x[2] - x[1])
 
 
-def test_a_far_pair_whose_flow_failed_initialises_on_its_links(fake_registry, fake_config_file):
-    """The same fast motion with graph.init_chain_fallback (the default): the far pair (0, 2) takes its
-    correspondences from the chained links 0 -> 1 -> 2, so the first try initialises."""
+def test_a_far_pair_whose_flow_failed_initialises_on_its_links(fake_registry, fake_config_file, monkeypatch):
+    """The same fast motion with bootstrap.CHAIN_FALLBACK (on): the far pair (0, 2) takes its correspondences from
+    the chained links 0 -> 1 -> 2, so the first try initialises."""
+    monkeypatch.setattr(bootstrap, "INIT_TRIES", 1)
     res = run_config(fake_config_file, registry=fake_registry,
-                     overrides=["frontend.max_pair_gap=1", "graph.init_tries=1", "graph.warmup=3",
-                                "graph.init_min_parallax_deg=0.3"])
+                     overrides=["frontend.max_pair_gap=1", "graph.init.warmup=3",
+                                "graph.init.min_parallax_deg=0.3"])
     log = (__import__("pathlib").Path(res.run_dir) / "log.txt").read_text()
     assert "map initialised with keyframes 0..2 (pair 0-2" in log and "never initialised" not in log, log
 
 
 @pytest.mark.parametrize("gap, expected", [(0, 8), (100, 1), (3, 3)])
-def test_loop_ba_not_rerun_along_one_revisit(fake_registry, fake_config_file, gap, expected):
+def test_loop_ba_not_rerun_along_one_revisit(fake_registry, fake_config_file, gap, expected, monkeypatch):
     """Every keyframe from the 4th reports a loop with keyframe 1; from keyframe 5 to 12 each adds new loop edges
-    (keyframe 4's are all there already). A loop BA runs only when the last one is loop_closure.ba_min_gap
+    (keyframe 4's are all there already). A loop BA runs only when the last one is loops.LOOP_BA_MIN_GAP
     keyframes old: gap 3 -> keyframes 5, 8 and 11.  (Suppression near accepted loops is off: it would keep all
     but the first of these closures.)"""
     fakes.RecordingOptimizer.loop_calls = 0
+    monkeypatch.setattr(loops, "LOOP_BA_MIN_GAP", gap)
+    monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)
     res = run_config(fake_config_file, registry=fake_registry,
-                     overrides=['loop.plugin="every_kf"', f"loop_closure.ba_min_gap={gap}", "dataset.frames=26",
-                                "graph.warmup=3", "loop_closure.nms_keyframes=0"])
+                     overrides=['loop.plugin="every_kf"', "dataset.frames=26", "graph.init.warmup=3"])
     assert len(res.loops) == 8  # every accepted loop is recorded (loops.json, loop metrics)
     assert fakes.RecordingOptimizer.loop_calls == expected
     assert sum(c.loop_ba for c in res.loops) == expected

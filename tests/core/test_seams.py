@@ -12,6 +12,7 @@ import fakes_seams
 from pvslam_core.api import run_config
 from pvslam_core.outputs.ply import read_ply
 from pvslam_core.registry import build_registry
+from pvslam_core.slam import bootstrap
 
 
 @pytest.fixture
@@ -25,7 +26,7 @@ def test_per_edge_state_follows_retirement_and_removal(seams_registry, fake_conf
     fakes_seams.StatefulFrontend.instances.clear()
     res = run_config(fake_config_file, registry=seams_registry, overrides=[
         'frontend.plugin="stateful"', "dataset.frames=60", "frontend.keyframe_every=1",
-        "graph.remove_redundant=true", "graph.redundant_thresh=0.2", "graph.active_window=4", "graph.warmup=3"])
+        "graph.keyframes.redundant_thresh=0.2", "graph.edges.active_window=4", "graph.init.warmup=3"])
     fe = fakes_seams.StatefulFrontend.instances[-1]
     assert fe.errors == []
     tracking = res.metrics["tracking"]
@@ -72,14 +73,15 @@ def test_segmenter_categories_reach_the_outputs(seams_registry, fake_config_file
     assert r > b + 50 and g > b + 50
 
 
-def test_edges_retire_before_initialisation(seams_registry, fake_config_file):
+def test_edges_retire_before_initialisation(seams_registry, fake_config_file, monkeypatch):
     """A fragment that never initialises (warm-up longer than the run) keeps only the window's edges active and the
     frontend hears of the others, as after initialisation (it used to keep every neighbour edge of the run)."""
     fakes_seams.StatefulFrontend.instances.clear()
+    monkeypatch.setattr(bootstrap, "WARMUP_SECONDS", 0)
     try:
         res = run_config(fake_config_file, registry=seams_registry, overrides=[
             'frontend.plugin="stateful"', "dataset.frames=40", "frontend.keyframe_every=1",
-            "graph.active_window=4", "graph.warmup=1000", "graph.warmup_seconds=0"])
+            "graph.edges.active_window=4", "graph.init.warmup=1000"])
         tracking = res.metrics["tracking"]
     except Exception as exc:  # a run without any pose estimate may stop with an error; the graph is what counts
         pytest.fail(f"run failed: {exc}")

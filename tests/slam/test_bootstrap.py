@@ -2,6 +2,7 @@
 plugins of the framework tests."""
 import logging
 
+import pytest
 import torch
 
 import fakes
@@ -10,7 +11,9 @@ from pvslam_core.geometry.testing import umeyama_ate
 from pvslam_core.interfaces import BuildContext
 from pvslam_core.registry import get_registry
 from pvslam_core.slam import bootstrap as B
+from pvslam_core.slam import loops
 from pvslam_core.slam.mapper import Mapper
+from pvslam_core.slam.observe import EdgeObserver
 
 
 def test_init_pairs_slide_with_the_newest_keyframe():
@@ -33,14 +36,35 @@ def test_init_pairs_slide_with_the_newest_keyframe():
     assert B.init_pairs(0, 4, 8, 3) == [(0, 4), (2, 4), (0, 3)]
 
 
-def _build(frames=24, **graph):
-    pcfg = validate_pipeline({"graph": {"warmup": 3, "ba_downsample": 4, "remove_redundant": False, **graph},
-                              "loop_closure": {"nms_keyframes": 0}})
+def _build(frames=24, warmup=3):
+    """A mapper over the exact fakes, every keyframe kept; the bootstrap's constants as the test set them."""
+    pcfg = validate_pipeline({"graph": {"init": {"warmup": warmup}, "ba_downsample": 4,
+                                        "keyframes": {"redundant_thresh": 0.0}}})
     ds = fakes.FakeDataset(fakes.FakeDatasetConfig(frames=frames, speed=0.4))
     fe = fakes.ExactFrontend(fakes.ExactFrontendConfig(keyframe_every=2), ds=4)
     spec = get_registry().get("optimizer", "online_ba")
     opt = spec.factory(spec.config_model(), BuildContext(device=torch.device("cpu")))
     return Mapper(pcfg, ds.info(), fe, opt, None, "cpu"), ds
+
+
+def _record_pairs(monkeypatch, tried: list, last: int = 0):
+    """Record each keyframe pair the bootstrap observes on its own, ``(a, m)`` (``last``: ``m`` only), while the
+    map is not initialised; returns the box where the test puts the mapper (``box["m"]``)."""
+    box = {}
+    real = EdgeObserver.observe_pair
+
+    def observe_pair(self, a, b):
+        if not box["m"].initialized:
+            tried.append(b if last else (int(a), int(b)))
+        return real(self, a, b)
+
+    monkeypatch.setattr(EdgeObserver, "observe_pair", observe_pair)
+    return box
+
+
+@pytest.fixture(autouse=True)
+def _no_loop_suppression(monkeypatch):
+    monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)
 
 
 def test_initialises_on_a_later_pair_and_places_the_earlier_keyframes(monkeypatch, caplog):
@@ -49,22 +73,19 @@ def test_initialises_on_a_later_pair_and_places_the_earlier_keyframes(monkeypatc
     whole trajectory is right up to scale."""
     tried: list[tuple[int, int]] = []
     real = B.two_view_init_why
-    real_observe = Mapper._observe
+    box = _record_pairs(monkeypatch, tried)  # the bootstrap observes exactly the pair it then hands on
 
-    def observe(self, ii, jj):  # the bootstrap observes exactly the pair it then hands to two_view_init_why
-        if not self.initialized and len(ii) == 1:  # a pair, not a chain check
-            tried.append((int(ii[0]), int(jj[0])))
-        return real_observe(self, ii, jj)
-
-    def why(target, weight, intr, **kw):
+    def why(target, weight, intr, opts):
         a, m = tried[-1]
         if a < 2 or m < 6:
             return None, "0 confident correspondences < 60 (the views do not overlap)"
-        return real(target, weight, intr, **kw)
+        return real(target, weight, intr, opts)
 
-    monkeypatch.setattr(Mapper, "_observe", observe)
     monkeypatch.setattr(B, "two_view_init_why", why)
-    m, ds = _build(init_window=3, init_tries=2)
+    monkeypatch.setattr(B, "INIT_WINDOW", 3)
+    monkeypatch.setattr(B, "INIT_TRIES", 2)
+    m, ds = _build()
+    box["m"] = m
     with caplog.at_level(logging.INFO, logger="pvslam"):
         results = [m.process(f, None) for f in ds]
     first_init = next(i for i, r in enumerate(results) if r.initialized)
@@ -83,23 +104,20 @@ def test_earlier_keyframe_without_a_pose_keeps_its_neighbours(monkeypatch):
     after it (no crash: that pose is copied, not written through a view of the graph's own storage)."""
     real = B.two_view_init_why
     tried: list[tuple[int, int]] = []
-    real_observe = Mapper._observe
+    box = _record_pairs(monkeypatch, tried)
 
-    def observe(self, ii, jj):
-        if not self.initialized and len(ii) == 1:  # a pair, not a chain check
-            tried.append((int(ii[0]), int(jj[0])))
-        return real_observe(self, ii, jj)
-
-    def why(target, weight, intr, **kw):
+    def why(target, weight, intr, opts):
         a, m = tried[-1]
-        return (None, "refused") if a < 2 else real(target, weight, intr, **kw)
+        return (None, "refused") if a < 2 else real(target, weight, intr, opts)
 
-    monkeypatch.setattr(Mapper, "_observe", observe)
     monkeypatch.setattr(B, "two_view_init_why", why)
-    m, ds = _build(frames=16, init_window=2, init_tries=1)
-    monkeypatch.setattr(m.frames, "motion_only", lambda *a, **k: None)
+    monkeypatch.setattr(B, "INIT_WINDOW", 2)
+    monkeypatch.setattr(B, "INIT_TRIES", 1)
+    m, ds = _build(frames=16)
+    box["m"] = m
+    monkeypatch.setattr(m.state.frames, "motion_only", lambda *a, **k: None)
     placed = []  # the poses as the bootstrap left them (the window BA after it moves them)
-    monkeypatch.setattr(m, "_optimize_window", lambda k, rounds: placed.append(m.graph.poses.clone()))
+    monkeypatch.setattr(m.window_ba, "optimize", lambda k, rounds: placed.append(m.graph.poses.clone()))
     for f in ds:
         m.process(f, None)
         if m.initialized:
@@ -116,18 +134,14 @@ def test_warmup_ends_at_warmup_keyframes_or_three_spanning_warmup_seconds(monkey
     """Keyframes every 0.2 s (10 frames/s, every second frame): with ``warmup = 5`` the first initialisation is
     tried at keyframe 4, unless at least 3 keyframes span ``warmup_seconds`` first (a slow camera makes keyframes
     rarely: collecting 5 of them took 2.1 s on a textureless room)."""
-    real_observe = Mapper._observe
-
-    def first_try(**graph):
+    def first_try(warmup_seconds):
         tried: list[int] = []
-
-        def observe(self, ii, jj):
-            if not self.initialized and len(ii) == 1:  # a pair, not a chain check
-                tried.append(int(jj[0]))
-            return real_observe(self, ii, jj)
-
-        monkeypatch.setattr(Mapper, "_observe", observe)
-        m, ds = _build(frames=16, warmup=5, **graph)
+        monkeypatch.undo()  # one recorder at a time
+        box = _record_pairs(monkeypatch, tried, last=1)
+        monkeypatch.setattr(B, "WARMUP_SECONDS", warmup_seconds)
+        monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)
+        m, ds = _build(frames=16, warmup=5)
+        box["m"] = m
         for f in ds:
             m.process(f, None)
         assert m.initialized
@@ -140,11 +154,12 @@ def test_warmup_ends_at_warmup_keyframes_or_three_spanning_warmup_seconds(monkey
 
 
 def test_with_the_chain_check_the_pairs_between_are_observed_then_discarded_and_the_map_initialises(monkeypatch):
-    """graph.init_chain_tol > 0: each pair tried is followed by one observation of its consecutive keyframe pairs
+    """bootstrap.CHAIN_TOL > 0: each pair tried is followed by one observation of its consecutive keyframe pairs
     (bootstrap.chain_checked), which the frontend is then told to discard (observed before the map existed); on
     exact flow the map initialises as without it, at the same frame, and its trajectory is right up to scale."""
     def run(tol):
-        m, ds = _build(init_chain_tol=tol)
+        monkeypatch.setattr(B, "CHAIN_TOL", tol)
+        m, ds = _build()
         fe = m.frontend
         chains, discarded = [], []
         real_observe, real_discard = fe.observe, fe.discard_pairs
@@ -180,12 +195,14 @@ def test_with_the_chain_check_the_pairs_between_are_observed_then_discarded_and_
 
 
 def test_a_pair_whose_direct_flow_is_lost_initialises_on_its_chained_links(monkeypatch, caplog):
-    """graph.init_chain_fallback: before the map exists nothing starts a far pair's flow from the motion, and it can
+    """bootstrap.CHAIN_FALLBACK: before the map exists nothing starts a far pair's flow from the motion, and it can
     come back with no confident pixel while each link between is fine (a 45 deg lens on a hand-held camera).  The
     pair then initialises on the chained links' correspondences: on exact links the map starts at the same frame
     and on the same pair as with the direct flow, right up to scale; without the fallback that pair is declined."""
     def run(wipe, fallback):
-        m, ds = _build(init_chain_tol=1.0, init_chain_fallback=fallback)
+        monkeypatch.setattr(B, "CHAIN_TOL", 1.0)
+        monkeypatch.setattr(B, "CHAIN_FALLBACK", fallback)
+        m, ds = _build()
         fe = m.frontend
         real_observe = fe.observe
 

@@ -73,12 +73,6 @@ def test_relocalise_refuses_unrelated_views():
     assert relocalise(P_J, disp_j, disp_j, INTR, flow_target(P_J, P_K, disp_j), torch.zeros(2, H, W)) is None
 
 
-class _MapperStub:
-    def __init__(self, graph):
-        self.graph = graph
-        self.frames = FramePoses(graph)
-
-
 def test_align_fragment_moves_the_fragment_and_its_frames():
     """Old map: keyframes 0, 1 (true poses).  New fragment: keyframes 2, 3 = k and a non-keyframe anchored to 2,
     all in the new frame and scale.  After the alignment everything is at its true pose and scale."""
@@ -89,8 +83,7 @@ def test_align_fragment_moves_the_fragment_and_its_frames():
         new_frag = n >= 2
         g.add_keyframe(10 * n, float(n), to_new(p) if new_frag else p,
                        plane_disp(p) * (S_TRUE if new_frag else 1.0))
-    st = _MapperStub(g)
-    frames = st.frames
+    frames = FramePoses(g)
     for n in range(4):
         frames.add_keyframe(10 * n, float(n), g.id_of(n))
     f_true = se3_mul(true[2], pose([0.1, 0.0, 0.4], [0, 0.02, 0]))  # a frame between keyframes 2 and 3
@@ -103,7 +96,7 @@ def test_align_fragment_moves_the_fragment_and_its_frames():
     assert idx.tolist() == [2, 3]
     disp_j = g.disps[0].clone()
     reloc = relocalise(g.poses[0], disp_j, g.disps[3], INTR, flow_target(P_J, P_K, disp_j), torch.ones(2, H, W))
-    align_fragment(st, idx, 3, reloc)
+    align_fragment(g, frames, idx, 3, reloc)
     frags.merge(g.id_of(3), g.id_of(0))
     assert frags.same(g.id_of(3), g.id_of(0)) and frags.unmerged == 1 and frags.merges == 1
     for n in range(4):
@@ -134,24 +127,24 @@ def test_gap_frames_are_interpolated_between_the_merged_fragments():
     p0, p1 = pose([0.0, 0, 0], [0, 0, 0]), pose([10.0, 0, 0], [0, 0.4, 0])
     g.add_keyframe(0, 0.0, p0, torch.ones(H, W))
     g.add_keyframe(10, 1.0, p1, torch.ones(H, W))
-    st = _MapperStub(g)
-    st.frames.add_keyframe(0, 0.0, g.id_of(0))
+    frames = FramePoses(g)
+    frames.add_keyframe(0, 0.0, g.id_of(0))
     rel_extrapolated = pose([0.5, 0, 0], [0, 0, 0])
     for n in (2, 5):  # failed frames, extrapolated from keyframe 0
-        st.frames.add_frame(n, 0.1 * n, g.id_of(0), rel_extrapolated, failed=True)
-    st.frames.add_frame(3, 0.3, g.id_of(0), rel_extrapolated)  # a tracked frame: left alone
-    st.frames.add_keyframe(10, 1.0, g.id_of(1))
-    assert replace_gap_frames(st, 1) == 2
-    _, poses = st.frames.poses()
+        frames.add_frame(n, 0.1 * n, g.id_of(0), rel_extrapolated, failed=True)
+    frames.add_frame(3, 0.3, g.id_of(0), rel_extrapolated)  # a tracked frame: left alone
+    frames.add_keyframe(10, 1.0, g.id_of(1))
+    assert replace_gap_frames(g, frames, 1) == 2
+    _, poses = frames.poses()
     from pvslam_core.geometry.lie import se3_interpolate
 
     for row, alpha in ((1, 0.2), (2, 0.5)):  # 0.2 and 0.5 of the way from keyframe 0 to keyframe 1
         assert torch.allclose(poses[row], se3_interpolate(p0, p1, alpha), atol=1e-9)
     assert 1.5 < float(poses[1, 0]) < 2.5 and 4.5 < float(poses[2, 0]) < 5.5
     assert poses[3, 0] == pytest.approx(0.5)  # the tracked frame kept its pose
-    e = st.frames.entries[1]
+    e = frames.entries[1]
     assert (e.anchor, e.upto) == (g.id_of(0), g.id_of(1))  # held between the two: they follow both from now on
     p1_moved = pose([12.0, 1.0, 0], [0, 0.5, 0])
     g.set_poses(torch.tensor([1]), p1_moved[None])
-    _, poses = st.frames.poses()
+    _, poses = frames.poses()
     assert torch.allclose(poses[1], se3_interpolate(p0, p1_moved, 0.2), atol=1e-9)

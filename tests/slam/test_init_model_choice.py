@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from pvslam_core.geometry.lie import se3_to_matrix
-from pvslam_core.slam.initializer import refine_relative_pose, sampson_error, two_view_init_why
+from pvslam_core.slam.initializer import TwoViewOptions, refine_relative_pose, sampson_error, two_view_init_why
 
 H, W = 30, 40
 FX = FY = 35.0
@@ -67,7 +67,7 @@ def _errors(init, R, t):
 @pytest.mark.parametrize("parallax_deg", [1.0, 2.0])
 def test_scene_with_depth_gets_the_true_translation(parallax_deg, rot_deg, tie):
     target, weight, R, t = _pair("boxes", parallax_deg, rot_deg, noise=0.05)
-    init, why = two_view_init_why(target, weight, INTR, min_parallax_deg=0.5, tie_ratio=tie)
+    init, why = two_view_init_why(target, weight, INTR, TwoViewOptions(min_parallax_deg=0.5, tie_ratio=tie))
     assert init is not None, why
     rerr, terr = _errors(init, R, t)
     assert init.model == "E"
@@ -81,7 +81,8 @@ def test_without_refinement_the_same_pairs_go_wrong():
     for par in (1.0, 2.0):
         for rot in (2.0, 10.0):
             target, weight, R, t = _pair("boxes", par, rot, noise=0.05)
-            init, _ = two_view_init_why(target, weight, INTR, min_parallax_deg=0.5, refine=False)
+            opts = TwoViewOptions(min_parallax_deg=0.5, refine=False)
+            init, _ = two_view_init_why(target, weight, INTR, opts)
             errs.append(_errors(init, R, t)[1] if init is not None else 180.0)
     assert max(errs) > 10.0
 
@@ -91,7 +92,7 @@ def test_without_refinement_the_same_pairs_go_wrong():
 def test_planar_scene_keeps_the_homography_solution(parallax_deg, tie):
     # a plane leaves the essential matrix a family of solutions; the homography's decomposition is the answer
     target, weight, R, t = _pair("plane", parallax_deg, 10.0, noise=0.05)
-    init, why = two_view_init_why(target, weight, INTR, min_parallax_deg=0.5, tie_ratio=tie)
+    init, why = two_view_init_why(target, weight, INTR, TwoViewOptions(min_parallax_deg=0.5, tie_ratio=tie))
     assert init is not None, why
     rerr, terr = _errors(init, R, t)
     assert terr < 3.0 and rerr < 0.2, (terr, rerr)
@@ -99,7 +100,7 @@ def test_planar_scene_keeps_the_homography_solution(parallax_deg, tie):
 
 def test_pure_rotation_is_declined():
     target, weight, _, _ = _pair("boxes", 0.0, 8.0, noise=0.05)
-    init, why = two_view_init_why(target, weight, INTR, min_parallax_deg=0.5)
+    init, why = two_view_init_why(target, weight, INTR, TwoViewOptions(min_parallax_deg=0.5))
     assert init is None and "parallax" in why
 
 
@@ -135,13 +136,13 @@ def test_an_ambiguous_pair_is_declined_not_started_wrong():
     d = np.load(Path(__file__).parent / "data" / "init_pair_busy_street_86.npz")
     target, weight, intr = (torch.from_numpy(d[k]) for k in ("target", "weight", "intr"))
     kw = dict(min_parallax_deg=0.5, relative_weight=True, parallax_quantile=0.75)
-    init, why = two_view_init_why(target, weight, intr, **kw)
+    init, why = two_view_init_why(target, weight, intr, TwoViewOptions(**kw))
     assert init is not None and why == ""
     T_m_a = np.linalg.inv(se3_to_matrix(init.pose_wc).numpy())  # view 0 -> view 1
     t_est, t_true = T_m_a[:3, 3], d["T_m_a"][:3, 3]
     cos = float(t_est @ t_true / np.linalg.norm(t_est) / np.linalg.norm(t_true))
     assert abs(cos) < 0.2  # started wrong: the translation about 90 deg off
-    init, why = two_view_init_why(target, weight, intr, ambiguity_ratio=3.0, **kw)
+    init, why = two_view_init_why(target, weight, intr, TwoViewOptions(ambiguity_ratio=3.0, **kw))
     assert init is None and why.startswith("ambiguous") and "72 of 111" in why, why
 
 
@@ -161,9 +162,10 @@ def test_a_pair_that_cannot_tell_two_motions_apart_is_declined():
         t_est = np.linalg.inv(se3_to_matrix(init.pose_wc).numpy())[:3, 3]
         return float(np.degrees(np.arccos(t_est @ t_true / np.linalg.norm(t_est) / np.linalg.norm(t_true))))
 
-    init, why = two_view_init_why(target, weight, intr, **kw)
+    init, why = two_view_init_why(target, weight, intr, TwoViewOptions(**kw))
     assert init is not None and heading_error(init) > 40  # started wrong (55 deg)
-    init, why = two_view_init_why(target, weight, intr, tie_ratio=1.25, **kw)
+    init, why = two_view_init_why(target, weight, intr, TwoViewOptions(tie_ratio=1.25, **kw))
     assert init is None and why.startswith("ambiguous: two motions"), why
-    init, why = two_view_init_why(target, weight, intr, tie_ratio=1.05, **kw)  # a tighter tie: the 10 % apart pass
+    # a tighter tie: the 10 % apart pass
+    init, why = two_view_init_why(target, weight, intr, TwoViewOptions(tie_ratio=1.05, **kw))
     assert init is not None and heading_error(init) > 40

@@ -69,17 +69,19 @@ def test_the_parallax_gate_reads_the_requested_quantile():
     """``parallax_quantile``: the pair passes when that quantile of its points' parallax reaches the threshold.  A
     threshold between the pair's median and its 75th-percentile parallax declines it at 0.5 (saying so) and accepts
     it at 0.75 with the same motion; the reported parallax is the quantile's."""
-    from pvslam_core.slam.initializer import two_view_init_why
+    from pvslam_core.slam.initializer import TwoViewOptions, two_view_init_why
 
     pr = make_problem(n=6, h=60, w=80, seed=1, step=0.25)
     target, weight = _pair(pr, 0, 5)
-    at = {q: two_view_init_why(target, weight, pr.intr, min_parallax_deg=0.01, parallax_quantile=q)[0]
+    at = {q: two_view_init_why(target, weight, pr.intr,
+                               TwoViewOptions(min_parallax_deg=0.01, parallax_quantile=q))[0]
           for q in (0.5, 0.75)}
     med, q75 = at[0.5].parallax_deg, at[0.75].parallax_deg
     assert q75 > 1.05 * med  # the scene's depths differ: the quantiles differ
     thr = (med + q75) / 2
-    no, why = two_view_init_why(target, weight, pr.intr, min_parallax_deg=thr)
+    no, why = two_view_init_why(target, weight, pr.intr, TwoViewOptions(min_parallax_deg=thr))
     assert no is None and why.startswith("median parallax")
-    yes, why = two_view_init_why(target, weight, pr.intr, min_parallax_deg=thr, parallax_quantile=0.75)
+    yes, why = two_view_init_why(target, weight, pr.intr,
+                                 TwoViewOptions(min_parallax_deg=thr, parallax_quantile=0.75))
     assert yes is not None and why == "" and yes.parallax_deg == q75
     torch.testing.assert_close(yes.pose_wc, at[0.5].pose_wc)

@@ -1,6 +1,6 @@
-"""Which keyframes stay (pvslam_core.slam.keyframing and the mapper's redundancy test): the distance combines the
-mean and the 90th percentile of the induced flow, checked against a pinhole projection written here; a keyframe
-after a long gap is never redundant."""
+"""Which keyframes stay (pvslam_core.slam.flow_distance and the keyframe policy's redundancy test): the distance
+combines the mean and the 90th percentile of the induced flow, checked against a pinhole projection written here; a
+keyframe after a long gap is never redundant."""
 import numpy as np
 import torch
 
@@ -9,7 +9,7 @@ from pvslam_core.config import validate_pipeline
 from pvslam_core.geometry.projective import frame_distance
 from pvslam_core.interfaces import BuildContext
 from pvslam_core.registry import get_registry
-from pvslam_core.slam.keyframing import keyframe_distance
+from pvslam_core.slam.flow_distance import keyframe_distance
 from pvslam_core.slam.mapper import Mapper
 
 H, W, FX, CX, CY = 12, 16, 10.0, 7.5, 5.5
@@ -47,10 +47,10 @@ def test_distance_is_the_mean_or_the_high_quantile_of_the_induced_flow():
                              1.5, 4.0) == 1000.0
 
 
-def _kept_gaps(**graph):
+def _kept_gaps(max_gap_s):
     """The fake plugins of the framework tests (exact targets), every keyframe "close" by distance."""
-    pcfg = validate_pipeline({"graph": {"warmup": 3, "ba_downsample": 4, "remove_redundant": True,
-                                        "redundant_thresh": 1e6, **graph}})
+    pcfg = validate_pipeline({"graph": {"init": {"warmup": 3}, "ba_downsample": 4,
+                                        "keyframes": {"redundant_thresh": 1e6, "max_gap_s": max_gap_s}}})
     ds = fakes.FakeDataset(fakes.FakeDatasetConfig(frames=40, speed=0.4))
     fe = fakes.ExactFrontend(fakes.ExactFrontendConfig(keyframe_every=2), ds=4)
     spec = get_registry().get("optimizer", "online_ba")
@@ -63,8 +63,8 @@ def _kept_gaps(**graph):
 
 
 def test_a_keyframe_after_a_long_gap_is_never_redundant():
-    m_cap, gaps_cap = _kept_gaps(max_keyframe_gap_s=0.25)
-    m_free, gaps_free = _kept_gaps(max_keyframe_gap_s=100.0)
+    m_cap, gaps_cap = _kept_gaps(max_gap_s=0.25)
+    m_free, gaps_free = _kept_gaps(max_gap_s=100.0)
     assert gaps_free.max() > 0.6  # by distance alone, keyframes are far apart (until the views stop overlapping)
     # keyframes are proposed every 0.2 s (every 2nd frame): none is removed when that would leave more than 0.25 s
     assert gaps_cap.max() <= 0.25 + 1e-9 and m_cap.graph.n > m_free.graph.n

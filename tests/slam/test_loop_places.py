@@ -23,12 +23,17 @@ def drive(laps: int, nms: int = 3) -> list[tuple[int, int]]:
     """Each keyframe of laps 2.. proposes the same place on every earlier lap (oldest lap first, as a detector
     with equal scores would); returns the accepted closures (i, j)."""
     g = laps_graph(laps * LAP)
-    p = LoopPolicy(LoopClosureSection(nms_keyframes=nms, ba_min_gap=0), g)
-    for k in range(LAP, laps * LAP):
-        cands = [LoopCandidate(k, k - m * LAP, 0.9, True) for m in range(k // LAP, 0, -1)]
-        d = p.decide(cands)
-        if d is not None:
-            p.accepted(d)
+    old = loops.NMS_KEYFRAMES, loops.LOOP_BA_MIN_GAP
+    loops.NMS_KEYFRAMES, loops.LOOP_BA_MIN_GAP = nms, 0
+    try:
+        p = LoopPolicy(LoopClosureSection(), g)
+        for k in range(LAP, laps * LAP):
+            cands = [LoopCandidate(k, k - m * LAP, 0.9, True) for m in range(k // LAP, 0, -1)]
+            d = p.decide(cands)
+            if d is not None:
+                p.accepted(d)
+    finally:
+        loops.NMS_KEYFRAMES, loops.LOOP_BA_MIN_GAP = old
     return [(c.kf_i, c.kf_j) for c in p.closures]
 
 

@@ -6,6 +6,7 @@ import torch
 
 from pvslam_core.config import LoopClosureSection
 from pvslam_core.geometry.lie import se3_exp
+from pvslam_core.slam import loops
 from pvslam_core.slam.graph import FrameGraph
 from pvslam_core.slam.loops import LoopPolicy, rotation_deg
 from pvslam_core.types import LoopCandidate
@@ -45,9 +46,10 @@ def test_best_remaining_candidate_and_orientation_check():
     assert d.closure.kf_j == 5  # the first (best) is look-alike seen from the opposite direction
 
 
-def test_consecutive_hits():
+def test_consecutive_hits(monkeypatch):
     g = graph(30)
-    p = policy(g, consecutive=2, consecutive_tolerance=1)
+    monkeypatch.setattr(loops, "CONSECUTIVE_TOLERANCE", 1)
+    p = policy(g, consecutive=2)
     assert p.decide([LoopCandidate(20, 3, 0.9, True)]) is None  # first hit: not yet
     d = p.decide([LoopCandidate(21, 4, 0.9, True)])  # the previous keyframe proposed a place within 1 + 1
     assert d is not None and d.closure.kf_j == 4
@@ -59,17 +61,19 @@ def test_consecutive_hits():
     assert p2.decide([LoopCandidate(21, 4, 0.9, True)]) is None
 
 
-def test_suppression_near_accepted_loops_and_removed_keyframes():
+def test_suppression_near_accepted_loops_and_removed_keyframes(monkeypatch):
     g = graph(30)
     for nms, expect in ((2, False), (0, True)):
-        p = policy(g, nms_keyframes=nms)
+        monkeypatch.setattr(loops, "NMS_KEYFRAMES", nms)
+        p = policy(g)
         d = p.decide([LoopCandidate(20, 3, 0.9, True)])
         p.accepted(d)
         assert p.suppressed(21, 4) == (not expect)
         assert (p.decide([LoopCandidate(21, 4, 0.9, True)]) is not None) == expect
         assert not p.suppressed(21, 12)  # another place
     # distances are taken in the current graph: after removals the indices of ids move closer
-    p = policy(g, nms_keyframes=2)
+    monkeypatch.setattr(loops, "NMS_KEYFRAMES", 2)
+    p = policy(g)
     p.accepted(p.decide([LoopCandidate(20, 3, 0.9, True)]))
     assert not p.suppressed(24, 3)
     g.remove_keyframe(g.index_of(21))
@@ -77,9 +81,11 @@ def test_suppression_near_accepted_loops_and_removed_keyframes():
     assert p.suppressed(24, 3)
 
 
-def test_loop_ba_gating():
+def test_loop_ba_gating(monkeypatch):
     g = graph(12)
-    p = policy(g, ba_min_gap=3, nms_keyframes=0)
+    monkeypatch.setattr(loops, "LOOP_BA_MIN_GAP", 3)
+    monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)
+    p = policy(g)
     runs = []
     for k in range(6, 12):
         # the policy reads the graph size: grow it as keyframes would arrive

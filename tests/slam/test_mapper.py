@@ -13,6 +13,7 @@ from pvslam_core.geometry.projective import edge_transforms, project_points
 from pvslam_core.geometry.testing import umeyama_ate
 from pvslam_core.interfaces import BuildContext
 from pvslam_core.registry import get_registry
+from pvslam_core.slam import keyframes, loops, new_keyframe, observed
 from pvslam_core.slam.graph import EDGE_LOOP
 from pvslam_core.slam.mapper import Mapper
 from pvslam_core.slam.motion_cue import motion_cue
@@ -22,9 +23,15 @@ from pvslam_core.types import TrackResult
 SPEED = 0.4  # m per frame: 2.5 / 1.25 BA px between keyframes on the near / far plane (enough parallax)
 
 
-def build(frames=24, loop=None, optimizer="online_ba", **graph):
-    pcfg = validate_pipeline({"graph": {"warmup": 3, "ba_downsample": 4, "remove_redundant": False, **graph},
-                              "loop_closure": {"nms_keyframes": 0}})
+@pytest.fixture(autouse=True)
+def _no_loop_suppression(monkeypatch):
+    monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)  # every keyframe may close a loop
+
+
+def build(frames=24, loop=None, optimizer="online_ba", redundant_thresh=0.0, edges=None):
+    """A mapper over the exact fakes; ``redundant_thresh`` 0: every keyframe stays."""
+    pcfg = validate_pipeline({"graph": {"init": {"warmup": 3}, "ba_downsample": 4,
+                                        "keyframes": {"redundant_thresh": redundant_thresh}, "edges": edges or {}}})
     ds = fakes.FakeDataset(fakes.FakeDatasetConfig(frames=frames, speed=SPEED))
     fe = fakes.ExactFrontend(fakes.ExactFrontendConfig(keyframe_every=2), ds=4)
     spec = get_registry().get("optimizer", optimizer)
@@ -119,13 +126,13 @@ def test_loops_add_edges_and_run_the_loop_ba():
 
 
 def test_redundant_keyframes_are_removed_and_everyone_hears():
-    m, ds, fe = build(frames=30, remove_redundant=True, redundant_thresh=2.2)
+    m, ds, fe = build(frames=30, redundant_thresh=2.2)
     for f in ds:
         m.process(f, None)
     ids = m.graph.ids.tolist()
     assert len(ids) < 15  # 15 keyframes were added
-    assert sorted(fe.kf_x) == ids and sorted(m.kf_images) == ids
-    anchors = {e.anchor for e in m.frames.entries}
+    assert sorted(fe.kf_x) == ids and sorted(m.state.images) == ids
+    anchors = {e.anchor for e in m.state.frames.entries}
     assert anchors <= set(ids)
     m.finalize()
     assert m.trajectory()[1].shape == (30, 7)
@@ -146,34 +153,37 @@ class _CountingOptimizer:
         return getattr(self.inner, name)
 
 
-def _run_counted(frames, loop=None, **graph):
-    m, ds, fe = build(frames=frames, loop=loop, remove_redundant=True, redundant_thresh=2.2, **graph)
-    m.optimizer = _CountingOptimizer(m.optimizer)
+def _run_counted(frames, loop=None):
+    m, ds, fe = build(frames=frames, loop=loop, redundant_thresh=2.2)
+    m.window_ba.optimizer = _CountingOptimizer(m.window_ba.optimizer)
     provisional_had_edges = []
     for f in ds:
         r = m.process(f, None)
-        if m._provisional is not None:  # the newest keyframe is provisional: no edge touches it yet
-            k = m.graph.index_of(m._provisional)
+        if m.keyframe_policy.provisional is not None:  # the newest keyframe is provisional: no edge touches it yet
+            k = m.graph.index_of(m.keyframe_policy.provisional)
             provisional_had_edges.append(bool(((m.graph.ii == k) | (m.graph.jj == k)).any()))
     return m, ds, fe, provisional_had_edges
 
 
-def test_provisional_keyframes_skip_the_work_of_redundant_ones():
+def test_provisional_keyframes_skip_the_work_of_redundant_ones(monkeypatch):
     """Keyframes that would be removed as redundant right after their BA stay provisional (no edges, no BA) and
-    are removed when the next keyframe comes: fewer window BAs, the same kind of map, exact poses still."""
-    m0, ds, _, _ = _run_counted(30, provisional_keyframes=False)
-    m1, ds, fe, had_edges = _run_counted(30, provisional_keyframes=True)
+    are removed when the next keyframe comes: fewer window BAs, the same kind of map, exact poses still.  (The
+    reference: every proposal ordinary, removed after its BA when redundant.)"""
+    with monkeypatch.context() as mp:
+        mp.setattr(keyframes.KeyframePolicy, "_would_be_redundant", lambda self, pose, ts: False)
+        m0, ds, _, _ = _run_counted(30)
+    m1, ds, fe, had_edges = _run_counted(30)
     assert had_edges and not any(had_edges)  # provisional keyframes existed and never had edges
-    assert m1.provisional_removed > 0
-    assert len(m1.optimizer.window_sizes) < len(m0.optimizer.window_sizes)  # the point: fewer BAs
+    assert m1.keyframe_policy.provisional_removed > 0 and m0.keyframe_policy.provisional_removed == 0
+    assert len(m1.window_ba.optimizer.window_sizes) < len(m0.window_ba.optimizer.window_sizes)  # the point
     ids = m1.graph.ids.tolist()
     assert abs(len(ids) - len(m0.graph.ids)) <= 2  # about as many keyframes stay as with removal after the BA
-    assert sorted(fe.kf_x) == ids and sorted(m1.kf_images) == ids  # everyone heard of the removals
-    assert {e.anchor for e in m1.frames.entries} <= set(ids)
+    assert sorted(fe.kf_x) == ids and sorted(m1.state.images) == ids  # everyone heard of the removals
+    assert {e.anchor for e in m1.state.frames.entries} <= set(ids)
     m1.finalize()
     ts, poses = m1.trajectory()
     gt = torch.stack([f.gt_pose for f in ds])
-    assert len(ts) == len(gt) and m1._provisional is None
+    assert len(ts) == len(gt) and m1.keyframe_policy.provisional is None
     ate = umeyama_ate(poses[:, :3], gt[:, :3])
     assert ate < 1e-3 * float((gt[-1, :3] - gt[0, :3]).norm()), ate
 
@@ -182,9 +192,9 @@ def test_provisional_keyframe_that_is_not_redundant_becomes_ordinary():
     """With a threshold between the guessed and the optimised distances nothing is lost: every keyframe ends up
     either removed or connected, and the loop detector heard of each one (it is told of every removal)."""
     det = VerifiedLoop()
-    m, ds, fe, _ = _run_counted(24, loop=det, provisional_keyframes=True)
+    m, ds, fe, _ = _run_counted(24, loop=det)
     g = m.graph
-    last = g.n - 1 if m._provisional is None else g.n - 2
+    last = g.n - 1 if m.keyframe_policy.provisional is None else g.n - 2
     for k in range(1, last + 1):  # every settled keyframe has edges
         assert bool(((g.ii == k) | (g.jj == k)).any()), k
     assert det.added == g.ids.tolist()
@@ -203,27 +213,17 @@ class _RecordingOptimizer(_CountingOptimizer):
         return super().step(graph, obs)
 
 
-@pytest.mark.parametrize("margin", [None, 0, 2])
-def test_window_ba_adds_retired_edges_near_the_window_as_frozen_constraints(margin):
-    """DROID-SLAM's inactive edges: retired edges whose both ends are at most ``retired_margin`` keyframes before
-    the active window join each window BA with their stored observation; older ones never do."""
+def test_window_ba_observes_the_active_edges_only():
+    """Every window BA is given the active edges of its window, never the stored observations of retired ones
+    (they are for the final BA)."""
     window = 3
-    m, ds, _ = build(frames=30, active_window=window, neighbours=2, retired_margin=margin)
-    m.optimizer = _RecordingOptimizer(m.optimizer)
+    m, ds, _ = build(frames=30, edges={"active_window": window, "neighbours": 2})
+    m.window_ba.optimizer = _RecordingOptimizer(m.window_ba.optimizer)
     for f in ds:
         m.process(f, None)
-    frozen_seen = 0
-    for n, edges, active in m.optimizer.calls:
-        k = n - 1
-        frozen = [e for e in edges if e not in active]
-        if margin is None:
-            assert not frozen
-            continue
-        lo = k - window + 1 - margin
-        assert all(min(e) >= lo for e in frozen), (k, frozen)
-        frozen_seen += len(frozen)
-    if margin == 2:
-        assert frozen_seen > 0
+    assert m.graph.num_retired > 0
+    for n, edges, active in m.window_ba.optimizer.calls:
+        assert all(e in active for e in edges), (n, edges)
     m.finalize()
     ts, poses = m.trajectory()
     gt = torch.stack([f.gt_pose for f in ds])
@@ -232,12 +232,12 @@ def test_window_ba_adds_retired_edges_near_the_window_as_frozen_constraints(marg
 
 
 @pytest.mark.parametrize("frac", [0.0, 0.25])
-def test_a_new_keyframe_turned_on_the_spot_gets_its_floor_from_the_rows(frac):
-    """Mapper._warped_depth moves the previous keyframe's depth into the new one; the columns a turn on the spot
-    brings in are holes.  With graph.fill_row_min_frac they take their row's depth, which is exact for a floor
+def test_a_new_keyframe_turned_on_the_spot_gets_its_floor_from_the_rows(frac, monkeypatch):
+    """new_keyframe.warped_depth moves the previous keyframe's depth into the new one; the columns a turn on the spot
+    brings in are holes.  With new_keyframe.FILL_ROW_MIN_FRAC they take their row's depth, which is exact for a floor
     seen by a level camera; with 0 the image's median (the old rule), which is not."""
-
-    m, ds, fe = build(frames=4, fill_row_min_frac=frac)
+    monkeypatch.setattr(new_keyframe, "FILL_ROW_MIN_FRAC", frac)
+    m, ds, fe = build(frames=4)
     for f in ds:
         m.process(f, None)
     g = m.graph
@@ -252,7 +252,7 @@ def test_a_new_keyframe_turned_on_the_spot_gets_its_floor_from_the_rows(frac):
     g.set_poses(torch.tensor([0]), torch.tensor([[0, 0, 0, 0, 0, 0, 1.0]], dtype=g.poses.dtype))
     turn = torch.cat([torch.zeros(3), 0.15 * down]).double()[None]  # a turn about the world's vertical
     yaw = se3_exp(turn)[0]
-    disp, _known = m._warped_depth(0, se3_mul(g.poses[0].double().cpu(), yaw))
+    disp, _known = new_keyframe.warped_depth(m.state, 0, se3_mul(g.poses[0].double().cpu(), yaw))
     # a turn about the vertical keeps the floor's depth a function of the row: the truth in the new view is `floor`
     err = (disp - floor).abs() / floor
     new_cols = err[:, -3:] if float(err[:, -3:].mean()) > float(err[:, :3].mean()) else err[:, :3]
@@ -262,19 +262,20 @@ def test_a_new_keyframe_turned_on_the_spot_gets_its_floor_from_the_rows(frac):
         assert float(new_cols.mean()) > 0.2  # the median is far from the near rows and the far ones (measured 0.33)
 
 
-def test_a_turned_keyframe_inherits_the_measured_pixels_and_not_the_new_columns():
-    m, ds, fe = build(frames=8, unobserved_weight=0.1)
+def test_a_turned_keyframe_inherits_the_measured_pixels_and_not_the_new_columns(monkeypatch):
+    monkeypatch.setattr(observed, "UNOBSERVED_WEIGHT", 0.1)
+    m, ds, fe = build(frames=8)
     for f in ds:
         m.process(f, None)
     g = m.graph
     h, w = g.ba_shape
     a_id = g.id_of(g.n - 1)
-    assert bool(m.observed.masks[a_id].all())  # initialised: the triangulation measured every pixel
+    assert bool(m.state.observed.masks[a_id].all())  # initialised: the triangulation measured every pixel
     half = torch.ones(h, w, dtype=torch.bool)
     half[: h // 2] = False  # the upper half only guessed
-    m.observed.set(a_id, half)
+    m.state.observed.set(a_id, half)
     yaw = se3_exp(torch.tensor([[0, 0, 0, 0, 0.2, 0]], dtype=torch.float64))[0]  # about the camera's y axis
-    disp, known = m._warped_depth(g.n - 1, se3_mul(g.poses[-1].double().cpu(), yaw))
+    disp, known = new_keyframe.warped_depth(m.state, g.n - 1, se3_mul(g.poses[-1].double().cpu(), yaw))
     assert float(disp.min()) > 0  # the holes are filled ...
     new_cols = known[:, -3:] if not bool(known[:, -3:].any()) else known[:, :3]
     assert not bool(new_cols.any())  # ... but the columns the turn brings in are not measured
@@ -286,11 +287,13 @@ def test_a_turned_keyframe_inherits_the_measured_pixels_and_not_the_new_columns(
                                                      (1.0, 0.1, True),  # down-weighted: still dragged
                                                      (0.3, 1.0, False),  # half measured >= 0.3: those only
                                                      (0.6, 0.1, True)])  # too few measured: all, weighted
-def test_guessed_pixels_are_left_out_of_the_keyframe_pose_guess(guess_min, weight, off):
+def test_guessed_pixels_are_left_out_of_the_keyframe_pose_guess(guess_min, weight, off, monkeypatch):
     """The newest keyframe's upper half is guessed 3x too near (a filled hole) and not measured; the next frame's
     flow is exact (the true depth).  With the depth fixed any weight on those pixels pulls the pose guess degrees
     off (rotation traded for translation); left out, the measured half alone gives the pose."""
-    m, ds, fe = build(frames=8, guess_min_measured=guess_min, unobserved_weight=weight)
+    monkeypatch.setattr(observed, "GUESS_MIN_MEASURED", guess_min)
+    monkeypatch.setattr(observed, "UNOBSERVED_WEIGHT", weight)
+    m, ds, fe = build(frames=8)
     for f in ds:
         m.process(f, None)
     g = m.graph
@@ -308,9 +311,9 @@ def test_guessed_pixels_are_left_out_of_the_keyframe_pose_guess(guess_min, weigh
     g.set_disps(torch.tensor([a]), wrong[None])
     measured = torch.ones(h, w, dtype=torch.bool)
     measured[: h // 2] = False
-    m.observed.set(g.id_of(a), measured)
+    m.state.observed.set(g.id_of(a), measured)
     track = TrackResult(is_keyframe=True, mean_flow=2.0, target=target, weight=torch.ones(2, h, w))
-    pose = m._keyframe_pose_guess(a, track)
+    pose = new_keyframe.pose_guess(m.state, a, track)
     err = se3_mul(se3_inv(pose_true[None]), pose[None])[0]
     rot_err = 2 * math.degrees(math.acos(min(1.0, abs(float(err[6])))))
     if off:
@@ -319,22 +322,23 @@ def test_guessed_pixels_are_left_out_of_the_keyframe_pose_guess(guess_min, weigh
         assert rot_err < 0.1, rot_err  # measured 0.025 (exact flow on the measured half; 4 iterations)
 
 
-def test_the_window_ba_marks_the_pixels_its_edges_measure():
+def test_the_window_ba_marks_the_pixels_its_edges_measure(monkeypatch):
     """A camera stepping sideways (2.5 / 1.25 BA px of parallax a keyframe): a new keyframe's columns nothing of
     the previous one lands on start as guesses, and the next window BA's edges measure them."""
-    m, ds, fe = build(frames=16, unobserved_weight=0.3)
+    monkeypatch.setattr(observed, "UNOBSERVED_WEIGHT", 0.3)
+    m, ds, fe = build(frames=16)
     at_add = []
     add = m._add_keyframe
 
     def recording_add(*args, **kw):
         kf_id = add(*args, **kw)
         if m.initialized:
-            at_add.append(float(m.observed.masks[kf_id].float().mean()))
+            at_add.append(float(m.state.observed.masks[kf_id].float().mean()))
         return kf_id
 
     m._add_keyframe = recording_add
     for f in ds:
         m.process(f, None)
     assert at_add and max(at_add) < 1.0  # each new keyframe had guessed columns ...
-    fracs = [float(m.observed.masks[i].float().mean()) for i in m.graph.ids.tolist()]
+    fracs = [float(m.state.observed.masks[i].float().mean()) for i in m.graph.ids.tolist()]
     assert min(fracs) == 1.0, fracs  # ... which the window BA's edges measured

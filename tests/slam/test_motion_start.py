@@ -1,5 +1,5 @@
 """The second start of a new keyframe's window BA after a stretch without parallax (pvslam_core/slam/motion_start.py):
-the constant-velocity centre, and the mapper keeping the start whose result fits the flow better."""
+the constant-velocity centre, and the window BA keeping the start whose result fits the flow better."""
 import pytest
 import torch
 
@@ -7,7 +7,7 @@ import fakes
 from pvslam_core.config import validate_pipeline
 from pvslam_core.interfaces import BuildContext
 from pvslam_core.registry import get_registry
-from pvslam_core.slam import window_ba
+from pvslam_core.slam import loops, motion_start, window_ba
 from pvslam_core.slam.graph import FrameGraph
 from pvslam_core.slam.mapper import Mapper
 from pvslam_core.slam.motion_start import constant_velocity_centre
@@ -68,12 +68,13 @@ class _Still:
         return OptimizerReport(num_edges=int(obs.ii.numel()))
 
 
-def _mapper_after_a_pan():
+def _mapper_after_a_pan(monkeypatch):
     """A mapper after 16 frames of the exact fake (sideways camera, constant speed, keyframe every 2nd frame), the
     two keyframes before its newest marked unmeasured (as after a pan), the optimizer replaced by :class:`_Still`."""
-    pcfg = validate_pipeline({"graph": {"warmup": 3, "ba_downsample": 4, "remove_redundant": False,
-                                        "second_start": True, "second_start_span": 0.35},
-                              "loop_closure": {"nms_keyframes": 0}})
+    monkeypatch.setattr(motion_start, "SPAN", 0.35)
+    monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)
+    pcfg = validate_pipeline({"graph": {"init": {"warmup": 3}, "ba_downsample": 4,
+                                        "keyframes": {"redundant_thresh": 0.0}}})
     ds = fakes.FakeDataset(fakes.FakeDatasetConfig(frames=16, speed=0.4))
     fe = fakes.ExactFrontend(fakes.ExactFrontendConfig(keyframe_every=2), ds=4)
     spec = get_registry().get("optimizer", "online_ba")
@@ -85,15 +86,15 @@ def _mapper_after_a_pan():
     k = g.n - 1
     h, w = g.ba_shape
     for n in (1, 2):
-        m.observed.set(g.id_of(k - n), torch.zeros(h, w, dtype=torch.bool))
-    m.optimizer = _Still()
+        m.state.observed.set(g.id_of(k - n), torch.zeros(h, w, dtype=torch.bool))
+    m.window_ba.optimizer = _Still()
     return m, k
 
 
-def test_the_constant_velocity_start_wins_where_the_guess_is_off():
-    m, k = _mapper_after_a_pan()
+def test_the_constant_velocity_start_wins_where_the_guess_is_off(monkeypatch):
+    m, k = _mapper_after_a_pan(monkeypatch)
     g = m.graph
-    expected = constant_velocity_centre(g, k, m.observed.fraction, 0.5, 0.35, 1.0)
+    expected = constant_velocity_centre(g, k, m.state.observed.fraction, 0.5, 0.35, 1.0)
     true = g.poses[k, :3].double().clone()
     assert float((expected - true).norm()) < 0.02 * float((g.poses[k, :3] - g.poses[k - 1, :3]).norm())
     g.poses[k, 0] += 0.5 * float((g.poses[k, :3] - g.poses[k - 1, :3]).norm())  # the guess half a step off
@@ -101,31 +102,33 @@ def test_the_constant_velocity_start_wins_where_the_guess_is_off():
     asked = []
     observe = m.frontend.observe
     m.frontend.observe = lambda graph, ii, jj: asked.append(1) or observe(graph, ii, jj)
-    m._optimize_new(k, 2)
+    m.window_ba.optimize_new(k, 2)
     assert len(asked) == 2  # once per round: the second start reuses the observations
-    assert (m.second_starts, m.second_starts_kept) == (1, 1)
+    assert (m.window_ba.second_starts, m.window_ba.second_starts_kept) == (1, 1)
     assert torch.allclose(g.poses[k, :3].double(), expected.to(g.poses), atol=1e-5)
-    touched = (g.ii >= k - m.cfg.active_window + 1) | (g.jj >= k - m.cfg.active_window + 1)
+    window = m.cfg.edges.active_window
+    touched = (g.ii >= k - window + 1) | (g.jj >= k - window + 1)
     assert bool((g.edge_age[touched] - age0[: g.num_edges][touched] == 2).all())  # aged by the rounds, once
 
 
 def test_the_guess_stays_where_the_prediction_is_worse(monkeypatch):
     """A camera that did stop (a stop-and-spin): the prediction is off, the guess right; the guess's result stays."""
-    m, k = _mapper_after_a_pan()
+    m, k = _mapper_after_a_pan(monkeypatch)
     g = m.graph
     before = g.poses.clone()
     step = float((g.poses[k, :3] - g.poses[k - 1, :3]).norm())
     wrong = g.poses[k, :3].double() + torch.tensor([0.0, 0.5 * step, 0.0], dtype=torch.float64)
-    monkeypatch.setattr(window_ba, "constant_velocity_centre", lambda *a, **kw: wrong)
-    m._optimize_new(k, 1)
-    assert (m.second_starts, m.second_starts_kept) == (1, 0)
+    monkeypatch.setattr(motion_start, "constant_velocity_centre", lambda *a, **kw: wrong)
+    m.window_ba.optimize_new(k, 1)
+    assert (m.window_ba.second_starts, m.window_ba.second_starts_kept) == (1, 0)
     assert torch.equal(g.poses, before)
 
 
-def test_switched_off_it_runs_one_window_ba():
-    m, k = _mapper_after_a_pan()
-    m.cfg = m.cfg.model_copy(update={"second_start": False})
+def test_switched_off_it_runs_one_window_ba(monkeypatch):
+    m, k = _mapper_after_a_pan(monkeypatch)
+    monkeypatch.setattr(window_ba, "SECOND_START", False)
     calls = []
-    m.optimizer = type("Counting", (_Still,), {"step": lambda self, g, o: calls.append(1) or OptimizerReport()})()
-    m._optimize_new(k, 2)
-    assert len(calls) == 2 and (m.second_starts, m.second_starts_kept) == (0, 0)
+    m.window_ba.optimizer = type("Counting", (_Still,),
+                                 {"step": lambda self, g, o: calls.append(1) or OptimizerReport()})()
+    m.window_ba.optimize_new(k, 2)
+    assert len(calls) == 2 and (m.window_ba.second_starts, m.window_ba.second_starts_kept) == (0, 0)

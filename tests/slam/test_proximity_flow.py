@@ -1,16 +1,14 @@
-"""Which proximity edges the mapper keeps (``graph.proximity_max_flow``, pvslam_core/slam/keyframing.py): the 90th
-percentile of the induced flow of a keyframe pair, checked against a pinhole projection written here, and the
-mapper's edge choice on a camera driving forward along a road (long edges whose near road moves too far are
+"""Which proximity edges the edge policy keeps (``edges.PROXIMITY_MAX_FLOW``, pvslam_core/slam/flow_distance.py):
+the 90th percentile of the induced flow of a keyframe pair, checked against a pinhole projection written here, and
+the edge choice on a camera driving forward along a road (long edges whose near road moves too far are
 dropped) and on a slow camera (nothing dropped)."""
-from types import SimpleNamespace
-
 import numpy as np
 import torch
 
-from pvslam_core.config import GraphSection
+from pvslam_core.slam import edges
+from pvslam_core.slam.config import EdgesConfig
+from pvslam_core.slam.flow_distance import pair_flow_quantile
 from pvslam_core.slam.graph import EDGE_PROXIMITY, FrameGraph
-from pvslam_core.slam.keyframing import pair_flow_quantile
-from pvslam_core.slam.mapper import Mapper
 
 H, W, FX, CX, CY = 30, 40, 34.0, 19.5, 14.5
 CAM_HEIGHT, FAR = 1.5, 1.0 / 200.0
@@ -74,11 +72,13 @@ def _chain(step: float, n: int) -> tuple[FrameGraph, torch.Tensor]:
 
 
 def _connect_newest(g: FrameGraph, limit: float, fragment_start: int = 0) -> list[tuple[int, int]]:
-    """The proximity edges the mapper gives the newest keyframe (Mapper._connect on a stand-in mapper)."""
-    cfg = GraphSection(proximity_max_flow=limit)
-    m = SimpleNamespace(cfg=cfg, graph=g, initialized=True, fragment_start=fragment_start)
-    m._reliable = lambda ii, jj: Mapper._reliable(m, ii, jj)
-    Mapper._connect(m, g.n - 1)
+    """The proximity edges the edge policy gives the newest keyframe (edges.connect_keyframe, initialised map)."""
+    old = edges.PROXIMITY_MAX_FLOW
+    edges.PROXIMITY_MAX_FLOW = limit
+    try:
+        edges.connect_keyframe(g, g.n - 1, EdgesConfig(), fragment_start, initialized=True)
+    finally:
+        edges.PROXIMITY_MAX_FLOW = old
     prox = g.edge_kind == EDGE_PROXIMITY
     return sorted(zip(g.ii[prox].tolist(), g.jj[prox].tolist()))
 

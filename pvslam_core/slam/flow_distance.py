@@ -1,21 +1,15 @@
-"""How far apart two keyframes are, for the redundancy test of the mapper (which keyframes to keep).
+"""How far apart two keyframes are, in induced flow: the keyframe policy's redundancy test and the edge policy's
+proximity-edge filter read it.
 
 DROID-SLAM's frame distance (:func:`pvslam_core.geometry.projective.frame_distance`) is the *mean* induced flow
-over all pixels, mostly translation-only (``beta = 0.3`` of the full flow).  In scenes where most of the image is
-far away (a wide street, sky, a highway) the mean stays small while the near road and vehicles move 5-10 BA px:
-on the synthetic busy street keyframes 13 frames (13 m) apart were judged redundant (mean 1.4 BA px, 90th
-percentile 5.7), and the long edges that remained carried wrong flow on the near field.  A keyframe is therefore
-kept when *either* the mean or a high quantile of the same per-pixel distance is large: :func:`keyframe_distance`
-returns ``max(mean, q90 * thresh / max_flow)``, so the one threshold test of the caller (``< redundant_thresh``)
-reads "mean < thresh and q90 < max_flow".
+over all pixels, mostly translation-only (``beta = 0.3`` of the full flow).  Where most of the image is far away (a
+wide street, sky, a highway) the mean stays small while the near road and vehicles move several BA px, so a
+keyframe is kept when *either* the mean or a high quantile of the same per-pixel distance is large:
+:func:`keyframe_distance` returns ``max(mean, q90 * thresh / max_flow)``, and the caller's one threshold test
+(``< thresh``) reads "mean < thresh and q90 < max_flow" (docs/decisions.md: REDUNDANT_MAX_FLOW).
 
-The same quantile, of the translation-only flow, decides which proximity edges the mapper keeps
-(:func:`pair_flow_quantile`, ``graph.proximity_max_flow``): a proximity edge is chosen on the *mean* distance
-(DROID-SLAM), and on a camera driving forward the keyframes 4-25 back along the road qualify (far scene: mean under
-16 BA px) while the near road between them moves 10-50 BA px, beyond what DIS finds (median flow found / true flow
-0.08 at 8-16 BA px on moving_vehicles seed 1, yet forward-backward consistent: both directions stick near zero on
-the plain road).  Those edges read as "the near field is far away" and the map's scale grew 2x over 200 frames;
-without them, or with true flow on them, it did not (bench/RESULTS.md, issue 13 / 11, session 2026-12-02).
+:func:`pair_flow_quantile` is the same quantile of the translation-only flow (the parallax), for the proximity edges
+(docs/decisions.md: PROXIMITY_MAX_FLOW).
 
 Poses are camera-to-world ``T_wc [7]``; depths are inverse depths at the BA resolution.
 """
