@@ -31,7 +31,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in (_add_run, _add_plugins, _add_config, _add_synth, _add_eval, _add_view, _add_export, _add_train,
+                _add_weights, _add_sweep):
+        add(sub)
+    return parser
 
+
+def _add_run(sub) -> None:
     p = sub.add_parser("run", help="run the pipeline (or every variant of an ablation file)")
     _add_config_args(p)
     p.add_argument("--output-dir", help="folder for run directories (overrides run.output_dir)")
@@ -46,9 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--viz", action="store_true", help="watch the run live in the rerun viewer (pvslam[viz])")
     p.add_argument("--viz-save", metavar="FILE.rrd", help="write the live view to a rerun recording file")
 
+
+def _add_plugins(sub) -> None:
     p = sub.add_parser("plugins", help="list installed and catalogued plugins")
     p.add_argument("--json", action="store_true", help="machine-readable output")
 
+
+def _add_config(sub) -> None:
     p = sub.add_parser("config", help="show or validate a configuration")
     csub = p.add_subparsers(dest="config_command", metavar="ACTION")
     cs = csub.add_parser("show", help="print the resolved config (all defaults filled in) as JSON")
@@ -57,6 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     cv.add_argument("file", help="pipeline or ablation TOML")
     cv.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE")
 
+
+def _add_synth(sub) -> None:
     p = sub.add_parser("synth", help="generate a built-in synthetic sequence with exact ground truth")
     p.add_argument("--scenario", default="driving_loop", help="scenario name (see --list)")
     p.add_argument("--list", action="store_true", help="list the scenarios")
@@ -69,14 +81,20 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the plugin's camera)")
     p.add_argument("--plugin", default="synthetic", help="dataset plugin that generates (default: synthetic)")
 
+
+def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="recompute the metrics of a run directory")
     p.add_argument("run_dir", help="a run directory written by `pvslam run`")
 
+
+def _add_view(sub) -> None:
     p = sub.add_parser("view", help="replay a finished run in the rerun viewer (pvslam[viz])")
     p.add_argument("run_dir", help="a run directory written by `pvslam run`")
     p.add_argument("--save", metavar="FILE.rrd", help="write a rerun recording file instead of opening the viewer")
     p.add_argument("--spawn", action="store_true", help="with --save: also open the viewer")
 
+
+def _add_export(sub) -> None:
     p = sub.add_parser("export", help="export a run for COLMAP / nerfstudio, or its trajectory aligned to the GT")
     p.add_argument("run_dir", help="a run directory written by `pvslam run`")
     p.add_argument("--format", "-f", required=True, choices=("colmap", "nerfstudio", "tum-aligned"),
@@ -86,6 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-images", action="store_true",
                    help="do not re-read the dataset to write the keyframe images")
 
+
+def _add_train(sub) -> None:
     p = sub.add_parser("train", help="train a learned plugin (its registered trainer) on the built-in data")
     p.add_argument("interface", choices=("frontend", "segmenter", "loop", "vps"), help="which component")
     p.add_argument("--plugin", "-p", required=True, help="the plugin to train (see `pvslam plugins`)")
@@ -95,6 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default: runs/train-INTERFACE-PLUGIN-TIME)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
 
+
+def _add_weights(sub) -> None:
     p = sub.add_parser("weights", help="list, download (with checksum) and locate the learned plugins' checkpoints")
     wsub = p.add_subparsers(dest="weights_command", metavar="ACTION")
     wl = wsub.add_parser("list", help="catalogued checkpoints (registry.toml) and whether each is cached")
@@ -105,6 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
     wp = wsub.add_parser("path", help="print NAME's cache path (exit status 1 when it is not downloaded yet)")
     wp.add_argument("name", help="catalogue name or alias")
 
+
+def _add_sweep(sub) -> None:
     p = sub.add_parser("sweep", help="run (or resume) a grid of sequences x seeds x variants, on Ray when installed")
     p.add_argument("--config", "-c", required=True, metavar="FILE", help="sweep TOML (see configs/sweep_table7.toml)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
@@ -117,7 +141,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--retry-failed", action="store_true", help="run failed cells again (default: keep them)")
     p.add_argument("--report", action="store_true", help="only rebuild the results table and plots")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
-    return parser
 
 
 def _fail(msg: str, code: int) -> int:
