@@ -61,8 +61,9 @@ def _add_plugins(sub) -> None:
 def _add_config(sub) -> None:
     p = sub.add_parser("config", help="show or validate a configuration")
     csub = p.add_subparsers(dest="config_command", metavar="ACTION")
-    cs = csub.add_parser("show", help="print the resolved config (all defaults filled in) as JSON")
+    cs = csub.add_parser("show", help="print the resolved config (all defaults filled in) as a TOML config file")
     _add_config_args(cs)
+    cs.add_argument("--json", action="store_true", help="print it as JSON (the run directory's config.json)")
     cv = csub.add_parser("validate", help="validate a config file; exit status 2 on errors")
     cv.add_argument("file", help="pipeline or ablation TOML")
     cv.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE")
@@ -369,11 +370,17 @@ def _cmd_config(args, parser) -> int:
     from .config import is_ablation_file, load_ablation, load_config
 
     if args.config_command == "show":
+        from .config_toml import to_toml
+
         if args.config and is_ablation_file(args.config):
             variants = load_ablation(args.config, overrides=args.overrides)
-            print(json.dumps({v.name: v.config.to_dict() for v in variants}, indent=2))
-        else:
-            print(load_config(args.config, overrides=args.overrides).to_json())
+            if args.json:
+                print(json.dumps({v.name: v.config.to_dict() for v in variants}, indent=2))
+            for v in [] if args.json else variants:
+                print(to_toml(v.config.to_dict(), f"variant {v.name!r}: resolved config"))
+            return 0
+        cfg = load_config(args.config, overrides=args.overrides)
+        print(cfg.to_json() if args.json else to_toml(cfg.to_dict(), _SHOW_HEADER), end="" if not args.json else "\n")
         return 0
     if args.config_command == "validate":
         if is_ablation_file(args.file):
@@ -385,6 +392,9 @@ def _cmd_config(args, parser) -> int:
         return 0
     parser.parse_args(["config", "--help"])
     return 0
+
+
+_SHOW_HEADER = "resolved config, every default filled in (a config file for --config; --json: as JSON)"
 
 
 def _cmd_synth(args) -> int:

@@ -258,20 +258,16 @@ class LoopClosureSection(PluginConfig):
 
 
 class OutputsSection(PluginConfig):
-    trajectory_kitti: bool = Field(False, description="also write trajectory_kitti.txt")
+    """What a run writes besides its trajectory (see ``pvslam_core/outputs``)."""
+
+    trajectory_kitti: bool = Field(False, description="also write trajectory_kitti.txt (KITTI's 3x4 pose rows)")
     ply: bool = Field(True, description="write cloud_rgb.ply and cloud_panoptic.ply")
     # A monocular map's scale is arbitrary: every cloud filter is relative (see pvslam_core/outputs/cloud.py).
     ply_depth_factor: Optional[float] = Field(
         3.0, gt=0, description="drop points farther than this x their keyframe's median depth (None: keep far points)")
-    ply_edge_ratio: Optional[float] = Field(
-        1.5, gt=1, description="drop pixels at depth discontinuities: where the 3x3 neighbourhood's max/min "
-        "disparity exceeds this ratio (None: off)")
     ply_min_views: int = Field(
         1, ge=0, description="keep a pixel only when at least this many neighbouring keyframes see its point at "
         "their own depth (multi-view consistency; 0: off)")
-    ply_neighbours: int = Field(2, ge=1, description="keyframes on each side checked for multi-view consistency")
-    ply_consistency: float = Field(
-        0.05, gt=0, lt=1, description="relative inverse-depth difference under which two keyframes agree")
     ply_drop_categories: list[str] = Field(
         default_factory=lambda: ["sky"], description="panoptic category names never put in the clouds")
     ply_voxel: float = Field(
@@ -286,6 +282,8 @@ class OutputsSection(PluginConfig):
     # ply_max_depth was an absolute depth in map units; a monocular map's scale is arbitrary, so it removed nothing
     # (or everything): files that still set it load, with a warning, and ply_depth_factor applies instead.
     renamed: ClassVar[dict[str, Any]] = {"ply_max_depth": None}
+    # the depth-edge and multi-view tests' settings are constants of pvslam_core/outputs/cloud.py
+    retired: ClassVar[dict[str, Any]] = {"ply_edge_ratio": 1.5, "ply_neighbours": 2, "ply_consistency": 0.05}
 
 
 class EvaluationSection(PluginConfig):
