@@ -98,9 +98,10 @@ def _add_view(sub) -> None:
 def _add_export(sub) -> None:
     p = sub.add_parser("export", help="export a run for COLMAP / nerfstudio, or its trajectory aligned to the GT")
     p.add_argument("run_dir", help="a run directory written by `pvslam run`")
-    p.add_argument("--format", "-f", required=True, choices=("colmap", "nerfstudio", "tum-aligned"),
-                   help="colmap: cameras/images/points3D.txt; nerfstudio: transforms.json + depth; "
-                        "tum-aligned: trajectory.txt Sim(3)-aligned to groundtruth.txt")
+    from .outputs.formats import EXPORT_FORMATS
+
+    p.add_argument("--format", "-f", required=True, choices=tuple(EXPORT_FORMATS),
+                   help="; ".join(f"{f.name}: {f.help}" for f in EXPORT_FORMATS.values()))
     p.add_argument("--out", help="output folder (default: RUN_DIR/export/FORMAT)")
     p.add_argument("--no-images", action="store_true",
                    help="do not re-read the dataset to write the keyframe images")
@@ -153,7 +154,7 @@ def _one_openmp_thread_by_default() -> None:
     """``OMP_NUM_THREADS=1`` unless the user set it, before torch / numpy / OpenCV load.  ``run.threads`` sets the
     pipeline thread's torch threads, but OpenMP's thread count is per thread: the reader, output and flow threads
     (pvslam_core/background.py, the flow frontend's lanes.py) started their own 2-thread OpenMP teams, which spun
-    against the pipeline on a 2-core machine (default run 20.6-25.4 frames/s, with the variable 25.4-27.8)."""
+    against the pipeline on a small machine (docs/decisions.md: OMP_NUM_THREADS)."""
     import os
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")

@@ -72,10 +72,12 @@ class Component(BaseModel):
 
 
 class RunSection(PluginConfig):
+    """Where a run writes, on which device, with which seed and threads."""
+
     name: str = Field("run", description="run name; the run directory is <output_dir>/<name>-<timestamp>")
     output_dir: str = Field("runs", description="folder that holds run directories (relative to the current directory)")
     device: str = Field("cpu", description="torch device for the pipeline's tensors: cpu, cuda, cuda:0, ...")
-    seed: int = Field(0, description="random seed")
+    seed: int = Field(0, description="seed of torch, numpy and OpenCV's RANSAC: a run is deterministic for a seed")
     threads: int = Field(1, ge=0, description="torch CPU threads (0 = torch's default); the BA's tensors are small, "
                                              "one thread avoids contention on small machines")
     progress: bool = Field(True, description="show progress bars (only on a terminal)")
@@ -85,8 +87,8 @@ class RunSection(PluginConfig):
     read_ahead: int = Field(2, ge=0, description="frames read and decoded ahead on a background thread (0: none); "
                             "decoding overlaps the mapping on a second core, memory stays bounded")
     keep_freed_memory: bool = Field(True, description="Linux/glibc: keep freed memory in the process for reuse "
-                                    "instead of returning and re-faulting it on every BA call (about 12 % less CPU; "
-                                    "pvslam_core/allocator.py); process-wide, set once")
+                                    "instead of re-faulting it on every BA call (less CPU); process-wide, set once "
+                                    "(docs/decisions.md: run.keep_freed_memory)")
     write_behind: int = Field(4, ge=0, description="panoptic PNG writes queued to a background thread (0: written "
                               "in the pipeline thread); a write error still stops the run, one frame later")
 
@@ -287,10 +289,13 @@ class OutputsSection(PluginConfig):
 
 
 class EvaluationSection(PluginConfig):
+    """The end-of-run evaluation against ground truth (``pvslam eval`` recomputes it)."""
+
     enabled: bool = Field(True, description="evaluate against ground truth at the end of the run when it exists")
     align: Literal["sim3", "se3", "none"] = Field("sim3", description="trajectory alignment for ATE (sim3 for monocular)")
-    rpe_delta: int = Field(1, ge=1, description="RPE frame offset")
-    vpq_ks: list[int] = Field(default_factory=lambda: [0, 5, 10, 15], description="VPQ window sizes k")
+    rpe_delta: int = Field(1, ge=1, description="RPE frame offset: frames between the two poses of each relative motion")
+    vpq_ks: list[int] = Field(default_factory=lambda: [0, 5, 10, 15], description="VPQ window sizes k (frames); VPQ "
+                              "averages over them")
     loop_tolerance: int = Field(5, ge=0, description="frames of tolerance when matching detected loops to GT revisits")
     max_panoptic_frames: int = Field(300, ge=1, description="evaluate PQ/VPQ on at most this many frames (memory)")
 

@@ -55,9 +55,9 @@ class TrainConfig(PluginConfig):
     steps: int = Field(2000, ge=1, description="optimisation steps at most (see time_budget_min)")
     time_budget_min: float = Field(100.0, gt=0, description="training minutes at most (rendering comes on top)")
     lr: float = Field(2.5e-4, gt=0, description="peak learning rate (DROID: 2.5e-4)")
-    weight_decay: float = Field(1e-5, ge=0)
+    weight_decay: float = Field(1e-5, ge=0, description="AdamW weight decay")
     warmup: int = Field(20, ge=0, description="steps of linear warm-up")
-    final_lr_fraction: float = Field(0.05, ge=0, le=1)
+    final_lr_fraction: float = Field(0.05, ge=0, le=1, description="cosine decay ends at lr * this")
     grad_clip: float = Field(1.0, gt=0, description="gradient-norm clip (DROID: 1.0)")
     w_geo: float = Field(10.0, ge=0, description="weight of the geodesic pose loss (DROID 10)")
     w_res: float = Field(0.01, ge=0, description="weight of the residual loss (DROID 0.01)")
@@ -68,13 +68,13 @@ class TrainConfig(PluginConfig):
         "(all at the second frame's pose; harder: see losses.py)")
     overfit: bool = Field(False, description="train and validate on one clip (checks losses and gradients)")
     eval_every: int = Field(25, ge=1, description="validation every this many steps")
-    val_clips_per_sequence: int = Field(1, ge=1)
-    checkpoint_every: int = Field(25, ge=1)
+    val_clips_per_sequence: int = Field(1, ge=1, description="fixed validation clips per (scenario, seed)")
+    checkpoint_every: int = Field(25, ge=1, description="write the resumable state and the plot every this many steps")
     threads: int = Field(1, ge=0, description="torch threads (0 = torch's default); 1 is fastest on a loaded "
                          "2-core machine (OpenMP threads wait for each other)")
-    seed: int = 0
+    seed: int = Field(0, description="seed of the initialisation and the clip sampling")
     data_cache: Optional[str] = Field(None, description="folder for the rendered sequences (default: OUT/data)")
-    progress: bool = True
+    progress: bool = Field(True, description="progress bar (only on a terminal)")
 
     @field_validator("scenarios")
     @classmethod

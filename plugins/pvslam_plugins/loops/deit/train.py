@@ -53,8 +53,8 @@ class DeitTrainConfig(PluginConfig):
     scenarios: list[str] = Field(["driving_loop", "indoor_handheld"], description="generator scenarios to train on")
     train_seeds: list[int] = Field([101, 102, 103, 104, 105, 106, 107, 108],
                                    description="generator seeds (worlds) used for training, per scenario")
-    val_seeds: list[int] = Field([201, 202], description="held-out seeds for validation / calibration, per "
-                                 "scenario (the ablation's test seeds are 301-304: never use them here)")
+    val_seeds: list[int] = Field([201, 202], description="held-out generator seeds for validation and threshold "
+                                 "calibration, per scenario (keep them apart from any test seeds)")
     num_frames: Optional[int] = Field(None, description="frames per sequence (None: the scenario's default)")
     hard_k: int = Field(8, ge=1, description="hard negatives remembered per frame (classical-descriptor look-alikes)")
     neg_factor: float = Field(2.0, gt=1.0, description="negatives: centres more than this x the revisit radius apart "
@@ -66,31 +66,34 @@ class DeitTrainConfig(PluginConfig):
     init: Optional[str] = Field(None, description="start from this project checkpoint (fine-tuning; its "
                                 "architecture replaces embed_dim/depth/num_heads/input_size)")
     variant: Literal["base", "distilled"] = Field("distilled", description="plain DeiT or DeiT-distilled")
-    embed_dim: int = Field(192, ge=16)
-    depth: int = Field(4, ge=1)
-    num_heads: int = Field(3, ge=1)
-    input_size: int = Field(112, ge=16, description="full-frame token budget (input_size/16)^2 patches; 112 -> "
-                            "96x128 for 320x240 frames")
-    drop_path: float = Field(0.05, ge=0.0, lt=1.0)
+    embed_dim: int = Field(192, ge=16, description="token width (DeiT-Tiny's; DeiT-base has 768)")
+    depth: int = Field(4, ge=1, description="transformer blocks")
+    num_heads: int = Field(3, ge=1, description="attention heads per block (embed_dim must be a multiple)")
+    input_size: int = Field(112, ge=16, description="full-frame token budget of (input_size/16)^2 patches, aspect "
+                            "ratio kept (96x128 pixels for 320x240 frames)")
+    drop_path: float = Field(0.05, ge=0.0, lt=1.0, description="stochastic depth rate (regularisation)")
     # --- optimisation ------------------------------------------------------------------------------------------
     steps: int = Field(2000, ge=1, description="optimiser steps (the run also stops at max_minutes)")
     max_minutes: float = Field(45.0, gt=0, description="wall-clock budget of this invocation (resume continues)")
     anchors: int = Field(20, ge=2, description="anchor frames per batch (each with one positive)")
     hard: int = Field(10, ge=0, description="hard negatives per batch")
     revisit_prob: float = Field(0.5, ge=0, le=1, description="draw a positive from another pass when there is one")
-    lr: float = Field(5e-4, gt=0)
-    weight_decay: float = Field(0.05, ge=0)
-    warmup: int = Field(100, ge=0)
-    temperature: float = Field(0.1, gt=0)
-    pos_margin: float = Field(0.75, ge=-1, le=1)
-    neg_margin: float = Field(0.35, ge=-1, le=1)
-    margin_weight: float = Field(1.0, ge=0)
+    lr: float = Field(5e-4, gt=0, description="peak learning rate (AdamW, cosine decay)")
+    weight_decay: float = Field(0.05, ge=0, description="AdamW weight decay")
+    warmup: int = Field(100, ge=0, description="steps of linear learning-rate warm-up")
+    temperature: float = Field(0.1, gt=0, description="temperature of the supervised contrastive loss")
+    pos_margin: float = Field(0.75, ge=-1, le=1, description="margin loss: positives' cosine similarity should "
+                              "exceed this (the detector uses one global threshold)")
+    neg_margin: float = Field(0.35, ge=-1, le=1, description="margin loss: negatives' cosine similarity should "
+                              "stay below this")
+    margin_weight: float = Field(1.0, ge=0, description="weight of the margin loss against the contrastive one")
     kd_temperature: float = Field(0.05, gt=0, description="teacher softmax temperature (distilled variant)")
-    seed: int = Field(0)
+    seed: int = Field(0, description="seed of the initialisation, the batches and the augmentation")
     threads: int = Field(2, ge=1, description="torch CPU threads")
     # --- bookkeeping -------------------------------------------------------------------------------------------
-    val_every: int = Field(250, ge=1)
-    checkpoint_every: int = Field(50, ge=1)
+    val_every: int = Field(250, ge=1, description="validate (and keep the best weights) every this many steps; at "
+                           "checkpoints only")
+    checkpoint_every: int = Field(50, ge=1, description="write the resumable state every this many steps")
     val_stride: int = Field(3, ge=1, description="validation: every n-th frame is a keyframe")
     exclude_recent: int = Field(20, ge=0, description="validation: temporal exclusion in keyframes (as the detector)")
     min_time_gap: float = Field(10.0, ge=0, description="validation: temporal exclusion in seconds (as the detector)")

@@ -40,29 +40,28 @@ class TrainConfig(PluginConfig):
     train_seeds: list[int] = Field([1, 2, 3, 4, 5, 6, 7, 8], description="generator seeds of the training frames")
     val_seeds: list[int] = Field([100, 101], description="held-out generator seeds for validation")
     frames_per_sequence: int = Field(24, ge=1, description="training frames per (scenario, seed), evenly spaced")
-    val_frames_per_sequence: int = Field(8, ge=1)
-    width: int = Field(320, ge=32)
-    height: int = Field(240, ge=32)
+    val_frames_per_sequence: int = Field(8, ge=1, description="validation frames per (scenario, seed)")
+    width: int = Field(320, ge=32, description="rendered frame width (px)")
+    height: int = Field(240, ge=32, description="rendered frame height (px)")
     iterations: int = Field(6000, ge=1, description="iterations at most (see time_budget_min)")
-    batch_size: int = Field(4, ge=1)
-    lr: float = Field(1e-3, gt=0)
-    weight_decay: float = Field(1e-4, ge=0)
+    batch_size: int = Field(4, ge=1, description="frames per iteration")
+    lr: float = Field(1e-3, gt=0, description="peak learning rate (AdamW)")
+    weight_decay: float = Field(1e-4, ge=0, description="AdamW weight decay")
     warmup: int = Field(200, ge=0, description="iterations of linear learning-rate warm-up")
     final_lr_fraction: float = Field(0.02, ge=0, le=1, description="cosine decay ends at lr * this")
-    grad_clip: float = Field(10.0, gt=0)
+    grad_clip: float = Field(10.0, gt=0, description="gradient-norm clip")
     crop: Optional[tuple[int, int]] = Field((192, 256), description="training crop (h, w); null = whole frames")
     scale: tuple[float, float] = Field((0.75, 1.25), description="random rescale range before the crop")
     min_instance_area: int = Field(8, ge=1, description="thing instances smaller than this (px) are no targets")
-    checkpoint_every: int = Field(50, ge=1)
+    checkpoint_every: int = Field(50, ge=1, description="write the resumable state every this many iterations")
     time_budget_min: float = Field(100.0, gt=0, description="training minutes at most (rendering and evaluation "
                                    "come on top: ~5 + ~2 min with the defaults)")
-    # 1 thread: on this 2-core machine shared with other jobs a 2-thread step took 4-20 s of wall time (OpenMP
-    # threads waiting for each other), a 1-thread step ~1.1 s
-    threads: int = Field(1, ge=0, description="torch threads (0 = leave torch's default)")
-    seed: int = 0
+    threads: int = Field(1, ge=0, description="torch threads (0 = torch's default); more threads wait for each other "
+                         "on a busy machine (docs/decisions.md: train.threads)")
+    seed: int = Field(0, description="seed of the initialisation, the batches and the augmentation")
     data_cache: Optional[str] = Field(None, description="folder of the rendered-frame cache (default: OUT/data)")
     eval_min_gt_area: int = Field(64, ge=0, description="also report PQ with GT segments under this area as void")
-    progress: bool = True
+    progress: bool = Field(True, description="progress bar (only on a terminal)")
 
     @field_validator("scenarios")
     @classmethod

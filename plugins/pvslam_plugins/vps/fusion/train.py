@@ -30,22 +30,22 @@ __all__ = ["TrainConfig", "run"]
 
 class TrainConfig(PluginConfig):
     scenarios: list[str] = Field(["moving_vehicles", "busy_street"], description="generator scenarios")
-    train_seeds: list[int] = Field([10, 11, 12, 13, 14], description="generator seeds of the training pairs "
-                                   "(the segmenter was trained on 1-8 and validated on 100, 101)")
+    train_seeds: list[int] = Field([10, 11, 12, 13, 14], description="generator seeds of the training pairs (apart "
+                                   "from the segmenter's training and validation seeds)")
     val_seeds: list[int] = Field([100], description="held-out seeds for validation")
-    pairs_per_sequence: int = Field(10, ge=1)
-    val_pairs_per_sequence: int = Field(6, ge=1)
+    pairs_per_sequence: int = Field(10, ge=1, description="consecutive-frame pairs per training (scenario, seed)")
+    val_pairs_per_sequence: int = Field(6, ge=1, description="pairs per validation (scenario, seed)")
     segmenter_weights: Optional[str] = Field(None, description="frozen segmenter (default: the shipped reduced)")
-    iterations: int = Field(1500, ge=1)
-    batch_size: int = Field(2, ge=1)
-    lr: float = Field(3e-4, gt=0)
-    final_lr_fraction: float = Field(0.05, ge=0, le=1)
+    iterations: int = Field(1500, ge=1, description="iterations at most (see time_budget_min)")
+    batch_size: int = Field(2, ge=1, description="pairs per iteration")
+    lr: float = Field(3e-4, gt=0, description="peak learning rate (AdamW, cosine decay)")
+    final_lr_fraction: float = Field(0.05, ge=0, le=1, description="cosine decay ends at lr * this")
     time_budget_min: float = Field(20.0, gt=0, description="training minutes at most (rendering comes on top)")
-    z_order: bool = True
-    threads: int = Field(1, ge=0)
-    seed: int = 0
-    data_cache: Optional[str] = None
-    progress: bool = True
+    z_order: bool = Field(True, description="warp the previous features with depth z-ordering (as the head does)")
+    threads: int = Field(1, ge=0, description="torch threads (0 = torch's default)")
+    seed: int = Field(0, description="seed of the batches and the loss sampling")
+    data_cache: Optional[str] = Field(None, description="folder of the rendered-pair cache (default: OUT/data)")
+    progress: bool = Field(True, description="print the loss every 50 iterations")
 
 
 def _features(model, pairs, z_order: bool):
