@@ -253,8 +253,8 @@ class TrainingLoop:
 
         start = self.step
         reason = None
-        bar = tqdm(total=self.total, initial=self.step, desc=self.desc, disable=not self.cfg.progress,
-                   **self.bar_options)
+        bar = tqdm(**{"total": self.total, "initial": self.step, "desc": self.desc, "disable": not self.cfg.progress,
+                      **self.bar_options})
         try:
             with (self.out / self.log_file).open("a", newline="") as f:
                 writer = csv.DictWriter(f, fieldnames=self.log_fields, extrasaction="ignore")
