@@ -5,6 +5,9 @@ Trainer(TrainConfig, run))``).  The core only loads the training config (TOML + 
 trainer's own pydantic model with the usual error messages), creates the output folder, saves the resolved config
 there (``train_config.json``) and calls ``run(config, out_dir, resume)``; what the trainer does (data, losses,
 checkpoints, logs) is the plugin's.  Trainers write into ``out_dir`` only and resume from it when asked.
+
+The trainers share one optimisation loop, :class:`TrainingLoop` (resume, CSV logs, schedule, gradient step,
+progress bar, validation, checkpoints): each subclasses it with its batches, losses and schedule.
 """
 from __future__ import annotations
 
@@ -163,6 +166,7 @@ class TrainingLoop:
         self.cfg, self.out, self.model, self.optimizer, self.generator = cfg, Path(out), model, optimizer, generator
         self.total = total
         self.step, self.elapsed, self.resumed = 0, 0.0, {}
+        self.final_val: Optional[dict] = None  # the validation row written after the loop, if any
         state = self.out / self.state_file
         if resume and state.is_file():
             self.step, self.elapsed, self.resumed = load_training_state(state, model, optimizer, generator,
