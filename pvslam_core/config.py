@@ -47,8 +47,8 @@ class Component(BaseModel):
     """``{plugin = "name", **params}``; params are validated later by the plugin's own model."""
 
     model_config = {"extra": "forbid"}
-    plugin: str
-    params: dict[str, Any] = Field(default_factory=dict)
+    plugin: str = Field(..., description="name of the plugin (see `pvslam plugins`); 'none' switches an optional one off")
+    params: dict[str, Any] = Field(default_factory=dict, description="the plugin's parameters (its own config model)")
 
     @model_validator(mode="before")
     @classmethod
@@ -301,17 +301,24 @@ class EvaluationSection(PluginConfig):
 
 
 class PipelineConfig(PluginConfig):
-    run: RunSection = Field(default_factory=RunSection)
-    dataset: Component = Field(default_factory=lambda: Component(plugin="synthetic"))
-    segmenter: Component = Field(default_factory=lambda: Component(plugin="labels"))
-    frontend: Component = Field(default_factory=lambda: Component(plugin="flow"))
-    loop: Component = Field(default_factory=lambda: Component(plugin="classical"))
-    optimizer: Component = Field(default_factory=lambda: Component(plugin="online_ba"))
-    vps: Component = Field(default_factory=lambda: Component(plugin="warp_iou"))
+    run: RunSection = Field(default_factory=RunSection, description="run name, folder, device, seed, threads")
+    dataset: Component = Field(default_factory=lambda: Component(plugin="synthetic"),
+                               description="the input reader (or the built-in generator)")
+    segmenter: Component = Field(default_factory=lambda: Component(plugin="labels"),
+                                 description="panoptic segmentation of each frame (optional)")
+    frontend: Component = Field(default_factory=lambda: Component(plugin="flow"),
+                                description="correspondences and confidences between keyframes")
+    loop: Component = Field(default_factory=lambda: Component(plugin="classical"),
+                            description="loop-closure candidates (optional)")
+    optimizer: Component = Field(default_factory=lambda: Component(plugin="online_ba"),
+                                 description="the bundle adjustment of poses and depths")
+    vps: Component = Field(default_factory=lambda: Component(plugin="warp_iou"),
+                           description="video panoptic segmentation: ids consistent over time (optional)")
     graph: GraphSection = Field(default_factory=GraphSection)
     loop_closure: LoopClosureSection = Field(default_factory=LoopClosureSection)
-    outputs: OutputsSection = Field(default_factory=OutputsSection)
-    evaluation: EvaluationSection = Field(default_factory=EvaluationSection)
+    outputs: OutputsSection = Field(default_factory=OutputsSection, description="what the run directory gets")
+    evaluation: EvaluationSection = Field(default_factory=EvaluationSection,
+                                          description="evaluation against ground truth at the end of the run")
 
     #: keys that moved between tables: old "table.key" -> new "table.key" (kept for one release, with a warning)
     moved: ClassVar[dict[str, str]] = {
