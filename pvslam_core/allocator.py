@@ -3,10 +3,9 @@
 The dense BA and the VPS warp allocate per-call scratch tensors of a few MB (per-pixel Jacobians of a chunk of
 edges).  glibc serves an allocation above ``M_MMAP_THRESHOLD`` (128 kB, raised dynamically to at most 32 MB) with a
 fresh ``mmap`` and gives it back on ``free``, and trims the heap top above ``M_TRIM_THRESHOLD``; the next call then
-page-faults the same memory in again and the kernel zero-fills it.  On the default driving loop that was ~12 % of
-the process CPU (61.7 -> 49.5 ms per frame, pipeline thread 39.5 -> 32.8 ms; identical results, same peak RSS;
-bench/RESULTS.md, issue 14, session 2026-12-02).  With the thresholds at 64 MB / 256 MB the scratch stays in the
-heap between calls.  ``GLIBC_TUNABLES=glibc.malloc.mmap_threshold=...`` does the same from the shell, but only
+page-faults the same memory in again and the kernel zero-fills it, a sizeable share of the process CPU for the same
+results and peak memory (docs/decisions.md: run.keep_freed_memory).  With the thresholds at 64 MB / 256 MB the
+scratch stays in the heap between calls.  ``GLIBC_TUNABLES=glibc.malloc.mmap_threshold=...`` does the same from the shell, but only
 at process start, which a library cannot choose.
 """
 from __future__ import annotations

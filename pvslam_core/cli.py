@@ -2,122 +2,17 @@
 ``pvslam --help`` answers at once."""
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import sys
 from pathlib import Path
 from typing import Optional
 
+from .cli_parser import build_parser  # the arguments, one function per command
+
 EXIT_CONFIG = 2
 EXIT_RUNTIME = 1
 EXIT_NO_MOTION = 3  # the run finished but estimated no motion
-
-
-def _add_config_args(p: argparse.ArgumentParser, required: bool = False) -> None:
-    p.add_argument("--config", "-c", required=required, metavar="FILE",
-                   help="pipeline TOML (or an ablation TOML with [[variant]] tables, or a run's config.json)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
-                   help="override one config value, e.g. --set loop.plugin=none (repeatable; TOML value syntax, "
-                   "null for an optional key's None)")
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="pvslam",
-        description="Panoptic visual SLAM: monocular video in; trajectory, depth/point cloud and temporally "
-                    "consistent panoptic segmentation out.",
-        epilog="Run with no config to process the built-in synthetic driving loop: pvslam run",
-    )
-    parser.add_argument("--version", action="store_true", help="print the version and exit")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
-    p = sub.add_parser("run", help="run the pipeline (or every variant of an ablation file)")
-    _add_config_args(p)
-    p.add_argument("--output-dir", help="folder for run directories (overrides run.output_dir)")
-    p.add_argument("--name", help="run name (overrides run.name)")
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar, only the summary")
-    p.add_argument("path", nargs="?", metavar="PATH",
-                   help="input: a video file, a folder of images, a KITTI / EuRoC / TUM sequence folder or a camera "
-                        "index; the reader is detected from it (replaces the config's [dataset])")
-    p.add_argument("--calib", metavar="FILE",
-                   help="calibration of PATH: 'fx fy cx cy [k1 k2 p1 p2 [k3 [k4 k5 k6]]]' (DROID-SLAM), an "
-                        "ORB-SLAM YAML or an OpenCV FileStorage YAML/XML (default: calib.txt beside the data)")
-    p.add_argument("--viz", action="store_true", help="watch the run live in the rerun viewer (pvslam[viz])")
-    p.add_argument("--viz-save", metavar="FILE.rrd", help="write the live view to a rerun recording file")
-
-    p = sub.add_parser("plugins", help="list installed and catalogued plugins")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
-
-    p = sub.add_parser("config", help="show or validate a configuration")
-    csub = p.add_subparsers(dest="config_command", metavar="ACTION")
-    cs = csub.add_parser("show", help="print the resolved config (all defaults filled in) as JSON")
-    _add_config_args(cs)
-    cv = csub.add_parser("validate", help="validate a config file; exit status 2 on errors")
-    cv.add_argument("file", help="pipeline or ablation TOML")
-    cv.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE")
-
-    p = sub.add_parser("synth", help="generate a built-in synthetic sequence with exact ground truth")
-    p.add_argument("--scenario", default="driving_loop", help="scenario name (see --list)")
-    p.add_argument("--list", action="store_true", help="list the scenarios")
-    p.add_argument("--out", help="output folder (default: the cache folder used by `pvslam run`)")
-    p.add_argument("--frames", type=int, help="number of frames (default: the scenario's)")
-    p.add_argument("--width", type=int, default=320)
-    p.add_argument("--height", type=int, default=240)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--hfov", type=float, metavar="DEG", help="another camera: horizontal field of view in degrees "
-                   "(default: the plugin's camera)")
-    p.add_argument("--plugin", default="synthetic", help="dataset plugin that generates (default: synthetic)")
-
-    p = sub.add_parser("eval", help="recompute the metrics of a run directory")
-    p.add_argument("run_dir", help="a run directory written by `pvslam run`")
-
-    p = sub.add_parser("view", help="replay a finished run in the rerun viewer (pvslam[viz])")
-    p.add_argument("run_dir", help="a run directory written by `pvslam run`")
-    p.add_argument("--save", metavar="FILE.rrd", help="write a rerun recording file instead of opening the viewer")
-    p.add_argument("--spawn", action="store_true", help="with --save: also open the viewer")
-
-    p = sub.add_parser("export", help="export a run for COLMAP / nerfstudio, or its trajectory aligned to the GT")
-    p.add_argument("run_dir", help="a run directory written by `pvslam run`")
-    p.add_argument("--format", "-f", required=True, choices=("colmap", "nerfstudio", "tum-aligned"),
-                   help="colmap: cameras/images/points3D.txt; nerfstudio: transforms.json + depth; "
-                        "tum-aligned: trajectory.txt Sim(3)-aligned to groundtruth.txt")
-    p.add_argument("--out", help="output folder (default: RUN_DIR/export/FORMAT)")
-    p.add_argument("--no-images", action="store_true",
-                   help="do not re-read the dataset to write the keyframe images")
-
-    p = sub.add_parser("train", help="train a learned plugin (its registered trainer) on the built-in data")
-    p.add_argument("interface", choices=("frontend", "segmenter", "loop", "vps"), help="which component")
-    p.add_argument("--plugin", "-p", required=True, help="the plugin to train (see `pvslam plugins`)")
-    p.add_argument("--config", "-c", metavar="FILE", help="training TOML (default: the trainer's defaults)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
-                   help="override one training parameter (repeatable)")
-    p.add_argument("--out", help="output folder (default: runs/train-INTERFACE-PLUGIN-TIME)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-
-    p = sub.add_parser("weights", help="list, download (with checksum) and locate the learned plugins' checkpoints")
-    wsub = p.add_subparsers(dest="weights_command", metavar="ACTION")
-    wl = wsub.add_parser("list", help="catalogued checkpoints (registry.toml) and whether each is cached")
-    wl.add_argument("--json", action="store_true", help="machine-readable output")
-    wf = wsub.add_parser("fetch", help="download NAME into the cache and verify its checksum; prints the path")
-    wf.add_argument("name", help="catalogue name or alias (see `pvslam weights list`)")
-    wf.add_argument("--force", action="store_true", help="download again even when cached")
-    wp = wsub.add_parser("path", help="print NAME's cache path (exit status 1 when it is not downloaded yet)")
-    wp.add_argument("name", help="catalogue name or alias")
-
-    p = sub.add_parser("sweep", help="run (or resume) a grid of sequences x seeds x variants, on Ray when installed")
-    p.add_argument("--config", "-c", required=True, metavar="FILE", help="sweep TOML (see configs/sweep_table7.toml)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
-                   help="override a base pipeline value for every cell, or a [sweep] value such as "
-                        "sweep.seeds=[0] (repeatable)")
-    p.add_argument("--output-dir", help="folder that holds sweep directories (overrides sweep.output_dir)")
-    p.add_argument("--address", help="join this Ray cluster (e.g. auto or ray://host:10001) instead of a local one")
-    p.add_argument("--workers", type=int, metavar="N", help="runs at a time (default: one per core)")
-    p.add_argument("--serial", action="store_true", help="run the cells one after another in this process")
-    p.add_argument("--retry-failed", action="store_true", help="run failed cells again (default: keep them)")
-    p.add_argument("--report", action="store_true", help="only rebuild the results table and plots")
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
-    return parser
 
 
 def _fail(msg: str, code: int) -> int:
@@ -129,7 +24,7 @@ def _one_openmp_thread_by_default() -> None:
     """``OMP_NUM_THREADS=1`` unless the user set it, before torch / numpy / OpenCV load.  ``run.threads`` sets the
     pipeline thread's torch threads, but OpenMP's thread count is per thread: the reader, output and flow threads
     (pvslam_core/background.py, the flow frontend's lanes.py) started their own 2-thread OpenMP teams, which spun
-    against the pipeline on a 2-core machine (default run 20.6-25.4 frames/s, with the variable 25.4-27.8)."""
+    against the pipeline on a small machine (docs/decisions.md: OMP_NUM_THREADS)."""
     import os
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -346,11 +241,17 @@ def _cmd_config(args, parser) -> int:
     from .config import is_ablation_file, load_ablation, load_config
 
     if args.config_command == "show":
+        from .config_toml import to_toml
+
         if args.config and is_ablation_file(args.config):
             variants = load_ablation(args.config, overrides=args.overrides)
-            print(json.dumps({v.name: v.config.to_dict() for v in variants}, indent=2))
-        else:
-            print(load_config(args.config, overrides=args.overrides).to_json())
+            if args.json:
+                print(json.dumps({v.name: v.config.to_dict() for v in variants}, indent=2))
+            for v in [] if args.json else variants:
+                print(to_toml(v.config.to_dict(), f"variant {v.name!r}: resolved config"))
+            return 0
+        cfg = load_config(args.config, overrides=args.overrides)
+        print(cfg.to_json() if args.json else to_toml(cfg.to_dict(), _SHOW_HEADER), end="" if not args.json else "\n")
         return 0
     if args.config_command == "validate":
         if is_ablation_file(args.file):
@@ -362,6 +263,9 @@ def _cmd_config(args, parser) -> int:
         return 0
     parser.parse_args(["config", "--help"])
     return 0
+
+
+_SHOW_HEADER = "resolved config, every default filled in (a config file for --config; --json: as JSON)"
 
 
 def _cmd_synth(args) -> int:

@@ -48,8 +48,8 @@ class Component(BaseModel):
     """``{plugin = "name", **params}``; params are validated later by the plugin's own model."""
 
     model_config = {"extra": "forbid"}
-    plugin: str
-    params: dict[str, Any] = Field(default_factory=dict)
+    plugin: str = Field(..., description="name of the plugin (see `pvslam plugins`); 'none' switches an optional one off")
+    params: dict[str, Any] = Field(default_factory=dict, description="the plugin's parameters (its own config model)")
 
     @model_validator(mode="before")
     @classmethod
@@ -73,10 +73,12 @@ class Component(BaseModel):
 
 
 class RunSection(PluginConfig):
+    """Where a run writes, on which device, with which seed and threads."""
+
     name: str = Field("run", description="run name; the run directory is <output_dir>/<name>-<timestamp>")
     output_dir: str = Field("runs", description="folder that holds run directories (relative to the current directory)")
     device: str = Field("cpu", description="torch device for the pipeline's tensors: cpu, cuda, cuda:0, ...")
-    seed: int = Field(0, description="random seed")
+    seed: int = Field(0, description="seed of torch, numpy and OpenCV's RANSAC: a run is deterministic for a seed")
     threads: int = Field(1, ge=0, description="torch CPU threads (0 = torch's default); the BA's tensors are small, "
                                              "one thread avoids contention on small machines")
     progress: bool = Field(True, description="show progress bars (only on a terminal)")
@@ -86,8 +88,8 @@ class RunSection(PluginConfig):
     read_ahead: int = Field(2, ge=0, description="frames read and decoded ahead on a background thread (0: none); "
                             "decoding overlaps the mapping on a second core, memory stays bounded")
     keep_freed_memory: bool = Field(True, description="Linux/glibc: keep freed memory in the process for reuse "
-                                    "instead of returning and re-faulting it on every BA call (about 12 % less CPU; "
-                                    "pvslam_core/allocator.py); process-wide, set once")
+                                    "instead of re-faulting it on every BA call (less CPU); process-wide, set once "
+                                    "(docs/decisions.md: run.keep_freed_memory)")
     write_behind: int = Field(4, ge=0, description="panoptic PNG writes queued to a background thread (0: written "
                               "in the pipeline thread); a write error still stops the run, one frame later")
 
@@ -100,20 +102,16 @@ class RunSection(PluginConfig):
 
 
 class OutputsSection(PluginConfig):
-    trajectory_kitti: bool = Field(False, description="also write trajectory_kitti.txt")
+    """What a run writes besides its trajectory (see ``pvslam_core/outputs``)."""
+
+    trajectory_kitti: bool = Field(False, description="also write trajectory_kitti.txt (KITTI's 3x4 pose rows)")
     ply: bool = Field(True, description="write cloud_rgb.ply and cloud_panoptic.ply")
     # A monocular map's scale is arbitrary: every cloud filter is relative (see pvslam_core/outputs/cloud.py).
     ply_depth_factor: Optional[float] = Field(
         3.0, gt=0, description="drop points farther than this x their keyframe's median depth (None: keep far points)")
-    ply_edge_ratio: Optional[float] = Field(
-        1.5, gt=1, description="drop pixels at depth discontinuities: where the 3x3 neighbourhood's max/min "
-        "disparity exceeds this ratio (None: off)")
     ply_min_views: int = Field(
         1, ge=0, description="keep a pixel only when at least this many neighbouring keyframes see its point at "
         "their own depth (multi-view consistency; 0: off)")
-    ply_neighbours: int = Field(2, ge=1, description="keyframes on each side checked for multi-view consistency")
-    ply_consistency: float = Field(
-        0.05, gt=0, lt=1, description="relative inverse-depth difference under which two keyframes agree")
     ply_drop_categories: list[str] = Field(
         default_factory=lambda: ["sky"], description="panoptic category names never put in the clouds")
     ply_voxel: float = Field(
@@ -128,31 +126,43 @@ class OutputsSection(PluginConfig):
     # ply_max_depth was an absolute depth in map units; a monocular map's scale is arbitrary, so it removed nothing
     # (or everything): files that still set it load, with a warning, and ply_depth_factor applies instead.
     renamed: ClassVar[dict[str, Any]] = {"ply_max_depth": None}
+    # the depth-edge and multi-view tests' settings are constants of pvslam_core/outputs/cloud.py
+    retired: ClassVar[dict[str, Any]] = {"ply_edge_ratio": 1.5, "ply_neighbours": 2, "ply_consistency": 0.05}
 
 
 class EvaluationSection(PluginConfig):
+    """The end-of-run evaluation against ground truth (``pvslam eval`` recomputes it)."""
+
     enabled: bool = Field(True, description="evaluate against ground truth at the end of the run when it exists")
     align: Literal["sim3", "se3", "none"] = Field("sim3", description="trajectory alignment for ATE (sim3 for monocular)")
-    rpe_delta: int = Field(1, ge=1, description="RPE frame offset")
-    vpq_ks: list[int] = Field(default_factory=lambda: [0, 5, 10, 15], description="VPQ window sizes k")
+    rpe_delta: int = Field(1, ge=1, description="RPE frame offset: frames between the two poses of each relative motion")
+    vpq_ks: list[int] = Field(default_factory=lambda: [0, 5, 10, 15], description="VPQ window sizes k (frames); VPQ "
+                              "averages over them")
     loop_tolerance: int = Field(5, ge=0, description="frames of tolerance when matching detected loops to GT revisits")
     max_panoptic_frames: int = Field(300, ge=1, description="evaluate PQ/VPQ on at most this many frames (memory)")
 
 
 class PipelineConfig(PluginConfig):
-    run: RunSection = Field(default_factory=RunSection)
-    dataset: Component = Field(default_factory=lambda: Component(plugin="synthetic"))
-    segmenter: Component = Field(default_factory=lambda: Component(plugin="labels"))
-    frontend: Component = Field(default_factory=lambda: Component(plugin="flow"))
-    loop: Component = Field(default_factory=lambda: Component(plugin="classical"))
-    optimizer: Component = Field(default_factory=lambda: Component(plugin="online_ba"))
-    vps: Component = Field(default_factory=lambda: Component(plugin="warp_iou"))
+    run: RunSection = Field(default_factory=RunSection, description="run name, folder, device, seed, threads")
+    dataset: Component = Field(default_factory=lambda: Component(plugin="synthetic"),
+                               description="the input reader (or the built-in generator)")
+    segmenter: Component = Field(default_factory=lambda: Component(plugin="labels"),
+                                 description="panoptic segmentation of each frame (optional)")
+    frontend: Component = Field(default_factory=lambda: Component(plugin="flow"),
+                                description="correspondences and confidences between keyframes")
+    loop: Component = Field(default_factory=lambda: Component(plugin="classical"),
+                            description="loop-closure candidates (optional)")
+    optimizer: Component = Field(default_factory=lambda: Component(plugin="online_ba"),
+                                 description="the bundle adjustment of poses and depths")
+    vps: Component = Field(default_factory=lambda: Component(plugin="warp_iou"),
+                           description="video panoptic segmentation: ids consistent over time (optional)")
     graph: GraphSection = Field(default_factory=GraphSection, description="the frame graph: BA resolution, map "
                                 "initialisation, keyframe and edge policy")
     loop_closure: LoopClosureSection = Field(default_factory=LoopClosureSection,
                                              description="which loop candidates close a loop")
-    outputs: OutputsSection = Field(default_factory=OutputsSection)
-    evaluation: EvaluationSection = Field(default_factory=EvaluationSection)
+    outputs: OutputsSection = Field(default_factory=OutputsSection, description="what the run directory gets")
+    evaluation: EvaluationSection = Field(default_factory=EvaluationSection,
+                                          description="evaluation against ground truth at the end of the run")
 
     #: keys that moved between tables: old "table.key" -> new "table.key" (kept for one release, with a warning)
     moved: ClassVar[dict[str, str]] = {

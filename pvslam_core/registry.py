@@ -178,10 +178,42 @@ def build_registry(extra_modules: tuple[Any, ...] = ()) -> Registry:
     pm = pluggy.PluginManager(PROJECT)
     pm.add_hookspecs(HookSpecs)
     reg = Registry()
+    sources = _load_entry_points(pm, reg)
+    for mod in extra_modules:
+        pm.register(mod)
+        sources.append((mod, None, getattr(mod, "__name__", repr(mod)), "", ""))
+    pm.check_pending()
+
+    # Each plugin's hooks run as one transaction: a hook that raises, or an invalid registration, discards
+    # everything that plugin registered, so a half-registered plugin never appears.
+    impls: dict[int, list[tuple[str, Any]]] = {}
+    for interface, hook_name in HOOK_FOR.items():
+        for impl in getattr(pm.hook, hook_name).get_hookimpls():
+            impls.setdefault(id(impl.plugin), []).append((interface, impl))
+    for plugin, ep_name, value, dist_name, version in sources:
+        try:
+            staged = _registrations(reg, impls.get(id(plugin), []), ep_name or value, dist_name, version)
+        except PluginError as exc:
+            if ep_name is None:  # a module the caller passed in: its errors are the caller's to see
+                raise
+            pm.unregister(plugin)
+            _warn_broken(reg, ep_name, value, str(exc))
+            continue
+        reg.plugins.update(staged)
+        if ep_name is not None:
+            reg.loaded_entry_points.append(ep_name)
+    return reg
+
+
+# (plugin object, entry-point name or None for extra modules, entry-point value, distribution, version)
+_Source = tuple[Any, Optional[str], str, str, str]
+
+
+def _load_entry_points(pm: pluggy.PluginManager, reg: Registry) -> list[_Source]:
+    """Import and register the allowed entry points' modules; a broken one is skipped with a warning."""
     allow = _allow_list()
     eps = _entry_points()
-    # (plugin object, entry-point name or None for extra modules, entry-point value, distribution, version)
-    sources: list[tuple[Any, Optional[str], str, str, str]] = []
+    sources: list[_Source] = []
     for ep in eps:
         if allow is not None and ep.name not in allow:
             reg.skipped_entry_points.append(ep.name)
@@ -210,50 +242,33 @@ def build_registry(extra_modules: tuple[Any, ...] = ()) -> Registry:
             close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
             warnings.warn(f"PVSLAM_LOAD_PLUGINS names {name!r}, which is no installed entry point"
                           + (f"; did you mean {close[0]!r}?" if close else "")
-                          + " Installed: " + ", ".join(known), PluginLoadWarning, stacklevel=2)
-    for mod in extra_modules:
-        pm.register(mod)
-        sources.append((mod, None, getattr(mod, "__name__", repr(mod)), "", ""))
-    pm.check_pending()
+                          + " Installed: " + ", ".join(known), PluginLoadWarning, stacklevel=3)
+    return sources
 
-    # Each plugin's hooks run as one transaction: a hook that raises, or an invalid registration, discards
-    # everything that plugin registered, so a half-registered plugin never appears.
-    impls: dict[int, list[tuple[str, Any]]] = {}
-    for interface, hook_name in HOOK_FOR.items():
-        for impl in getattr(pm.hook, hook_name).get_hookimpls():
-            impls.setdefault(id(impl.plugin), []).append((interface, impl))
-    for plugin, ep_name, value, dist_name, version in sources:
-        label = ep_name or value
-        staged: dict[tuple[str, str], PluginSpec] = {}
+
+def _registrations(reg: Registry, impls: list[tuple[str, Any]], label: str, dist_name: str,
+                   version: str) -> dict[tuple[str, str], PluginSpec]:
+    """Run one plugin's hooks; returns what they registered (raises :class:`PluginError`: nothing is kept)."""
+    staged: dict[tuple[str, str], PluginSpec] = {}
+    for interface, impl in impls:
+        def register(name: str, factory: Callable[..., Any], config_model: type, description: str = "",
+                     _i: str = interface, **extras: Any) -> None:
+            _check_config_model(_i, name, config_model)
+            key = (_i, name)
+            prev = reg.plugins.get(key) or staged.get(key)
+            if prev is not None:
+                raise PluginError(f"{_i} plugin {name!r} is registered twice: by entry point "
+                                  f"{prev.entry_point!r} and by {label!r}")
+            staged[key] = PluginSpec(_i, name, factory, config_model, description, label, dist_name, version,
+                                     extras)
+
         try:
-            for interface, impl in impls.get(id(plugin), []):
-                def register(name: str, factory: Callable[..., Any], config_model: type, description: str = "",
-                             _i: str = interface, **extras: Any) -> None:
-                    _check_config_model(_i, name, config_model)
-                    key = (_i, name)
-                    prev = reg.plugins.get(key) or staged.get(key)
-                    if prev is not None:
-                        raise PluginError(f"{_i} plugin {name!r} is registered twice: by entry point "
-                                          f"{prev.entry_point!r} and by {label!r}")
-                    staged[key] = PluginSpec(_i, name, factory, config_model, description, label, dist_name,
-                                             version, extras)
-
-                try:
-                    impl.function(register=register)
-                except PluginError:
-                    raise
-                except Exception as exc:  # noqa: BLE001
-                    raise PluginError(f"its {HOOK_FOR[interface]} hook raised {type(exc).__name__}: {exc}") from exc
-        except PluginError as exc:
-            if ep_name is None:  # a module the caller passed in: its errors are the caller's to see
-                raise
-            pm.unregister(plugin)
-            _warn_broken(reg, ep_name, value, str(exc))
-            continue
-        reg.plugins.update(staged)
-        if ep_name is not None:
-            reg.loaded_entry_points.append(ep_name)
-    return reg
+            impl.function(register=register)
+        except PluginError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise PluginError(f"its {HOOK_FOR[interface]} hook raised {type(exc).__name__}: {exc}") from exc
+    return staged
 
 
 def _check_config_model(interface: str, name: str, model: type) -> None:

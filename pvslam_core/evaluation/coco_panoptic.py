@@ -51,8 +51,25 @@ def coco_panoptic_problems(panoptic_dir: str | os.PathLike, stuff_once: bool = F
             probs.append(f"segments.json: missing list {key!r}")
     if probs:
         return probs
+    cats = _categories(meta["categories"], probs)
+    images = _images(meta["images"], probs)
+    seen_images: set = set()
+    for ann in meta["annotations"]:
+        iid = ann.get("image_id")
+        where = f"annotation {ann.get('file_name')} (image {iid})"
+        if iid not in images:
+            probs.append(f"{where}: image_id not in images")
+        if iid in seen_images:
+            probs.append(f"{where}: a second annotation for the same image")
+        seen_images.add(iid)
+        _check_annotation(d, ann, where, images.get(iid, {}), cats, stuff_once, probs)
+    return probs
+
+
+def _categories(categories: list, probs: list[str]) -> dict[int, dict]:
+    """``{id: category}``; appends the problems of the declarations to ``probs``."""
     cats: dict[int, dict] = {}
-    for c in meta["categories"]:
+    for c in categories:
         missing = [k for k in _CATEGORY_KEYS if k not in c]
         if missing:
             probs.append(f"category {c.get('id')}: missing {missing}")
@@ -64,66 +81,66 @@ def coco_panoptic_problems(panoptic_dir: str | os.PathLike, stuff_once: bool = F
         if not (isinstance(col, list) and len(col) == 3 and all(isinstance(v, int) and 0 <= v <= 255 for v in col)):
             probs.append(f"category {c.get('id')}: color must be [r, g, b] in 0..255, got {col!r}")
         cats[c.get("id")] = c
+    return cats
+
+
+def _images(images_list: list, probs: list[str]) -> dict[int, dict]:
+    """``{id: image}``; appends the problems of the image entries to ``probs``."""
     images: dict[int, dict] = {}
-    for im in meta["images"]:
+    for im in images_list:
         if not all(k in im for k in ("id", "file_name", "width", "height")):
             probs.append(f"image {im.get('id')}: needs id, file_name, width, height")
         if im.get("id") in images:
             probs.append(f"image id {im['id']} listed twice")
         images[im.get("id")] = im
-    seen_images: set = set()
-    for ann in meta["annotations"]:
-        iid, fname = ann.get("image_id"), ann.get("file_name")
-        where = f"annotation {fname} (image {iid})"
-        if iid not in images:
-            probs.append(f"{where}: image_id not in images")
-        if iid in seen_images:
-            probs.append(f"{where}: a second annotation for the same image")
-        seen_images.add(iid)
-        path = os.path.join(d, str(fname))
-        if not os.path.isfile(path):
-            probs.append(f"{where}: PNG not found")
+    return images
+
+
+def _check_annotation(d: str, ann: dict, where: str, im: dict, cats: dict[int, dict], stuff_once: bool,
+                      probs: list[str]) -> None:
+    """The problems of one annotation against its PNG (size, mode, ids, areas, boxes), appended to ``probs``."""
+    path = os.path.join(d, str(ann.get("file_name")))
+    if not os.path.isfile(path):
+        probs.append(f"{where}: PNG not found")
+        return
+    ids, mode = _read_rgb_ids(path)
+    if mode != "RGB":
+        probs.append(f"{where}: PNG mode {mode}, expected 8-bit RGB")
+    if im and (ids.shape[1], ids.shape[0]) != (im.get("width"), im.get("height")):
+        probs.append(f"{where}: PNG is {ids.shape[1]}x{ids.shape[0]}, image says {im.get('width')}x"
+                     f"{im.get('height')}")
+    present, counts = np.unique(ids, return_counts=True)
+    area = {int(i): int(n) for i, n in zip(present, counts) if i != 0}
+    segs = ann.get("segments_info", [])
+    json_ids = [s.get("id") for s in segs]
+    dup = sorted({i for i in json_ids if json_ids.count(i) > 1})
+    if dup:
+        probs.append(f"{where}: segment ids listed more than once: {dup}")
+    only_png = sorted(set(area) - set(json_ids))
+    only_json = sorted(set(json_ids) - set(area))
+    if only_png:
+        probs.append(f"{where}: ids {only_png} are presented in PNG and not presented in JSON")
+    if only_json:
+        probs.append(f"{where}: ids {only_json} are presented in JSON and not presented in PNG")
+    stuff_seen: dict[int, int] = {}
+    for s in segs:
+        missing = [k for k in _SEGMENT_KEYS if k not in s]
+        if missing:
+            probs.append(f"{where}: segment {s.get('id')} misses {missing}")
             continue
-        ids, mode = _read_rgb_ids(path)
-        if mode != "RGB":
-            probs.append(f"{where}: PNG mode {mode}, expected 8-bit RGB")
-        im = images.get(iid, {})
-        if im and (ids.shape[1], ids.shape[0]) != (im.get("width"), im.get("height")):
-            probs.append(f"{where}: PNG is {ids.shape[1]}x{ids.shape[0]}, image says {im.get('width')}x"
-                         f"{im.get('height')}")
-        present, counts = np.unique(ids, return_counts=True)
-        area = {int(i): int(n) for i, n in zip(present, counts) if i != 0}
-        segs = ann.get("segments_info", [])
-        json_ids = [s.get("id") for s in segs]
-        dup = sorted({i for i in json_ids if json_ids.count(i) > 1})
-        if dup:
-            probs.append(f"{where}: segment ids listed more than once: {dup}")
-        only_png = sorted(set(area) - set(json_ids))
-        only_json = sorted(set(json_ids) - set(area))
-        if only_png:
-            probs.append(f"{where}: ids {only_png} are presented in PNG and not presented in JSON")
-        if only_json:
-            probs.append(f"{where}: ids {only_json} are presented in JSON and not presented in PNG")
-        stuff_seen: dict[int, int] = {}
-        for s in segs:
-            missing = [k for k in _SEGMENT_KEYS if k not in s]
-            if missing:
-                probs.append(f"{where}: segment {s.get('id')} misses {missing}")
-                continue
-            sid, cid = s["id"], s["category_id"]
-            if cid not in cats:
-                probs.append(f"{where}: segment {sid} has unknown category_id {cid}")
-            elif stuff_once and not cats[cid]["isthing"]:
-                if cid in stuff_seen:
-                    probs.append(f"{where}: stuff category {cid} has segments {stuff_seen[cid]} and {sid}")
-                stuff_seen[cid] = sid
-            if s["iscrowd"] not in (0, 1):
-                probs.append(f"{where}: segment {sid}: iscrowd must be 0 or 1")
-            if sid in area:
-                if s["area"] != area[sid]:
-                    probs.append(f"{where}: segment {sid}: area {s['area']} but {area[sid]} pixels in the PNG")
-                ys, xs = np.nonzero(ids == sid)
-                box = [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
-                if list(s["bbox"]) != box:
-                    probs.append(f"{where}: segment {sid}: bbox {s['bbox']} but the PNG gives {box}")
-    return probs
+        sid, cid = s["id"], s["category_id"]
+        if cid not in cats:
+            probs.append(f"{where}: segment {sid} has unknown category_id {cid}")
+        elif stuff_once and not cats[cid]["isthing"]:
+            if cid in stuff_seen:
+                probs.append(f"{where}: stuff category {cid} has segments {stuff_seen[cid]} and {sid}")
+            stuff_seen[cid] = sid
+        if s["iscrowd"] not in (0, 1):
+            probs.append(f"{where}: segment {sid}: iscrowd must be 0 or 1")
+        if sid in area:
+            if s["area"] != area[sid]:
+                probs.append(f"{where}: segment {sid}: area {s['area']} but {area[sid]} pixels in the PNG")
+            ys, xs = np.nonzero(ids == sid)
+            box = [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+            if list(s["bbox"]) != box:
+                probs.append(f"{where}: segment {sid}: bbox {s['bbox']} but the PNG gives {box}")

@@ -101,107 +101,128 @@ def evaluate_run(
         categories = gt.get("categories", categories)
         gt = gt.get("trajectory")
     out: dict[str, Any] = {}
+    out.update(_trajectory_metrics(run_dir, gt, align, max_diff, rpe_delta, plots))
+    out.update(_loop_metrics(run_dir, loop_gt, loop_tolerance))
+    out.update(_panoptic_metrics(run_dir, panoptic_gt, categories, vpq_ks))
+    if write:
+        MetricsFile(run_dir / "metrics.json").update(out)
+    return out
 
-    # --- trajectory ---------------------------------------------------------------------------------------------
+
+def _trajectory_metrics(run_dir: Path, gt: Any, align: str, max_diff: float, rpe_delta: int, plots: bool) -> dict:
+    """``ate``, ``ate_segments``, ``rpe``, ``ate_keyframes`` (and the plots) against the ground-truth trajectory."""
+    out: dict[str, Any] = {}
     est_path = run_dir / "trajectory.txt"
     try:
         gt_traj = _load_gt_trajectory(run_dir, gt)
     except Exception as e:  # a broken GT file
         gt_traj = None
         out["ate"] = {"error": str(e)}
-    if gt_traj is not None and est_path.is_file():
-        from pvslam_core.evaluation.trajectory import aligned_positions, ate, ate_segments, rpe
-        from pvslam_core.outputs.trajectory_io import read_tum
+    if gt_traj is None or not est_path.is_file():
+        return out
+    from pvslam_core.evaluation.trajectory import ate, ate_segments, rpe
+    from pvslam_core.outputs.trajectory_io import read_tum
 
-        gt_ts, gt_poses = gt_traj
+    gt_ts, gt_poses = gt_traj
+    try:
+        est_ts, est = read_tum(est_path)
+        out["ate"] = ate(est_ts, est, gt_ts, gt_poses, align=align, max_diff=max_diff)
+        cuts = _scale_cuts(run_dir)
+        if cuts:
+            out["ate_segments"] = ate_segments(est_ts, est, gt_ts, gt_poses, cuts, align=align, max_diff=max_diff)
         try:
-            est_ts, est = read_tum(est_path)
-            out["ate"] = ate(est_ts, est, gt_ts, gt_poses, align=align, max_diff=max_diff)
-            cuts = _scale_cuts(run_dir)
-            if cuts:
-                out["ate_segments"] = ate_segments(est_ts, est, gt_ts, gt_poses, cuts, align=align, max_diff=max_diff)
-            try:
-                out["rpe"] = rpe(est_ts, est, gt_ts, gt_poses, delta=rpe_delta, align=align, max_diff=max_diff)
-            except ValueError as e:
-                out["rpe"] = {"error": str(e)}
-            if plots:
-                from pvslam_core.outputs.plots import plot_error_over_time, plot_trajectory_top
-
-                res = aligned_positions(est_ts, est, gt_ts, gt_poses, align=align, max_diff=max_diff)
-                (run_dir / "plots").mkdir(exist_ok=True)
-                plot_trajectory_top(run_dir / "plots" / "trajectory_top.png", res["est_xyz"], res["gt_xyz"],
-                                    res["errors"], title=f"ATE RMSE {out['ate']['rmse']:.4g} m ({align})")
-                plot_error_over_time(run_dir / "plots" / "ate_over_time.png", res["timestamps"], res["errors"])
+            out["rpe"] = rpe(est_ts, est, gt_ts, gt_poses, delta=rpe_delta, align=align, max_diff=max_diff)
         except ValueError as e:
-            LOG.warning("ATE of %s not computed: %s", run_dir, e)
-            out["ate"] = {"error": str(e)}
-        kf_path = run_dir / "keyframes.txt"
-        if kf_path.is_file():
-            try:
-                kts, kposes = read_tum(kf_path)
-                out["ate_keyframes"] = ate(kts, kposes, gt_ts, gt_poses, align=align, max_diff=max_diff)
-            except ValueError as e:
-                out["ate_keyframes"] = {"error": str(e)}
-
-    # --- loops --------------------------------------------------------------------------------------------------
-    loops_path = run_dir / "loops.json"
-    if loop_gt is not None and loops_path.is_file():
-        from pvslam_core.evaluation.loops import loop_precision_recall
-        from pvslam_core.outputs.loops_io import loop_frame_pairs, read_loops
-
+            out["rpe"] = {"error": str(e)}
+        if plots:
+            _trajectory_plots(run_dir, (est_ts, est), (gt_ts, gt_poses), align, max_diff, out["ate"]["rmse"])
+    except ValueError as e:
+        LOG.warning("ATE of %s not computed: %s", run_dir, e)
+        out["ate"] = {"error": str(e)}
+    kf_path = run_dir / "keyframes.txt"
+    if kf_path.is_file():
         try:
-            detected = loop_frame_pairs(read_loops(loops_path))
-            out["loops"] = loop_precision_recall(detected, list(loop_gt), tolerance=loop_tolerance)
-        except (ValueError, KeyError) as e:
-            out["loops"] = {"error": str(e)}
+            kts, kposes = read_tum(kf_path)
+            out["ate_keyframes"] = ate(kts, kposes, gt_ts, gt_poses, align=align, max_diff=max_diff)
+        except ValueError as e:
+            out["ate_keyframes"] = {"error": str(e)}
+    return out
 
-    # --- panoptic -----------------------------------------------------------------------------------------------
-    pan_dir = run_dir / "panoptic"
-    gt_frames = _panoptic_sequence(panoptic_gt)
+
+def _trajectory_plots(run_dir: Path, est: tuple, gt: tuple, align: str, max_diff: float, rmse: float) -> None:
+    """``plots/trajectory_top.png`` and ``plots/ate_over_time.png`` of the aligned trajectory."""
+    from pvslam_core.evaluation.trajectory import aligned_positions
+    from pvslam_core.outputs.plots import plot_error_over_time, plot_trajectory_top
+
+    res = aligned_positions(*est, *gt, align=align, max_diff=max_diff)
+    (run_dir / "plots").mkdir(exist_ok=True)
+    plot_trajectory_top(run_dir / "plots" / "trajectory_top.png", res["est_xyz"], res["gt_xyz"],
+                        res["errors"], title=f"ATE RMSE {rmse:.4g} m ({align})")
+    plot_error_over_time(run_dir / "plots" / "ate_over_time.png", res["timestamps"], res["errors"])
+
+
+def _loop_metrics(run_dir: Path, loop_gt: Optional[Sequence[tuple[int, int]]], tolerance: int) -> dict:
+    """``loops``: precision / recall of ``loops.json`` against the ground-truth revisit pairs."""
+    loops_path = run_dir / "loops.json"
+    if loop_gt is None or not loops_path.is_file():
+        return {}
+    from pvslam_core.evaluation.loops import loop_precision_recall
+    from pvslam_core.outputs.loops_io import loop_frame_pairs, read_loops
+
+    try:
+        detected = loop_frame_pairs(read_loops(loops_path))
+        return {"loops": loop_precision_recall(detected, list(loop_gt), tolerance=tolerance)}
+    except (ValueError, KeyError) as e:
+        return {"loops": {"error": str(e)}}
+
+
+def _panoptic_metrics(run_dir: Path, panoptic_gt: Any, categories: Any, vpq_ks: Sequence[int]) -> dict:
+    """``panoptic``: PQ and VPQ of the frames of ``panoptic/`` that have ground truth, in frame order."""
     from pvslam_core.outputs.panoptic_png import has_segments
 
-    if gt_frames and has_segments(pan_dir):
-        from pvslam_core.evaluation.panoptic import pq, vpq
-        from pvslam_core.outputs.panoptic_png import load_panoptic_dir, read_segments_json
+    pan_dir = run_dir / "panoptic"
+    gt_frames = _panoptic_sequence(panoptic_gt)
+    if not (gt_frames and has_segments(pan_dir)):
+        return {}
+    from pvslam_core.evaluation.panoptic import pq, vpq
+    from pvslam_core.outputs.panoptic_png import load_panoptic_dir, read_segments_json
 
-        try:
-            preds = load_panoptic_dir(pan_dir, categories, frames=set(gt_frames))
-            if categories is None:
-                categories = read_segments_json(pan_dir).get("categories") or None
-            if categories is None:
-                raise ValueError("no panoptic categories: pass categories= or write them to segments.json")
-            idx = sorted(set(preds) & set(gt_frames))
-            if not idx:
-                raise ValueError("no predicted panoptic frame has ground truth")
-            prs, gts = [], []
-            for i in idx:
-                p, g = preds[i], gt_frames[i]
-                g_ids = g.ids if hasattr(g, "ids") else g[0]
-                if tuple(p.ids.shape) != tuple(np.shape(g_ids)):
-                    import torch.nn.functional as F
+    try:
+        preds = load_panoptic_dir(pan_dir, categories, frames=set(gt_frames))
+        if categories is None:
+            categories = read_segments_json(pan_dir).get("categories") or None
+        if categories is None:
+            raise ValueError("no panoptic categories: pass categories= or write them to segments.json")
+        idx = sorted(set(preds) & set(gt_frames))
+        if not idx:
+            raise ValueError("no predicted panoptic frame has ground truth")
+        prs = [_at_gt_size(preds[i], gt_frames[i]) for i in idx]
+        gts = [gt_frames[i] for i in idx]
+        r_pq = pq(prs, gts, categories)
+        r_vpq = vpq(prs, gts, categories, ks=vpq_ks)
+        return {"panoptic": {
+            "num_frames": len(idx),
+            "pq": r_pq["pq"], "sq": r_pq["sq"], "rq": r_pq["rq"],
+            "pq_things": r_pq["things"]["pq"], "pq_stuff": r_pq["stuff"]["pq"],
+            "vpq": r_vpq["vpq"], "vpq_things": r_vpq["vpq_things"], "vpq_stuff": r_vpq["vpq_stuff"],
+            "pq_detail": r_pq,
+            "vpq_detail": r_vpq,
+        }}
+    except (ValueError, KeyError, FileNotFoundError) as e:
+        LOG.warning("panoptic metrics of %s not computed: %s", run_dir, e)
+        return {"panoptic": {"error": str(e)}}
 
-                    h, w = np.shape(g_ids)
-                    ids = F.interpolate(p.ids[None, None].double(), size=(h, w), mode="nearest")[0, 0].long()
-                    p = type(p)(ids=ids, segments=p.segments)
-                prs.append(p)
-                gts.append(g)
-            r_pq = pq(prs, gts, categories)
-            r_vpq = vpq(prs, gts, categories, ks=vpq_ks)
-            out["panoptic"] = {
-                "num_frames": len(idx),
-                "pq": r_pq["pq"], "sq": r_pq["sq"], "rq": r_pq["rq"],
-                "pq_things": r_pq["things"]["pq"], "pq_stuff": r_pq["stuff"]["pq"],
-                "vpq": r_vpq["vpq"], "vpq_things": r_vpq["vpq_things"], "vpq_stuff": r_vpq["vpq_stuff"],
-                "pq_detail": r_pq,
-                "vpq_detail": r_vpq,
-            }
-        except (ValueError, KeyError, FileNotFoundError) as e:
-            LOG.warning("panoptic metrics of %s not computed: %s", run_dir, e)
-            out["panoptic"] = {"error": str(e)}
 
-    if write:
-        MetricsFile(run_dir / "metrics.json").update(out)
-    return out
+def _at_gt_size(pred: Any, gt: Any) -> Any:
+    """The predicted segmentation resized (nearest) to its ground truth's size when they differ."""
+    g_ids = gt.ids if hasattr(gt, "ids") else gt[0]
+    if tuple(pred.ids.shape) == tuple(np.shape(g_ids)):
+        return pred
+    import torch.nn.functional as F
+
+    h, w = np.shape(g_ids)
+    ids = F.interpolate(pred.ids[None, None].double(), size=(h, w), mode="nearest")[0, 0].long()
+    return type(pred)(ids=ids, segments=pred.segments)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

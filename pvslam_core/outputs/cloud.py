@@ -27,23 +27,30 @@ __all__ = ["CloudFilter", "clean_mask", "far_mask", "edge_mask", "consistency_co
            "voxel_downsample", "median_depth"]
 
 
+#: flying pixels: a 3x3 neighbourhood spanning a disparity ratio above this is a depth discontinuity
+EDGE_RATIO = 1.5
+#: multi-view consistency: keyframes checked on each side of a keyframe (DROID-SLAM's depth filter)
+NEIGHBOURS = 2
+#: multi-view consistency: relative inverse-depth difference under which two keyframes agree
+CONSISTENCY = 0.05
+
+
 @dataclass
 class CloudFilter:
     """Parameters of :func:`clean_mask` (``None`` / 0 switches a test off); see the module docstring."""
 
     depth_factor: Optional[float] = 3.0
-    edge_ratio: Optional[float] = 1.5
+    edge_ratio: Optional[float] = EDGE_RATIO
     min_views: int = 1
-    neighbours: int = 2
-    consistency: float = 0.05
+    neighbours: int = NEIGHBOURS
+    consistency: float = CONSISTENCY
     drop_categories: Sequence[str] = field(default_factory=lambda: ("sky",))
 
     @classmethod
     def from_outputs(cls, outputs: Any) -> "CloudFilter":
-        """From the ``[outputs]`` config section (``ply_*`` keys)."""
-        return cls(depth_factor=outputs.ply_depth_factor, edge_ratio=outputs.ply_edge_ratio,
-                   min_views=outputs.ply_min_views, neighbours=outputs.ply_neighbours,
-                   consistency=outputs.ply_consistency, drop_categories=tuple(outputs.ply_drop_categories))
+        """From the ``[outputs]`` config section (``ply_*`` keys; the other tests use this module's constants)."""
+        return cls(depth_factor=outputs.ply_depth_factor, min_views=outputs.ply_min_views,
+                   drop_categories=tuple(outputs.ply_drop_categories))
 
 
 def _valid(disps: torch.Tensor) -> torch.Tensor:

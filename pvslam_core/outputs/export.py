@@ -1,4 +1,5 @@
-"""``pvslam export RUN_DIR --format colmap|nerfstudio|tum-aligned``: a run for 3D reconstruction tools.
+"""``pvslam export RUN_DIR --format colmap|nerfstudio|tum-aligned``: a run for 3D reconstruction tools (the formats
+are listed in :mod:`.formats`).
 
 Inputs (all in the run directory): ``keyframes/`` (poses, depth, intrinsics; :mod:`.keyframes_io`),
 ``cloud_rgb.ply`` (points with the ``frame_index`` of the keyframe that saw them), ``trajectory.txt`` and
@@ -30,11 +31,12 @@ from typing import Any, Optional
 import numpy as np
 
 from ._atomic import atomic_write_bytes, atomic_write_text
+from .formats import EXPORT_FORMATS
 from .metrics import write_json_atomic
 from .trajectory_io import pose_to_matrix
 
 LOG = logging.getLogger("pvslam")
-FORMATS = ("colmap", "nerfstudio", "tum-aligned")
+FORMATS = tuple(EXPORT_FORMATS)
 __all__ = ["FORMATS", "export_run", "colmap_pose", "nerfstudio_c2w", "to_corner_pixels", "project"]
 
 
@@ -227,7 +229,7 @@ def export_nerfstudio(run_dir: Path, out_dir: Path, kf: dict) -> dict[str, Any]:
 
 
 # -------------------------------------------------------------------------------------------- TUM aligned --
-def export_tum_aligned(run_dir: Path, out_dir: Path, align: str = "sim3") -> dict[str, Any]:
+def export_tum_aligned(run_dir: Path, out_dir: Path, kf: Optional[dict] = None, align: str = "sim3") -> dict[str, Any]:
     """``trajectory_aligned.txt``: ``trajectory.txt`` mapped onto ``groundtruth.txt`` by the ATE's alignment."""
     from ..evaluation.trajectory import aligned_positions
     from .trajectory_io import read_tum, write_tum
@@ -259,19 +261,19 @@ def export_run(run_dir: str | os.PathLike, fmt: str, out_dir: Optional[str | os.
     from .keyframes_io import read_keyframes
 
     run_dir = Path(run_dir)
-    if fmt not in FORMATS:
+    if fmt not in EXPORT_FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
     if not (run_dir / "trajectory.txt").is_file():
         raise FileNotFoundError(f"{run_dir}: not a pvslam run directory (no trajectory.txt)")
     out = Path(out_dir) if out_dir is not None else run_dir / "export" / fmt
-    if fmt == "tum-aligned":
-        return {"format": fmt, "out": str(out), **export_tum_aligned(run_dir, out)}
+    spec = EXPORT_FORMATS[fmt]
+    if not spec.keyframes:
+        return {"format": fmt, "out": str(out), **spec.load()(run_dir, out, None)}
     if not (run_dir / "keyframes" / "keyframes.json").is_file():
         raise FileNotFoundError(f"{run_dir / 'keyframes' / 'keyframes.json'} not found: the run was made without "
                                 "outputs.keyframe_depth (or before it existed), so there are no keyframe cameras")
     kf = read_keyframes(run_dir)
-    summary = (export_colmap if fmt == "colmap" else export_nerfstudio)(run_dir, out, kf)
-    summary = {"format": fmt, "out": str(out), **summary}
+    summary = {"format": fmt, "out": str(out), **spec.load()(run_dir, out, kf)}
     if images:
         why = write_images(run_dir, out, kf["frame_index"], registry=registry)
         if why:

@@ -80,8 +80,8 @@ class SequenceSpec(PluginConfig):
 
 
 class SweepModel(PluginConfig):
-    sweep: SweepSection
-    sequence: list[SequenceSpec] = Field(default_factory=list)
+    sweep: SweepSection = Field(..., description="the grid: seeds, variants, where and how to run")
+    sequence: list[SequenceSpec] = Field(default_factory=list, description="the sequences ([[sequence]] tables)")
 
 
 @dataclass

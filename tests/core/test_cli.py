@@ -2,8 +2,11 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 from pvslam_core.cli import main
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def test_help_imports_no_heavy_library():
@@ -37,10 +40,24 @@ def test_config_validate_ok_and_error(tmp_path, capsys):
 
 
 def test_config_show_applies_set(capsys):
-    assert main(["config", "show", "--set", "graph.warmup=9", "--set", "loop.plugin=none"]) == 0
+    assert main(["config", "show", "--json", "--set", "run.seed=9", "--set", "loop.plugin=none"]) == 0
     data = json.loads(capsys.readouterr().out)
-    assert data["graph"]["warmup"] == 9 and data["loop"] == {"plugin": "none"}
+    assert data["run"]["seed"] == 9 and data["loop"] == {"plugin": "none"}
     assert data["frontend"]["plugin"] == "flow" and len(data["frontend"]) > 3
+
+
+def test_config_show_prints_a_toml_config_that_loads_back(capsys, tmp_path):
+    """The default output is a TOML config file: run with it, the run gets the same resolved config."""
+    from pvslam_core.config import load_config
+
+    for cfg_args in ([], ["--config", str(CONFIGS / "kitti.toml")], ["--config", str(CONFIGS / "raft_gru.toml")]):
+        assert main(["config", "show", *cfg_args, "--set", "run.seed=9", "--set", "outputs.ply_voxel=0.01"]) == 0
+        text = capsys.readouterr().out
+        assert text.startswith("# resolved config") and "\n[run]\nname = " in text and "seed = 9" in text
+        path = tmp_path / "shown.toml"
+        path.write_text(text)
+        want = load_config(cfg_args[1] if cfg_args else None, ["run.seed=9", "outputs.ply_voxel=0.01"])
+        assert load_config(path).to_dict() == want.to_dict()
 
 
 PLANNED = """

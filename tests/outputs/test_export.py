@@ -213,3 +213,21 @@ def test_colmap_model_reads_in_pycolmap(run_dir):
         uv = np.asarray(cam.img_from_cam(img.cam_from_world() * p3.xyz)).ravel()[:2]
         np.testing.assert_allclose(uv, img.points2D[el.point2D_idx].xy, atol=1e-4)
         np.testing.assert_allclose(uv, _pvslam_pixel(p3.xyz, kf["poses"][el.image_id - 1])[0] + 0.5, atol=1e-6)
+
+
+def toy_writer(run_dir, out_dir, kf):
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "frames.txt").write_text(" ".join(str(int(f)) for f in kf["frame_index"]))
+    return {"frames": len(kf["frame_index"])}
+
+
+def test_a_new_format_is_one_line_in_the_formats_table(run_dir, monkeypatch, capsys):
+    """A writer function plus its ExportFormat line: export_run and `pvslam export --format` know it."""
+    from pvslam_core.cli import main
+    from pvslam_core.outputs.formats import EXPORT_FORMATS, ExportFormat
+
+    monkeypatch.setitem(EXPORT_FORMATS, "toy", ExportFormat("toy", f"{__name__}:toy_writer", True, "frame list"))
+    summary = export_run(run_dir, "toy", images=False)
+    assert summary["frames"] == 4 and (run_dir / "export" / "toy" / "frames.txt").read_text() == "0 3 7 12"
+    assert main(["export", str(run_dir), "--format", "toy", "--no-images"]) == 0
+    assert "frames: 4" in capsys.readouterr().out

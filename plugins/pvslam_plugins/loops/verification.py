@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Optional, Union
+from typing import Any, ClassVar, Optional, Union
 
 import cv2
 import numpy as np
@@ -28,6 +28,21 @@ from pvslam_core.imaging import to_gray  # noqa: F401  (the classical detector r
 from pvslam_core.types import Intrinsics
 
 ImageLike = Union[torch.Tensor, np.ndarray]
+
+#: ORB keypoints per keyframe (extracted lazily; matching cost grows with its square); min_inliers is set for it
+ORB_FEATURES = 500
+#: keyframe images are stored (grayscale JPEG) with the longer side reduced to at most this many pixels
+STORE_MAX_SIDE = 640
+#: JPEG quality of the stored keyframe images
+JPEG_QUALITY = 90
+#: ORB features of at most this many keyframes are kept in memory (LRU)
+FEATURE_CACHE = 256
+#: Lowe ratio test on Hamming distances
+RATIO = 0.8
+#: keep only mutual nearest-neighbour ORB matches
+CROSS_CHECK = True
+#: essential-matrix RANSAC threshold in pixels of the stored keyframe image
+RANSAC_THRESHOLD_PX = 1.5
 
 
 @dataclass
@@ -137,42 +152,21 @@ def verify(
 
 # ------------------------------------------------------------------------------------------------ config --
 class VerificationConfig(PluginConfig):
-    """Geometric-verification fields of a loop detector's (flat) config."""
+    """Geometric-verification fields of a loop detector's (flat) config; the matching settings are the constants
+    above."""
 
     verify: bool = Field(
-        True,
-        description="run geometric verification (ORB + essential-matrix RANSAC); false returns retrieval-only "
-        "candidates (verified = None), which the loop policy accepts on score when loop_closure.accept_unverified "
-        "is true (ablations; look-alike places then close false loops)",
-    )
-    orb_features: int = Field(
-        500, ge=50,
-        description="ORB keypoints per keyframe (extracted lazily, only for keyframes that take part in a "
-        "verification; matching cost grows with the square of this)",
-    )
-    store_max_side: int = Field(
-        640, ge=64,
-        description="keyframe images are kept (grayscale JPEG, for lazy ORB extraction) with their longer side "
-        "reduced to at most this many pixels",
-    )
-    jpeg_quality: int = Field(90, ge=50, le=100, description="JPEG quality of the stored keyframe images")
-    feature_cache: int = Field(
-        256, ge=1, description="ORB features of at most this many keyframes are kept in memory (LRU)"
-    )
-    ratio: float = Field(0.8, gt=0.0, le=1.0, description="Lowe ratio test on Hamming distances")
-    cross_check: bool = Field(True, description="keep only mutual nearest-neighbour ORB matches")
-    ransac_threshold_px: float = Field(
-        1.5, gt=0.0, description="essential-matrix RANSAC threshold in pixels of the stored keyframe image"
-    )
+        True, description="geometric verification (ORB + essential-matrix RANSAC); false: retrieval-only candidates "
+        "(verified = None), accepted on score when loop_closure.accept_unverified (false loops at look-alikes)")
     min_inliers: int = Field(
-        80, ge=5,
-        description="accept a candidate if the essential-matrix RANSAC keeps at least this many inliers "
-        "(between ORB matches of the two keyframes). Calibrated for orb_features=500: on the synthetic "
-        "driving loop true revisits (<= 3 m) have 100-400 inliers, look-alike places elsewhere up to ~110",
-    )
+        80, ge=5, description="accept a candidate when the essential-matrix RANSAC keeps at least this many ORB "
+        "matches; set for 500 ORB keypoints per keyframe (docs/decisions.md: loop.min_inliers)")
     min_inlier_ratio: float = Field(
-        0.5, ge=0.0, le=1.0, description="... and at least this fraction of the tentative ORB matches"
-    )
+        0.5, ge=0.0, le=1.0, description="... and at least this fraction of the tentative ORB matches")
+    retired: ClassVar[dict[str, Any]] = {"orb_features": ORB_FEATURES, "store_max_side": STORE_MAX_SIDE,
+                                         "jpeg_quality": JPEG_QUALITY, "feature_cache": FEATURE_CACHE,
+                                         "ratio": RATIO, "cross_check": CROSS_CHECK,
+                                         "ransac_threshold_px": RANSAC_THRESHOLD_PX}
 
 
 # ------------------------------------------------------------------------------------------- keyframes --
@@ -210,7 +204,7 @@ class KeyframeVerifier:
         t0 = time.perf_counter()
         gray = to_gray(image)
         small, K = self._reduce(gray, intrinsics)
-        ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, int(self.config.jpeg_quality)])
+        ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, int(JPEG_QUALITY)])
         self._kf[int(kf_id)] = _Stored(buf if ok else None, K)
         self._newest = (int(kf_id), small)
         self.timings["store"] += time.perf_counter() - t0
@@ -227,8 +221,8 @@ class KeyframeVerifier:
             return None
         c = self.config
         t = time.perf_counter()
-        res = verify(fa, fb, min_inliers=c.min_inliers, min_inlier_ratio=c.min_inlier_ratio, ratio=c.ratio,
-                     cross_check=c.cross_check, threshold_px=c.ransac_threshold_px)
+        res = verify(fa, fb, min_inliers=c.min_inliers, min_inlier_ratio=c.min_inlier_ratio, ratio=RATIO,
+                     cross_check=CROSS_CHECK, threshold_px=RANSAC_THRESHOLD_PX)
         self.timings["verify"] += time.perf_counter() - t
         return res
 
@@ -249,16 +243,16 @@ class KeyframeVerifier:
             gray = cv2.imdecode(kf.jpeg, cv2.IMREAD_GRAYSCALE)
         else:
             return None
-        feats = extract(gray, kf.intrinsics, self.config.orb_features)
+        feats = extract(gray, kf.intrinsics, ORB_FEATURES)
         self.timings["features"] += time.perf_counter() - t
         self._features[key] = feats
-        while len(self._features) > self.config.feature_cache:
+        while len(self._features) > FEATURE_CACHE:
             self._features.popitem(last=False)
         return feats
 
     def _reduce(self, gray: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
         h, w = gray.shape
-        s = min(1.0, self.config.store_max_side / float(max(h, w)))
+        s = min(1.0, STORE_MAX_SIDE / float(max(h, w)))
         if s >= 1.0:
             return gray, K
         nw, nh = max(1, int(round(w * s))), max(1, int(round(h * s)))

@@ -27,7 +27,7 @@ ID_OVERFLOW = 10_000_000
 STUFF_ID_NONPOSITIVE = 9_999_000
 
 __all__ = ["ID_STRIDE", "ID_OVERFLOW", "STUFF_ID_NONPOSITIVE", "compose_id", "decompose_id", "stuff_id", "lut",
-           "unique_ids", "working_shape", "subsample", "IdAllocator", "match_segments", "warp_previous_ids",
+           "unique_ids", "subsample", "IdAllocator", "match_segments", "warp_previous_ids",
            "relabel", "WarpOptions", "TrackMemory", "segment_velocities"]
 
 
@@ -43,13 +43,6 @@ def decompose_id(sid: int) -> tuple[int, int]:
 
 def stuff_id(category_id: int) -> int:
     return category_id * ID_STRIDE if category_id > 0 else STUFF_ID_NONPOSITIVE
-
-
-def working_shape(h: int, w: int, max_side: Optional[int]) -> tuple[int, int]:
-    if max_side is None or max(h, w) <= max_side:
-        return h, w
-    s = max_side / float(max(h, w))
-    return max(1, int(round(h * s))), max(1, int(round(w * s)))
 
 
 def subsample(ids: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -143,12 +136,23 @@ def _greedy(g_keys, p_keys, sc, inter, cur_cat, prev_cat, min_score) -> list[tup
 # ------------------------------------------------------------------------------------------------------------
 # warping the previous ids
 # ------------------------------------------------------------------------------------------------------------
+#: OpenCV DIS preset of the flow between the two images when the motion cue carries none: the cheapest, and no
+#: fewer id switches with the slower ones (docs/decisions.md: vps.flow_preset)
+FLOW_PRESET = "ultrafast"
+#: that DIS flow is computed on images reduced to at most this many pixels on the longer side
+FLOW_MAX_SIDE = 320
+#: stuff follows the rigid flow of depth + camera poses when the cue has them (things always follow the flow)
+RIGID_STUFF = True
+#: forward-warp splatting: all four neighbours of the target pixel (fewer holes than the rounded pixel alone)
+SPLAT = "bilinear"
+
+
 @dataclass
 class WarpOptions:
-    flow_preset: str = "ultrafast"
-    flow_max_side: int = 320
-    rigid_stuff: bool = True
-    splat: str = "bilinear"
+    flow_preset: str = FLOW_PRESET
+    flow_max_side: int = FLOW_MAX_SIDE
+    rigid_stuff: bool = RIGID_STUFF
+    splat: str = SPLAT
 
 
 def resized_intrinsics(k: np.ndarray, sx: float, sy: float) -> np.ndarray:

@@ -2,8 +2,8 @@
 
 The renderer draws every frame at one exposure; real cameras change it (a tunnel exit, a sunlit facade).
 :func:`exposure_copy` writes a copy of a sequence folder whose ``rgb/`` images follow :func:`auto_exposure_gain`
-(the other entries are symlinks to the original's), for ``bench/bench_matrix.py --exposure`` and the exposure test
-of ``tests/test_regressions.py``.
+(the other entries are symlinks to the original's): the same scene under a changing exposure, for benchmarks and the
+exposure test of ``tests/test_regressions.py``.
 """
 from __future__ import annotations
 

@@ -116,7 +116,7 @@ class PolylinePath:
             if cut > 0.5 * min(np.linalg.norm(b - a), np.linalg.norm(c - b)) + 1e-9:
                 raise ValueError(f"corner {i} of the path is too tight for a fillet of radius {r}")
             tang.append((b - d0 * cut, b + d1 * cut, d0, d1, turn))
-        # start at the middle of segment (0 -> 1)
+        # start at the middle of the first segment (points 0 and 1)
         order = list(range(1, k + 1))
         start = 0.5 * (tang[0][1] + tang[1][0])
         cur = start

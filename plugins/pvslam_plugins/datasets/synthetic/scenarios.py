@@ -42,7 +42,7 @@ SCENARIOS: dict[str, str] = {
                      "near-pure rotations while standing still",
     "indoor_textureless": "handheld camera at 30 Hz in a texture-poor room: large plain walls, few posters",
     "busy_street": "car camera on a street full of large moving vehicles (buses, trucks, cars: crossing, oncoming, "
-                   "overtaking, a lead vehicle) covering up to ~35 % of the image",
+                   "overtaking, a lead vehicle) covering up to about a third of the image",
     "forward_low_parallax": "car camera at highway speed on a long straight road, structure mostly far away "
                             "(little parallax in the image centre, like KITTI 01)",
     "driving_city": "car camera driving a figure-eight through a grid of city blocks (left and right turns); "

@@ -95,8 +95,8 @@ def busy_street(num_frames, cam: Camera, seed: int, laps) -> Scenario:
     t = t_all
     cam_x = speed * t
     traffic = _Traffic(vr, ids, t)
-    # the lead vehicle: its rear 12-18 m ahead in the camera's lane, breathing +-3 m, pulling away after 40-65 %
-    # of the drive
+    # the lead vehicle: its rear 12-18 m ahead in the camera's lane, breathing +-3 m, pulling away after 0.4-0.65
+    # of the drive's duration
     d0, t_leave = float(vr.uniform(12, 18)), float(vr.uniform(0.4, 0.65)) * T
     gap = d0 + 3.0 * np.sin(2 * math.pi * t / float(vr.uniform(8, 14)) + float(vr.uniform(0, 2 * math.pi)))
     gap = gap + 0.5 * 1.5 * np.maximum(t - t_leave, 0.0) ** 2

@@ -65,6 +65,20 @@ def _windows(win, key, axis, sgn, fu, hz, half_u, fp):
     return cov, col
 
 
+class _Hits:
+    """Per-hit surface attributes [n], filled by the ground pass (first ``ng``) and the box pass (the rest)."""
+
+    def __init__(self, n: int) -> None:
+        self.u = np.empty(n, np.float64)  # texture coordinates (m)
+        self.v = np.empty(n, np.float64)
+        self.tex = np.empty(n, np.int64)
+        self.tint = np.empty((n, 3), np.float32)
+        self.scale = np.empty(n, np.float32)  # texture period (m)
+        self.fp = np.empty(n, np.float32)  # pixel footprint (m)
+        self.lam = np.empty(n, np.float32)  # Lambert factor
+        self.pid = np.empty(n, np.int64)
+
+
 def shade(scene: Scene, boxes: BoxSet, c: np.ndarray, dw: np.ndarray, t: np.ndarray, prim: np.ndarray,
           inv_f: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Colour float32 [N,3] in [0,1], panoptic id int64 [N] and dynamic flag [N] for flat rays ``dw`` [N,3].
@@ -72,7 +86,6 @@ def shade(scene: Scene, boxes: BoxSet, c: np.ndarray, dw: np.ndarray, t: np.ndar
     Hit pixels are ordered ground first, then boxes, so each group is a contiguous slice of the per-hit arrays.
     """
     N = dw.shape[0]
-    S = textures.SIZE
     col = np.zeros((N, 3), np.float32)
     pid = np.zeros(N, np.int64)
     dyn = np.zeros(N, bool)
@@ -88,78 +101,84 @@ def shade(scene: Scene, boxes: BoxSet, c: np.ndarray, dw: np.ndarray, t: np.ndar
         return col, pid, dyn
     L = np.asarray(scene.light, np.float64)
     L = L / np.linalg.norm(L)
-    u = np.empty(n, np.float64)
-    v = np.empty(n, np.float64)
-    tex = np.empty(n, np.int64)
-    tint = np.empty((n, 3), np.float32)
-    scale = np.empty(n, np.float32)
-    fp = np.empty(n, np.float32)
-    lam = np.empty(n, np.float32)
-    hpid = np.empty(n, np.int64)
-    # ---- ground: normal +z
-    if ng:
-        d = dw[gi]
-        tg = t[gi]
-        dn = np.sqrt(np.einsum("ij,ij->i", d, d))
-        cosg = np.abs(d[:, 2]) / dn
-        fp[:ng] = tg * dn * inv_f / np.maximum(cosg, 0.05) ** 0.75
-        gx = c[0] + tg.astype(np.float64) * d[:, 0]
-        gy = c[1] + tg.astype(np.float64) * d[:, 1]
-        gs = scene.ground(gx, gy, fp[:ng])
-        u[:ng], v[:ng] = gx, gy
-        tex[:ng], tint[:ng], scale[:ng], hpid[:ng] = gs.tex, gs.tint, gs.scale, gs.pid
-        lam[:ng] = max(L[2], 0.0)
-    # ---- boxes: local hit point, face, face coordinates in metres
-    if nb:
-        k = prim[bi]
-        tab = _box_table(boxes, c, L)[k]
-        d = dw[bi]
-        tb = t[bi][:, None]
-        rel = tab[:, 0:3] + tb * d
-        cy, sy = tab[:, 3], tab[:, 4]
-        lx = cy * rel[:, 0] + sy * rel[:, 1]
-        ly = -sy * rel[:, 0] + cy * rel[:, 1]
-        lz = rel[:, 2]
-        dx = cy * d[:, 0] + sy * d[:, 1]
-        dy = -sy * d[:, 0] + cy * d[:, 1]
-        hx, hy, hz_ = tab[:, 5], tab[:, 6], tab[:, 7]
-        qx, qy, qz = np.abs(lx) / hx, np.abs(ly) / hy, np.abs(lz) / hz_
-        axis = np.where((qx >= qy) & (qx >= qz), 0, np.where(qy >= qz, 1, 2))
-        a0, a1 = axis == 0, axis == 1
-        la = np.where(a0, lx, np.where(a1, ly, lz))
-        sgn = np.where(la >= 0, 1.0, -1.0).astype(np.float32)
-        nd = sgn * np.where(a0, dx, np.where(a1, dy, d[:, 2]))
-        nl = sgn * np.where(a0, tab[:, 18], np.where(a1, tab[:, 19], tab[:, 20]))
-        dn = np.sqrt(np.einsum("ij,ij->i", d, d))
-        fp[ng:] = tb[:, 0] * dn * inv_f / np.maximum(np.abs(nd) / dn, 0.05) ** 0.75
-        lam[ng:] = np.maximum(nl, 0.0)
-        fu = np.where(a0, ly * sgn, np.where(a1, -lx * sgn, lx))
-        fv = np.where(axis == 2, ly, -lz)
-        u[ng:] = fu + tab[:, 12] + 7.3 * axis
-        v[ng:] = fv + tab[:, 13]
-        tex[ng:] = boxes.tex[k]
-        tint[ng:] = tab[:, 8:11]
-        scale[ng:] = tab[:, 11]
-        hpid[ng:] = boxes.pid[k]
-        wcov, wcol = _windows(tab[:, 14:18], boxes.key[k], axis, sgn, fu, lz + hz_, np.where(a0, hy, hx), fp[ng:])
-    # ---- texture: detail map + low-frequency variation, both with LOD from the footprint
-    per_texel = scale / S
-    lod = np.log2(np.maximum(fp / per_texel, 1e-6))
-    base = textures.sample(tex, u / per_texel, v / per_texel, lod)
-    big = 9.0 * per_texel
-    low = textures.sample(np.full(n, _NOISE), u / big + 57.0, v / big + 91.0, lod - np.log2(9.0))[:, :1]
-    albedo = base * tint * (0.75 + 0.5 * low)
-    if ng:
-        a = albedo[:ng]
-        a += (gs.paint_rgb - a) * gs.paint[:, None]
-    if nb:
-        a = albedo[ng:]
-        a += (wcol - a) * wcov[:, None]
-    lightv = scene.ambient + (1.0 - scene.ambient) * lam
-    shaded = np.clip(albedo * lightv[:, None], 0.0, 1.0)
+    h = _Hits(n)
+    gs = _ground(h, scene, c, dw[gi], t[gi], inv_f, L) if ng else None
+    k = prim[bi]
+    win = _boxes(h, ng, boxes, c, k, dw[bi], t[bi][:, None], inv_f, L) if nb else None
+    shaded = _texture_and_light(h, scene, ng, gs, win)
     order = np.concatenate([gi, bi])
     col[order] = shaded
-    pid[order] = hpid
+    pid[order] = h.pid
     if nb:
         dyn[bi] = boxes.dynamic[k]
     return col, pid, dyn
+
+
+def _ground(h: _Hits, scene: Scene, c: np.ndarray, d: np.ndarray, tg: np.ndarray, inv_f: float, L: np.ndarray):
+    """Fill the first ``len(d)`` hits (the ground, normal +z); returns the ground's surface sample (paint)."""
+    ng = len(d)
+    dn = np.sqrt(np.einsum("ij,ij->i", d, d))
+    cosg = np.abs(d[:, 2]) / dn
+    h.fp[:ng] = tg * dn * inv_f / np.maximum(cosg, 0.05) ** 0.75
+    gx = c[0] + tg.astype(np.float64) * d[:, 0]
+    gy = c[1] + tg.astype(np.float64) * d[:, 1]
+    gs = scene.ground(gx, gy, h.fp[:ng])
+    h.u[:ng], h.v[:ng] = gx, gy
+    h.tex[:ng], h.tint[:ng], h.scale[:ng], h.pid[:ng] = gs.tex, gs.tint, gs.scale, gs.pid
+    h.lam[:ng] = max(L[2], 0.0)
+    return gs
+
+
+def _boxes(h: _Hits, ng: int, boxes: BoxSet, c: np.ndarray, k: np.ndarray, d: np.ndarray, tb: np.ndarray,
+           inv_f: float, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the hits from ``ng`` on (boxes ``k``: local hit point, face, face coordinates in metres); returns the
+    windows' coverage and colour."""
+    tab = _box_table(boxes, c, L)[k]
+    rel = tab[:, 0:3] + tb * d
+    cy, sy = tab[:, 3], tab[:, 4]
+    lx = cy * rel[:, 0] + sy * rel[:, 1]
+    ly = -sy * rel[:, 0] + cy * rel[:, 1]
+    lz = rel[:, 2]
+    dx = cy * d[:, 0] + sy * d[:, 1]
+    dy = -sy * d[:, 0] + cy * d[:, 1]
+    hx, hy, hz_ = tab[:, 5], tab[:, 6], tab[:, 7]
+    qx, qy, qz = np.abs(lx) / hx, np.abs(ly) / hy, np.abs(lz) / hz_
+    axis = np.where((qx >= qy) & (qx >= qz), 0, np.where(qy >= qz, 1, 2))
+    a0, a1 = axis == 0, axis == 1
+    la = np.where(a0, lx, np.where(a1, ly, lz))
+    sgn = np.where(la >= 0, 1.0, -1.0).astype(np.float32)
+    nd = sgn * np.where(a0, dx, np.where(a1, dy, d[:, 2]))
+    nl = sgn * np.where(a0, tab[:, 18], np.where(a1, tab[:, 19], tab[:, 20]))
+    dn = np.sqrt(np.einsum("ij,ij->i", d, d))
+    h.fp[ng:] = tb[:, 0] * dn * inv_f / np.maximum(np.abs(nd) / dn, 0.05) ** 0.75
+    h.lam[ng:] = np.maximum(nl, 0.0)
+    fu = np.where(a0, ly * sgn, np.where(a1, -lx * sgn, lx))
+    fv = np.where(axis == 2, ly, -lz)
+    h.u[ng:] = fu + tab[:, 12] + 7.3 * axis
+    h.v[ng:] = fv + tab[:, 13]
+    h.tex[ng:] = boxes.tex[k]
+    h.tint[ng:] = tab[:, 8:11]
+    h.scale[ng:] = tab[:, 11]
+    h.pid[ng:] = boxes.pid[k]
+    return _windows(tab[:, 14:18], boxes.key[k], axis, sgn, fu, lz + hz_, np.where(a0, hy, hx), h.fp[ng:])
+
+
+def _texture_and_light(h: _Hits, scene: Scene, ng: int, gs, win) -> np.ndarray:
+    """Shaded colour [n,3]: detail texture and low-frequency variation (both with the level of detail from the
+    footprint), the ground's paint, the boxes' windows, then ambient + Lambert light."""
+    n = len(h.u)
+    per_texel = h.scale / textures.SIZE
+    lod = np.log2(np.maximum(h.fp / per_texel, 1e-6))
+    base = textures.sample(h.tex, h.u / per_texel, h.v / per_texel, lod)
+    big = 9.0 * per_texel
+    low = textures.sample(np.full(n, _NOISE), h.u / big + 57.0, h.v / big + 91.0, lod - np.log2(9.0))[:, :1]
+    albedo = base * h.tint * (0.75 + 0.5 * low)
+    if gs is not None:
+        a = albedo[:ng]
+        a += (gs.paint_rgb - a) * gs.paint[:, None]
+    if win is not None:
+        wcov, wcol = win
+        a = albedo[ng:]
+        a += (wcol - a) * wcov[:, None]
+    lightv = scene.ambient + (1.0 - scene.ambient) * h.lam
+    return np.clip(albedo * lightv[:, None], 0.0, 1.0)

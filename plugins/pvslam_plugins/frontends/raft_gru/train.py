@@ -29,7 +29,7 @@ import torch
 from pydantic import Field, field_validator, model_validator
 
 from pvslam_core.config_base import PluginConfig
-from pvslam_core.training import load_training_state, prepare_run, save_training_state
+from pvslam_core.training import TrainingLoop, prepare_run
 
 __all__ = ["TrainConfig", "run"]
 
@@ -55,9 +55,9 @@ class TrainConfig(PluginConfig):
     steps: int = Field(2000, ge=1, description="optimisation steps at most (see time_budget_min)")
     time_budget_min: float = Field(100.0, gt=0, description="training minutes at most (rendering comes on top)")
     lr: float = Field(2.5e-4, gt=0, description="peak learning rate (DROID: 2.5e-4)")
-    weight_decay: float = Field(1e-5, ge=0)
+    weight_decay: float = Field(1e-5, ge=0, description="AdamW weight decay")
     warmup: int = Field(20, ge=0, description="steps of linear warm-up")
-    final_lr_fraction: float = Field(0.05, ge=0, le=1)
+    final_lr_fraction: float = Field(0.05, ge=0, le=1, description="cosine decay ends at lr * this")
     grad_clip: float = Field(1.0, gt=0, description="gradient-norm clip (DROID: 1.0)")
     w_geo: float = Field(10.0, ge=0, description="weight of the geodesic pose loss (DROID 10)")
     w_res: float = Field(0.01, ge=0, description="weight of the residual loss (DROID 0.01)")
@@ -68,13 +68,13 @@ class TrainConfig(PluginConfig):
         "(all at the second frame's pose; harder: see losses.py)")
     overfit: bool = Field(False, description="train and validate on one clip (checks losses and gradients)")
     eval_every: int = Field(25, ge=1, description="validation every this many steps")
-    val_clips_per_sequence: int = Field(1, ge=1)
-    checkpoint_every: int = Field(25, ge=1)
+    val_clips_per_sequence: int = Field(1, ge=1, description="fixed validation clips per (scenario, seed)")
+    checkpoint_every: int = Field(25, ge=1, description="write the resumable state and the plot every this many steps")
     threads: int = Field(1, ge=0, description="torch threads (0 = torch's default); 1 is fastest on a loaded "
                          "2-core machine (OpenMP threads wait for each other)")
-    seed: int = 0
+    seed: int = Field(0, description="seed of the initialisation and the clip sampling")
     data_cache: Optional[str] = Field(None, description="folder for the rendered sequences (default: OUT/data)")
-    progress: bool = True
+    progress: bool = Field(True, description="progress bar (only on a terminal)")
 
     @field_validator("scenarios")
     @classmethod
@@ -193,116 +193,114 @@ def _load_data(cfg: TrainConfig, cache: Path):
     return seqs(cfg.train_seeds, "render training sequences"), val
 
 
+class RaftGruLoop(TrainingLoop):
+    """The shared loop with this trainer's clips (a random sequence and clip per step from the generator; the one
+    validation clip when ``overfit``), DROID's losses and the held-out validation every ``eval_every`` steps."""
+
+    log_fields = ["step", "elapsed_s", "lr", "clip", *TERMS]
+    val_file, val_fields = "val.csv", ["step", "elapsed_s", *TERMS]
+    desc = "train raft_gru"
+
+    def __init__(self, cfg: TrainConfig, out: Path, model, train_seqs: list, val: list, resume: bool, opt,
+                 gen) -> None:
+        super().__init__(cfg, out, model, opt, gen, resume, cfg.steps)
+        self.grad_clip, self.checkpoint_every = cfg.grad_clip, cfg.checkpoint_every
+        self.train_seqs, self.val, self.lcfg = train_seqs, val, loss_config(cfg)
+        self.clip, self.last_val = None, None
+
+    def stop_reason(self) -> Optional[str]:
+        if progress_of(self.cfg, self.step, self.elapsed) < 1.0:
+            return None
+        return "steps" if self.step >= self.cfg.steps else "time budget"
+
+    def learning_rate(self) -> float:
+        return lr_at(self.cfg, self.step, progress_of(self.cfg, self.step, self.elapsed))
+
+    def loss(self) -> tuple[torch.Tensor, dict]:
+        from .losses import clip_losses
+        from .train_data import sample_clip
+
+        cfg = self.cfg
+        if cfg.overfit:
+            self.clip = self.val[0]
+        else:
+            seq = self.train_seqs[int(torch.randint(len(self.train_seqs), (1,), generator=self.generator))]
+            self.clip = sample_clip(seq, cfg.clip_length, self.generator, cfg.flow_range, cfg.max_stride)
+        return clip_losses(self.model, self.clip, self.lcfg)
+
+    def failed_batch(self) -> str:
+        return f" on {self.clip.name} frames {self.clip.frames}"
+
+    def log_row(self, values: dict, lr: float) -> dict:
+        c = self.clip
+        return {"step": self.step, "elapsed_s": f"{self.elapsed:.1f}", "lr": f"{lr:.3g}",
+                "clip": f"{c.name}:{c.frames[0]}+{c.frames[1] - c.frames[0]}",
+                **{k: f"{values[k]:.5f}" for k in TERMS}}
+
+    def postfix(self, values: dict) -> dict:
+        return {"loss": f"{values['loss']:.3f}", "epe": f"{values['f_error']:.2f}", "min": f"{self.elapsed / 60:.0f}"}
+
+    def validate(self) -> dict:
+        m = evaluate(self.model, self.val, self.lcfg)
+        self.last_val = m
+        return {"step": self.step, "elapsed_s": f"{self.elapsed:.1f}",
+                **{k: f"{m.get(k, float('nan')):.5f}" for k in TERMS}}
+
+    def validation_due(self) -> bool:
+        return self.step % self.cfg.eval_every == 0
+
+    def final_validation(self, steps_run: int) -> bool:
+        return not self.validation_due()
+
+    def on_checkpoint(self) -> None:
+        write_plot(self.out / self.log_file, self.out / self.val_file, self.out / "loss.png")
+
+
+def _model(cfg: TrainConfig):
+    """A new network, or the ``init`` weights made trainable."""
+    from .frontend import RaftGruConfig, load_network
+    from .net import RaftGruNet
+
+    if cfg.init is None:
+        return RaftGruNet(cfg.variant)
+    model = load_network(RaftGruConfig(weights=cfg.init, variant=cfg.variant))
+    for p in model.parameters():
+        p.requires_grad_(True)
+    return model
+
+
 def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     """The registered trainer (see the module docstring); returns the summary."""
-    from tqdm import tqdm
-
     from .checkpoint import save_checkpoint
-    from .frontend import RaftGruConfig, load_network
-    from .losses import clip_losses
-    from .net import RaftGruNet
-    from .train_data import sample_clip
 
     out, cache = prepare_run(cfg, out)
-    if cfg.init is None:
-        model = RaftGruNet(cfg.variant)
-    else:
-        model = load_network(RaftGruConfig(weights=cfg.init, variant=cfg.variant))
-        for p in model.parameters():
-            p.requires_grad_(True)
+    model = _model(cfg)
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     gen = torch.Generator().manual_seed(cfg.seed)
-    step, elapsed = 0, 0.0
-    last = out / "last.pt"
-    if resume and last.is_file():
-        step, elapsed = load_training_state(last, model, opt, gen, "step")
-
     t_data = time.perf_counter()
     train_seqs, val = _load_data(cfg, cache)
     data_s = time.perf_counter() - t_data
-    lcfg = loss_config(cfg)
-
-    csv_path, val_path = out / "loss.csv", out / "val.csv"
-    fields = ["step", "elapsed_s", "lr", "clip", *TERMS]
-    vfields = ["step", "elapsed_s", *TERMS]
-    for path, fl in ((csv_path, fields), (val_path, vfields)):
-        rows = list(csv.DictReader(path.open())) if (resume and path.is_file()) else []
-        rows = [r for r in rows if int(r["step"]) <= step]  # drop rows written after the checkpoint
-        with path.open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=fl, extrasaction="ignore")
-            w.writeheader()
-            w.writerows(rows)
-
-    def save_state() -> None:
-        save_training_state(last, model, opt, gen, "step", step, elapsed)
-
-    def validate() -> dict:
-        m = evaluate(model, val, lcfg)
-        with val_path.open("a", newline="") as f:
-            csv.DictWriter(f, fieldnames=vfields, extrasaction="ignore").writerow(
-                {"step": step, "elapsed_s": f"{elapsed:.1f}", **{k: f"{m.get(k, float('nan')):.5f}" for k in TERMS}})
-        return m
-
-    first_val = validate() if step == 0 else None
-    stopped = "steps"
-    bar = tqdm(total=cfg.steps, initial=step, desc="train raft_gru", disable=not cfg.progress, dynamic_ncols=True)
-    try:
-        with csv_path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
-            while True:
-                prog = progress_of(cfg, step, elapsed)
-                if prog >= 1.0:
-                    stopped = "steps" if step >= cfg.steps else "time budget"
-                    break
-                t0 = time.perf_counter()
-                if cfg.overfit:
-                    clip = val[0]
-                else:
-                    seq = train_seqs[int(torch.randint(len(train_seqs), (1,), generator=gen))]
-                    clip = sample_clip(seq, cfg.clip_length, gen, cfg.flow_range, cfg.max_stride)
-                lr = lr_at(cfg, step, prog)
-                for g in opt.param_groups:
-                    g["lr"] = lr
-                loss, m = clip_losses(model, clip, lcfg)
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"step {step}: non-finite loss on {clip.name} frames {clip.frames}: {m}")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
-                step += 1
-                elapsed += time.perf_counter() - t0
-                writer.writerow({"step": step, "elapsed_s": f"{elapsed:.1f}", "lr": f"{lr:.3g}",
-                                 "clip": f"{clip.name}:{clip.frames[0]}+{clip.frames[1] - clip.frames[0]}",
-                                 **{k: f"{m[k]:.5f}" for k in TERMS}})
-                bar.update(1)
-                bar.set_postfix(loss=f"{m['loss']:.3f}", epe=f"{m['f_error']:.2f}", min=f"{elapsed / 60:.0f}")
-                if step % cfg.eval_every == 0:
-                    f.flush()
-                    validate()
-                if step % cfg.checkpoint_every == 0:
-                    f.flush()
-                    save_state()
-                    write_plot(csv_path, val_path, out / "loss.png")
-    except KeyboardInterrupt:
-        save_state()
-        bar.close()
-        raise
-    bar.close()
-    final_val = validate() if step % cfg.eval_every else None
-    save_state()
-    write_plot(csv_path, val_path, out / "loss.png")
+    loop = RaftGruLoop(cfg, out, model, train_seqs, val, resume, opt, gen)
+    first_val = None
+    if loop.step == 0:
+        loop.run_validation()
+        first_val = loop.last_val
+    stopped = loop.run()
+    final_val = loop.last_val if loop.final_val else None
+    val_path = out / loop.val_file
+    write_plot(out / loop.log_file, val_path, out / "loss.png")
     model.eval()
     save_checkpoint(out / "model_final.pth", model,
-                    meta={"trained_on": "pvslam synthetic", "steps": step, "train_minutes": round(elapsed / 60, 2),
-                          "width": cfg.width, "height": cfg.height, "scenarios": list(cfg.scenarios),
-                          "train_seeds": list(cfg.train_seeds), "overfit": cfg.overfit})
+                    meta={"trained_on": "pvslam synthetic", "steps": loop.step,
+                          "train_minutes": round(loop.elapsed / 60, 2), "width": cfg.width, "height": cfg.height,
+                          "scenarios": list(cfg.scenarios), "train_seeds": list(cfg.train_seeds),
+                          "overfit": cfg.overfit})
     vals = list(csv.DictReader(val_path.open()))
     first = vals[0] if vals else {}
     final = vals[-1] if vals else {}
     return {
-        "steps": step, "stopped_by": stopped, "train_minutes": round(elapsed / 60, 2),
+        "steps": loop.step, "stopped_by": stopped, "train_minutes": round(loop.elapsed / 60, 2),
         "data_minutes": round(data_s / 60, 2), "val_clips": len(val),
         "val_loss_first": float(first.get("loss", "nan")), "val_loss_final": float(final.get("loss", "nan")),
         "val_f_error_first": float(first.get("f_error", "nan")),

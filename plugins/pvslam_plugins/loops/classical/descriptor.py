@@ -20,6 +20,14 @@ from ..verification import ImageLike, to_gray  # noqa: F401  (re-exported: the d
 
 #: the gradient grid is computed on an image of this many pixels per cell (after resizing)
 _CELL_PX = 12
+#: (width, height) of the blurred, zero-mean grayscale thumbnail part of the descriptor
+THUMBNAIL_SIZE = (16, 12)
+#: (columns, rows) of gradient-orientation histogram cells
+HOG_CELLS = (4, 4)
+#: unsigned orientation bins per cell
+HOG_BINS = 8
+#: share of the thumbnail in the cosine similarity (the rest is the orientation-histogram part)
+THUMBNAIL_WEIGHT = 0.5
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -65,10 +73,10 @@ def orientation_grid(gray: np.ndarray, cells: tuple[int, int] = (4, 4), bins: in
 
 def global_descriptor(
     image: ImageLike,
-    thumbnail_size: tuple[int, int] = (16, 12),
-    hog_cells: tuple[int, int] = (4, 4),
-    hog_bins: int = 8,
-    thumbnail_weight: float = 0.5,
+    thumbnail_size: tuple[int, int] = THUMBNAIL_SIZE,
+    hog_cells: tuple[int, int] = HOG_CELLS,
+    hog_bins: int = HOG_BINS,
+    thumbnail_weight: float = THUMBNAIL_WEIGHT,
 ) -> np.ndarray:
     """float32 unit vector (see the module docstring); cosine similarity = dot product."""
     gray = to_gray(image)

@@ -12,7 +12,15 @@ from pvslam_core.types import Frame, LoopCandidate
 
 from ..verification import KeyframeVerifier, Verification
 from .config import ClassicalLoopConfig
-from .descriptor import ImageLike, global_descriptor, to_gray
+from .descriptor import HOG_BINS, HOG_CELLS, THUMBNAIL_SIZE, THUMBNAIL_WEIGHT, ImageLike, global_descriptor, to_gray
+
+#: adaptive threshold (ORB-SLAM's rule): the new keyframe's similarity to this many predecessors may lower it
+ADAPTIVE_NEIGHBOURS = 2
+#: the adaptive threshold never goes below this similarity
+ADAPTIVE_FLOOR = 0.5
+#: a candidate below ``threshold`` passes only when the new view sees the matched structure at least this large
+#: relative to the old view (inlier spread new / old): a revisit of the spot (docs/decisions.md: ADAPTIVE_MIN_SPREAD)
+ADAPTIVE_MIN_SPREAD = 0.9
 
 
 @dataclass
@@ -31,7 +39,7 @@ class ClassicalLoopDetector(LoopDetector):
     ``skip`` predicate spares the verification of candidates it would refuse anyway.  Per keyframe the detector
     stores a float32 descriptor (about 1.3 kB) and, for the shared :class:`~..verification.KeyframeVerifier`, a
     grayscale JPEG of the image (about 20 kB at 320x240).  ORB features are extracted lazily, only for keyframes
-    that take part in a verification, and cached (LRU, ``feature_cache`` keyframes of about 40 B per keypoint), so
+    that take part in a verification, and cached (LRU, ``FEATURE_CACHE`` keyframes of about 40 B per keypoint), so
     a keyframe without loop candidates costs ~2 ms.
     """
 
@@ -54,8 +62,7 @@ class ClassicalLoopDetector(LoopDetector):
     # --- descriptors ----------------------------------------------------------------------------------------
     def descriptor(self, image: ImageLike) -> np.ndarray:
         """The L2-normalised global descriptor (float32 [D]) of an image; cosine similarity = dot product."""
-        c = self.config
-        return global_descriptor(image, c.thumbnail_size, c.hog_cells, c.hog_bins, c.thumbnail_weight)
+        return global_descriptor(image, THUMBNAIL_SIZE, HOG_CELLS, HOG_BINS, THUMBNAIL_WEIGHT)
 
     def __len__(self) -> int:
         return len(self._kf)
@@ -134,7 +141,7 @@ class ClassicalLoopDetector(LoopDetector):
                 continue
             self.last_verifications.append((kf_id, j_id, score, res))
             ok = bool(res.accepted)
-            if ok and score < self.config.threshold and res.spread < self.config.adaptive_min_spread:
+            if ok and score < self.config.threshold and res.spread < ADAPTIVE_MIN_SPREAD:
                 ok = False  # retrieved only through the adaptive threshold, and seen from farther away: _threshold
             out.append(LoopCandidate(kf_id, j_id, score, verified=ok, inliers=res.inliers))
         return out
@@ -153,21 +160,18 @@ class ClassicalLoopDetector(LoopDetector):
 
     # --- steps -------------------------------------------------------------------------------------------------
     def _threshold(self, r: int) -> float:
-        """The retrieval threshold of row ``r``: ``threshold``, or with ``adaptive_neighbours`` the lowest similarity
-        of the keyframe to its that many predecessors when lower (but not below ``adaptive_floor``).  ORB-SLAM's rule
-        (a loop candidate must look at least as similar as the keyframe's own neighbours do): a fixed threshold
-        suits one camera and scene, and a hand-held camera's revisit of the same spot (roll, a few cm off) scores
-        0.6-0.7 with this descriptor, like its neighbours 5 frames apart, below the 0.75 that the self-similar
-        city needs (bench/RESULTS.md, issue 13).  Geometric verification still decides, and for these candidates
-        also ``adaptive_min_spread``: on a drive that approaches its start from afar the lower threshold admitted
-        verified loops seen from 10-20 m away (their matched structure 0.76-0.86 the size it has in the old
-        view; revisits of the same spot 0.93-1.03), whose loop BA bent the map (driving_block seed 0: loop gap
-        0.14 -> 0.91 m)."""
+        """The retrieval threshold of row ``r``: ``threshold``, or the lowest similarity of the keyframe to its
+        ``ADAPTIVE_NEIGHBOURS`` predecessors when lower (but not below ``ADAPTIVE_FLOOR``).  ORB-SLAM's rule (a loop
+        candidate must look at least as similar as the keyframe's own neighbours do): a fixed threshold suits one
+        camera and scene, and a hand-held camera's revisit of a spot scores as low as its neighbours a few frames
+        apart.  Geometric verification still decides, and for these candidates also ``ADAPTIVE_MIN_SPREAD``: a
+        lower threshold also admits verified views of the place from far away, whose loop BA bends the map
+        (docs/decisions.md: ADAPTIVE_MIN_SPREAD)."""
         c = self.config
-        if c.adaptive_neighbours <= 0 or r == 0:
+        if ADAPTIVE_NEIGHBOURS <= 0 or r == 0:
             return c.threshold
-        nb = self._desc[max(0, r - c.adaptive_neighbours): r] @ self._desc[r]
-        return min(c.threshold, max(c.adaptive_floor, float(nb.min())))  # only ever lowers `threshold`
+        nb = self._desc[max(0, r - ADAPTIVE_NEIGHBOURS): r] @ self._desc[r]
+        return min(c.threshold, max(ADAPTIVE_FLOOR, float(nb.min())))  # only ever lowers `threshold`
 
     def _retrieve(self, r: int) -> list[tuple[int, float]]:
         """Best older rows outside the temporal exclusion window with similarity >= threshold: (row, score)."""

@@ -16,7 +16,7 @@ token, PCA, threshold); they replace the defaults of the fields the user did not
 """
 from __future__ import annotations
 
-from typing import Any, Literal, Optional, Union
+from typing import Any, ClassVar, Literal, Optional, Union
 
 from pydantic import Field, field_validator
 
@@ -25,7 +25,7 @@ from pvslam_core.config_base import PluginConfig
 from ..verification import VerificationConfig
 
 #: ``weights`` value meaning "the checkpoint shipped in this package for the chosen variant" (``weights/
-#: deit_synth_<variant>.pt``, see weights/README.md and bench/RESULTS.md "DeiT loop closure")
+#: deit_synth_<variant>.pt``, see weights/README.md)
 BUILTIN = "builtin"
 _VARIANT_ALIASES = {"deit-base": "base", "deit_base_patch16_224": "base", "deit-base-distilled": "distilled",
                     "deit_base_distilled_patch16_224": "distilled", "plain": "base"}
@@ -33,26 +33,14 @@ _VARIANT_ALIASES = {"deit-base": "base", "deit_base_patch16_224": "base", "deit-
 
 class DeitModelConfig(PluginConfig):
     variant: Literal["base", "distilled"] = Field(
-        "distilled",
-        description="architecture: plain DeiT (class token) or DeiT-distilled (class + distillation token; the "
-        "paper's choice). The checkpoint named by 'weights' must be of this variant",
-    )
+        "distilled", description="architecture: plain DeiT (class token) or DeiT-distilled (class + distillation "
+        "token; the paper's choice); the checkpoint named by 'weights' must be of this variant")
     weights: Optional[str] = Field(
-        BUILTIN,
-        description="'builtin': the place-recognition checkpoint shipped with pvslam for this variant (a small "
-        "DeiT trained on the synthetic generator by `pvslam train loop --plugin deit`, weights/deit_synth_<variant>"
-        ".pt, with its calibrated threshold and PCA); a catalogue name "
-        "('deit-base', 'deit-base-distilled': the ImageNet weights, `pvslam weights fetch`) or the path of an "
-        "official .pth or a project checkpoint (format 'pvslam.deit'); a missing or corrupt (sha256) shipped file is "
-        "an error. None / 'none': a randomly initialised full-size DeiT-base (timing only: loop detection is then "
-        "meaningless)",
-    )
+        BUILTIN, description="'builtin' (the shipped checkpoint trained on the generator), a catalogue name "
+        "('deit-base', 'deit-base-distilled'), an official .pth or a project checkpoint; none: random (timing only)")
     pos_embed_antialias: bool = Field(
-        True,
-        description="position-embedding resampling filter for grids other than the stored one: True = timm's "
-        "default (PIL-style bicubic, a=-0.5), False = plain bicubic a=-0.75 as DeiT's own fine-tuning "
-        "(deit/main.py --finetune) used",
-    )
+        True, description="position-embedding resampling for other input grids: true = timm's antialiased bicubic, "
+        "false = plain bicubic as DeiT's own fine-tuning used")
 
     @field_validator("variant", mode="before")
     @classmethod
@@ -63,44 +51,27 @@ class DeitModelConfig(PluginConfig):
 class DeitDescriptorConfig(PluginConfig):
     # --- preprocessing ---------------------------------------------------------------------------------------
     resize: Literal["full_frame", "center_crop"] = Field(
-        "full_frame",
-        description="full_frame: the whole frame resized (a loop detector should see all of it); center_crop: "
-        "DeiT's eval transform (shorter side to input_size/crop_pct, centre crop input_size^2)",
-    )
+        "full_frame", description="full_frame: the whole frame resized (a loop detector should see all of it); "
+        "center_crop: DeiT's eval transform (shorter side to input_size / 0.875, centre crop)")
     input_size: Union[int, tuple[int, int]] = Field(
-        224,
-        description="int S: center_crop -> S x S; full_frame -> aspect ratio kept on a budget of (S/16)^2 "
-        "patches (the cost of S x S). (h, w): full_frame resized to exactly that (multiples of 16)",
-    )
-    crop_pct: float = Field(0.875, gt=0.0, le=1.0, description="center_crop: DeiT eval crop ratio (224/256)")
+        224, description="int S: center_crop -> S x S; full_frame -> aspect ratio kept on a budget of (S/16)^2 "
+        "patches. (h, w): full_frame resized to exactly that (multiples of 16)")
     # --- descriptor ----------------------------------------------------------------------------------------------
     token: Literal["cls", "dist", "mean", "concat"] = Field(
-        "cls",
-        description="final-norm token(s) used: cls = LN(T_K^0), the paper's eq. 12 (eq. 9 has only x_class); "
-        "dist = distillation token; mean = (cls + dist) / 2 (timm's pre-logits for distilled DeiT); concat = "
-        "[cls, dist] (2D). dist/mean/concat need the distilled variant",
-    )
+        "cls", description="final-norm token(s) used: cls (the paper's eq. 12), dist (distillation token), mean "
+        "((cls + dist) / 2), concat ([cls, dist]); all but cls need the distilled variant")
     pca: Literal["none", "online", "fixed"] = Field(
-        "online",
-        description="none: L2-normalised raw tokens; online: PCA/whitening refit on the descriptors seen so far; "
-        "fixed: loaded from pca_file (or the project checkpoint's 'pca' entry)",
-    )
+        "online", description="none: L2-normalised raw tokens; online: PCA/whitening refit on the descriptors seen "
+        "so far; fixed: loaded from pca_file (or the project checkpoint's 'pca' entry)")
     pca_file: Optional[str] = Field(None, description="PCA for pca='fixed' (PCAWhitening.save file or checkpoint)")
     pca_dim: Optional[int] = Field(256, ge=1, description="output dimension (capped by the rank of the fit set)")
     whiten: bool = Field(True, description="divide each principal component by its standard deviation")
-    whiten_shrinkage: float = Field(
-        0.1, ge=0.0,
-        description="whitening regulariser: scale 1/sqrt(eig + shrinkage * mean(eig)); 0 = exact whitening",
-    )
     pca_min_samples: int = Field(32, ge=2, description="online: first fit after this many keyframes")
-    pca_refit_growth: float = Field(
-        1.25, gt=1.0, description="online: refit when the number of keyframes seen grew by this factor"
-    )
-    pca_freeze_after: Optional[int] = Field(
-        None, ge=2, description="online: last refit at this many keyframes (None = never freeze)"
-    )
     # --- cost ----------------------------------------------------------------------------------------------------
-    batch_size: int = Field(8, ge=1, description="keyframes per forward pass")
+    batch_size: int = Field(8, ge=1, description="keyframes per forward pass (memory)")
+    # the DeiT crop ratio and the online PCA's regulariser and refit schedule are constants of .descriptor
+    retired: ClassVar[dict[str, Any]] = {"crop_pct": 0.875, "whiten_shrinkage": 0.1, "pca_refit_growth": 1.25,
+                                         "pca_freeze_after": None}
 
     @field_validator("input_size")
     @classmethod
@@ -113,35 +84,27 @@ class DeitDescriptorConfig(PluginConfig):
 
 class RetrievalConfig(PluginConfig):
     threshold: float = Field(
-        0.8, ge=-1.0, le=1.0,
-        description="minimum cosine similarity (eq. 8) of two descriptors for a loop candidate. Its meaning "
-        "depends on the PCA/whitening (whitened scores are lower): calibrate per setting",
-    )
+        0.8, ge=-1.0, le=1.0, description="minimum cosine similarity (eq. 8) of two descriptors for a loop "
+        "candidate; whitened scores are lower, so calibrate it per PCA setting")
     exclude_recent: int = Field(
-        20, ge=0, description="temporal exclusion: only keyframes more than this many stored keyframes older qualify"
-    )
+        20, ge=0, description="temporal exclusion: only keyframes more than this many stored keyframes older qualify")
     min_time_gap: float = Field(
-        10.0, ge=0.0, description="temporal exclusion: only keyframes at least this many seconds older qualify"
-    )
+        10.0, ge=0.0, description="temporal exclusion: only keyframes at least this many seconds older qualify")
     max_candidates: int = Field(
-        3, ge=1, description="at most this many best-scoring candidates per keyframe are (verified and) returned"
-    )
+        3, ge=1, description="at most this many best-scoring candidates per keyframe are (verified and) returned")
 
 
 class DeitLoopConfig(DeitModelConfig, DeitDescriptorConfig, RetrievalConfig, VerificationConfig):
-    """Config of the ``deit`` loop detector (all fields flat: ``[loop] plugin = "deit"``, ``variant = ...``)."""
+    """Config of the ``deit`` loop detector (all fields flat: ``[loop] plugin = "deit"``, ``variant = ...``).
 
-    # Why verify by default although the paper's DeiT loop closure has no geometric check (validation seeds 201-202
-    # only, `bench/bench_deit.py validate`): the calibrated threshold is only 0.005-0.007 above the best wrong
-    # score, so a threshold calibrated on one validation seed let a false loop through on the other, and 0.02-0.1
-    # below it retrieval-only admits up to 19 false candidates where the verification admits 0-1, for a small recall
-    # cost (bench/RESULTS.md "DeiT loop closure").
+    Verification is on by default although the paper's DeiT loop closure has none: the calibrated threshold sits
+    just above the best wrong score, so it does not carry from one sequence to another, and retrieval alone then
+    closes false loops (docs/decisions.md: loop.deit.verify)."""
+
     verify: bool = Field(
-        True,
-        description="geometric verification of the retrieved candidates (ORB + essential-matrix RANSAC, the module "
-        "shared with the classical detector). False: retrieval-only candidates (verified = None), accepted on score "
-        "when loop_closure.accept_unverified, as in the paper (look-alike near-revisits then close false loops)",
-    )
+        True, description="geometric verification of the retrieved candidates (ORB + essential-matrix RANSAC, "
+        "shared with classical); false: retrieval only, as in the paper (false loops at look-alikes)")
+    retired: ClassVar[dict[str, Any]] = {**DeitDescriptorConfig.retired, **VerificationConfig.retired}
 
 
 def with_checkpoint(config: DeitLoopConfig, stored: dict[str, Any]) -> DeitLoopConfig:

@@ -30,6 +30,12 @@ from .vit import VisionTransformer, deit_base_distilled_patch16_224, deit_base_p
 LOG = logging.getLogger("pvslam")
 
 TOKENS = ("cls", "dist", "mean", "concat")
+#: center_crop: DeiT's evaluation crop ratio (224 / 256)
+CROP_PCT = 0.875
+#: online PCA whitening regulariser: scale 1 / sqrt(eig + WHITEN_SHRINKAGE * mean(eig)), so small components stay small
+WHITEN_SHRINKAGE = 0.1
+#: online PCA: refit when the number of keyframes seen grew by this factor (a geometric schedule)
+PCA_REFIT_GROWTH = 1.25
 
 _VARIANT_NAMES = {"base": "plain", "distilled": "distilled"}  # config variant -> ViTConfig.variant
 
@@ -129,7 +135,7 @@ class DeitDescriptor:
     def preprocess(self, images: Images) -> torch.Tensor:
         """Normalised model input ``[B, 3, h, w]`` (see :mod:`.preprocess`)."""
         c = self.config
-        return preprocess(images, c.input_size, c.resize, c.crop_pct, self.model.config.patch_size)
+        return preprocess(images, c.input_size, c.resize, CROP_PCT, self.model.config.patch_size)
 
     def input_size(self, height: int, width: int) -> tuple[int, int]:
         """Model input ``(h, w)`` for a frame of this size."""
@@ -181,8 +187,8 @@ def make_projector(config: DeitDescriptorConfig, checkpoint_pca: Optional[PCAWhi
     if config.pca == "none":
         return None
     if config.pca == "online":
-        return OnlinePCA(config.pca_dim, config.whiten, config.whiten_shrinkage, config.pca_min_samples,
-                         config.pca_refit_growth, config.pca_freeze_after)
+        return OnlinePCA(config.pca_dim, config.whiten, WHITEN_SHRINKAGE, config.pca_min_samples,
+                         PCA_REFIT_GROWTH, None)
     if config.pca_file is not None:
         return PCAWhitening.load(config.pca_file)
     if checkpoint_pca is None:

@@ -5,8 +5,8 @@ Two modes:
 * ``center_crop``: DeiT's eval transform (deit/datasets.py ``build_transform``): resize the shorter side to
   ``int(S / crop_pct)`` (256 for S = 224, crop_pct 0.875; the longer side ``int(S/crop_pct * long / short)`` as
   torchvision computes it), bicubic, then centre-crop ``S x S``.  This is what the ImageNet numbers of the
-  official weights were measured with, but on a wide driving frame (KITTI is 3.3:1) it throws away 70 % of the
-  image, including the sides where most of the revisited structure is.
+  official weights were measured with, but on a wide driving frame (KITTI is 3.3:1) it throws away most of
+  the image, including the sides where most of the revisited structure is.
 * ``full_frame`` (default of the detector): the whole frame, resized.  With ``input_size = (h, w)`` exactly that
   (multiples of the patch size; aspect ratio not kept).  With an int ``S`` the frame keeps its aspect ratio on a
   token budget of about ``(S / patch)^2`` patches (the cost of an ``S x S`` input): grid ``gh x gw`` with

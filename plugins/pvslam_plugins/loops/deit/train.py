@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 import random
 import time
 from pathlib import Path
@@ -38,6 +37,7 @@ import torch.nn.functional as F
 from pydantic import Field
 
 from pvslam_core.config_base import PluginConfig
+from pvslam_core.training import TrainingLoop, prepare_run
 
 from .checkpoint import load_checkpoint, save_checkpoint
 from .descriptor import select_tokens
@@ -53,8 +53,8 @@ class DeitTrainConfig(PluginConfig):
     scenarios: list[str] = Field(["driving_loop", "indoor_handheld"], description="generator scenarios to train on")
     train_seeds: list[int] = Field([101, 102, 103, 104, 105, 106, 107, 108],
                                    description="generator seeds (worlds) used for training, per scenario")
-    val_seeds: list[int] = Field([201, 202], description="held-out seeds for validation / calibration, per "
-                                 "scenario (the ablation's test seeds are 301-304: never use them here)")
+    val_seeds: list[int] = Field([201, 202], description="held-out generator seeds for validation and threshold "
+                                 "calibration, per scenario (keep them apart from any test seeds)")
     num_frames: Optional[int] = Field(None, description="frames per sequence (None: the scenario's default)")
     hard_k: int = Field(8, ge=1, description="hard negatives remembered per frame (classical-descriptor look-alikes)")
     neg_factor: float = Field(2.0, gt=1.0, description="negatives: centres more than this x the revisit radius apart "
@@ -66,31 +66,34 @@ class DeitTrainConfig(PluginConfig):
     init: Optional[str] = Field(None, description="start from this project checkpoint (fine-tuning; its "
                                 "architecture replaces embed_dim/depth/num_heads/input_size)")
     variant: Literal["base", "distilled"] = Field("distilled", description="plain DeiT or DeiT-distilled")
-    embed_dim: int = Field(192, ge=16)
-    depth: int = Field(4, ge=1)
-    num_heads: int = Field(3, ge=1)
-    input_size: int = Field(112, ge=16, description="full-frame token budget (input_size/16)^2 patches; 112 -> "
-                            "96x128 for 320x240 frames")
-    drop_path: float = Field(0.05, ge=0.0, lt=1.0)
+    embed_dim: int = Field(192, ge=16, description="token width (DeiT-Tiny's; DeiT-base has 768)")
+    depth: int = Field(4, ge=1, description="transformer blocks")
+    num_heads: int = Field(3, ge=1, description="attention heads per block (embed_dim must be a multiple)")
+    input_size: int = Field(112, ge=16, description="full-frame token budget of (input_size/16)^2 patches, aspect "
+                            "ratio kept (96x128 pixels for 320x240 frames)")
+    drop_path: float = Field(0.05, ge=0.0, lt=1.0, description="stochastic depth rate (regularisation)")
     # --- optimisation ------------------------------------------------------------------------------------------
     steps: int = Field(2000, ge=1, description="optimiser steps (the run also stops at max_minutes)")
     max_minutes: float = Field(45.0, gt=0, description="wall-clock budget of this invocation (resume continues)")
     anchors: int = Field(20, ge=2, description="anchor frames per batch (each with one positive)")
     hard: int = Field(10, ge=0, description="hard negatives per batch")
     revisit_prob: float = Field(0.5, ge=0, le=1, description="draw a positive from another pass when there is one")
-    lr: float = Field(5e-4, gt=0)
-    weight_decay: float = Field(0.05, ge=0)
-    warmup: int = Field(100, ge=0)
-    temperature: float = Field(0.1, gt=0)
-    pos_margin: float = Field(0.75, ge=-1, le=1)
-    neg_margin: float = Field(0.35, ge=-1, le=1)
-    margin_weight: float = Field(1.0, ge=0)
+    lr: float = Field(5e-4, gt=0, description="peak learning rate (AdamW, cosine decay)")
+    weight_decay: float = Field(0.05, ge=0, description="AdamW weight decay")
+    warmup: int = Field(100, ge=0, description="steps of linear learning-rate warm-up")
+    temperature: float = Field(0.1, gt=0, description="temperature of the supervised contrastive loss")
+    pos_margin: float = Field(0.75, ge=-1, le=1, description="margin loss: positives' cosine similarity should "
+                              "exceed this (the detector uses one global threshold)")
+    neg_margin: float = Field(0.35, ge=-1, le=1, description="margin loss: negatives' cosine similarity should "
+                              "stay below this")
+    margin_weight: float = Field(1.0, ge=0, description="weight of the margin loss against the contrastive one")
     kd_temperature: float = Field(0.05, gt=0, description="teacher softmax temperature (distilled variant)")
-    seed: int = Field(0)
+    seed: int = Field(0, description="seed of the initialisation, the batches and the augmentation")
     threads: int = Field(2, ge=1, description="torch CPU threads")
     # --- bookkeeping -------------------------------------------------------------------------------------------
-    val_every: int = Field(250, ge=1)
-    checkpoint_every: int = Field(50, ge=1)
+    val_every: int = Field(250, ge=1, description="validate (and keep the best weights) every this many steps; at "
+                           "checkpoints only")
+    checkpoint_every: int = Field(50, ge=1, description="write the resumable state every this many steps")
     val_stride: int = Field(3, ge=1, description="validation: every n-th frame is a keyframe")
     exclude_recent: int = Field(20, ge=0, description="validation: temporal exclusion in keyframes (as the detector)")
     min_time_gap: float = Field(10.0, ge=0, description="validation: temporal exclusion in seconds (as the detector)")
@@ -197,94 +200,49 @@ def _sequence_roots(cfg: DeitTrainConfig, seeds: list[int]) -> list[Path]:
             for s in seeds for sc in cfg.scenarios]
 
 
-def _atomic_save(obj, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, str(tmp))
-    os.replace(tmp, path)
-
-
 # -------------------------------------------------------------------------------------------------- run --
-def run_training(cfg: DeitTrainConfig, out: Path, resume: bool) -> dict:
-    from tqdm import tqdm
+class DeitLoop(TrainingLoop):
+    """The shared loop with this trainer's batches (one world per batch), losses, logs and validation (recall at
+    precision 1.00 first, recall@1 breaking ties; the best validation score's weights are kept in ``best.pt``)."""
 
-    torch.set_num_threads(cfg.threads)
-    overlap = set(cfg.train_seeds) & set(cfg.val_seeds)
-    if overlap:
-        raise ValueError(f"train_seeds and val_seeds share {sorted(overlap)}: validation must be held out")
-    t_load = time.time()
-    cache = Path(cfg.data_cache) if cfg.data_cache else out / "data"
-    train = load_sequences(_sequence_roots(cfg, cfg.train_seeds), cfg.input_size, cfg.hard_k, cache, cfg.neg_factor,
-                           cfg.neg_angle_deg)
-    val = load_sequences(_sequence_roots(cfg, cfg.val_seeds), cfg.input_size, cfg.hard_k, cache, cfg.neg_factor,
-                         cfg.neg_angle_deg)
-    input_hw = train[0].input_hw
-    print(f"data: {len(train)} training sequences ({sum(map(len, train))} frames), {len(val)} validation "
-          f"({sum(map(len, val))} frames), input {input_hw[0]}x{input_hw[1]}, loaded in {time.time() - t_load:.0f} s")
+    state_file = "state.pt"
+    log_file, log_fields = "train_log.csv", ["step", "loss", "contrastive", "margin", "distill", "lr", "seconds"]
+    val_file = "val_log.csv"
+    val_fields = ["step", "recall_at_1", "threshold", "precision", "recall", "best_wrong", "median_revisit"]
+    grad_clip = 1.0
+    bar_options = {"mininterval": 5}
 
-    torch.manual_seed(cfg.seed)
-    random.seed(cfg.seed)
-    model = make_model(cfg, input_hw)
-    if cfg.init is not None:
-        init = load_checkpoint(cfg.init).model
-        if init.config.variant != model.config.variant or tuple(init.config.img_size) != tuple(input_hw):
-            raise ValueError(f"init {cfg.init}: a {init.config.variant} DeiT at {init.config.img_size}, but this run "
-                             f"trains a {model.config.variant} one at {input_hw}")
-        init.config.drop_path_rate = cfg.drop_path
-        model = build_vit(init.config)
-        model.load_state_dict(init.state_dict())
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    aug = Augment()
-    step, best, elapsed = 0, -1.0, 0.0
-    state_path = out / "state.pt"
-    if resume and state_path.is_file():
-        st = torch.load(str(state_path), map_location="cpu", weights_only=True)
-        model.load_state_dict(st["model"])
-        opt.load_state_dict(st["opt"])
-        gen.set_state(st["gen"])
-        step, best, elapsed = st["step"], st["best"], st["elapsed"]
-        print(f"resumed at step {step} (best validation score {best:.3f})")
-    train_log, val_log = out / "train_log.csv", out / "val_log.csv"
-    for path, header in ((train_log, ["step", "loss", "contrastive", "margin", "distill", "lr", "seconds"]),
-                         (val_log, ["step", "recall_at_1", "threshold", "precision", "recall", "best_wrong",
-                                    "median_revisit"])):
-        if not (resume and path.is_file()):
-            path.write_text(",".join(header) + "\n")
+    def __init__(self, cfg: DeitTrainConfig, out: Path, model: VisionTransformer, train: list[PlaceSequence],
+                 val: list[PlaceSequence], resume: bool) -> None:
+        opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        super().__init__(cfg, out, model, opt, torch.Generator().manual_seed(cfg.seed), resume, cfg.steps)
+        self.checkpoint_every, self.desc = cfg.checkpoint_every, f"deit-{cfg.variant}"
+        self.train, self.val = train, val
+        self.best = float(self.resumed.get("best", -1.0))
+        if self.resumed:
+            print(f"resumed at step {self.step} (best validation score {self.best:.3f})")
+        self.order = list(range(len(train)))
+        self.aug = Augment()
+        self.budget_end = time.time() + 60.0 * cfg.max_minutes
+        model.train()
 
-    def save_state() -> None:
-        _atomic_save({"model": model.state_dict(), "opt": opt.state_dict(), "gen": gen.get_state(), "step": step,
-                      "best": best, "elapsed": elapsed, "config": cfg.model_dump()}, state_path)
+    def stop_reason(self) -> Optional[str]:
+        if self.step >= self.cfg.steps:
+            return "steps"
+        return None if time.time() < self.budget_end else "time budget"
 
-    def validate() -> float:
-        nonlocal best
-        m = evaluate(model, val, cfg)
-        with open(val_log, "a", newline="") as fh:
-            csv.writer(fh).writerow([step, f"{m['recall_at_1']:.4f}", f"{m['threshold']:.4f}",
-                                     f"{m['precision']:.4f}", f"{m['recall']:.4f}", f"{m['best_wrong']:.4f}",
-                                     f"{m['median_revisit']:.4f}"])
-        # recall at precision 1.00 first, recall@1 breaks ties (nan without revisit queries counts as 0)
-        score = float(torch.nan_to_num(torch.tensor(m["recall"] + 0.25 * m["recall_at_1"])))
-        if score > best:
-            best = score
-            save_checkpoint(out / "best.pt", model, meta={"step": step, "val_score": score})
-        tqdm.write(f"step {step}: val recall@1 {m['recall_at_1']:.3f}, recall {m['recall']:.3f} at threshold "
-                   f"{m['threshold']:.3f} (precision 1.00; best wrong {m['best_wrong']:.3f})")
-        return score
+    def learning_rate(self) -> float:
+        return lr_at(self.step, self.cfg)
 
-    t_start = time.time() - elapsed
-    budget_end = time.time() + 60.0 * cfg.max_minutes
-    bar = tqdm(total=cfg.steps, initial=step, disable=not cfg.progress, desc=f"deit-{cfg.variant}", mininterval=5)
-    model.train()
-    order = list(range(len(train)))
-    rows: list[list] = []
-    while step < cfg.steps and time.time() < budget_end:
-        seq = train[order[step % len(order)]]
+    def loss(self) -> tuple[torch.Tensor, dict]:
+        cfg, step, order = self.cfg, self.step, self.order
+        seq = self.train[order[step % len(order)]]
         if step % len(order) == len(order) - 1:
             random.Random(cfg.seed + step).shuffle(order)
-        idx = seq.sample(gen, cfg.anchors, cfg.hard, cfg.revisit_prob)
-        x = normalise(aug(seq.frames[idx], gen))
+        idx = seq.sample(self.generator, cfg.anchors, cfg.hard, cfg.revisit_prob)
+        x = normalise(self.aug(seq.frames[idx], self.generator))
         pos, neg = seq.labels.pos[idx][:, idx], seq.labels.neg[idx][:, idx]
-        tokens = model.forward_tokens(x)
+        tokens = self.model.forward_tokens(x)
         z = F.normalize(tokens[:, 0], dim=1)
         l_con = supcon(z, pos, neg, cfg.temperature)
         l_mar = margin_loss(z, pos, neg, cfg.pos_margin, cfg.neg_margin)
@@ -294,32 +252,76 @@ def run_training(cfg: DeitTrainConfig, out: Path, resume: bool) -> dict:
             zd = F.normalize(tokens[:, 1], dim=1)
             l_kd = distill_loss(zd, seq.teacher[idx], cfg.temperature, cfg.kd_temperature)
             loss = 0.5 * loss + 0.5 * l_kd
-        for g in opt.param_groups:
-            g["lr"] = lr_at(step, cfg)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        step += 1
-        elapsed = time.time() - t_start
-        rows.append([step, f"{loss.item():.5f}", f"{l_con.item():.5f}", f"{l_mar.item():.5f}", f"{l_kd.item():.5f}",
-                     f"{lr_at(step - 1, cfg):.3e}", f"{elapsed:.1f}"])
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss.item():.3f}")
-        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-            with open(train_log, "a", newline="") as fh:
-                csv.writer(fh).writerows(rows)
-            rows = []
-            if step % cfg.val_every == 0 or step == cfg.steps:
-                validate()
-            save_state()
-    if rows:
-        with open(train_log, "a", newline="") as fh:
-            csv.writer(fh).writerows(rows)
-        validate()
-        save_state()
-    bar.close()
-    summary = {"steps": step, "finished": step >= cfg.steps, "minutes": round(elapsed / 60, 1),
+        return loss, {"loss": loss.item(), "contrastive": l_con.item(), "margin": l_mar.item(),
+                      "distill": l_kd.item()}
+
+    def log_row(self, values: dict, lr: float) -> dict:
+        return {"step": self.step, **{k: f"{v:.5f}" for k, v in values.items()}, "lr": f"{lr:.3e}",
+                "seconds": f"{self.elapsed:.1f}"}
+
+    def postfix(self, values: dict) -> dict:
+        return {"loss": f"{values['loss']:.3f}"}
+
+    def checkpoint_due(self) -> bool:
+        return self.step % self.cfg.checkpoint_every == 0 or self.step == self.cfg.steps
+
+    def validation_due(self) -> bool:
+        return self.checkpoint_due() and (self.step % self.cfg.val_every == 0 or self.step == self.cfg.steps)
+
+    def final_validation(self, steps_run: int) -> bool:
+        return steps_run > 0 and not self.checkpoint_due()
+
+    def validate(self) -> dict:
+        from tqdm import tqdm
+
+        m = evaluate(self.model, self.val, self.cfg)
+        # recall at precision 1.00 first, recall@1 breaks ties (nan without revisit queries counts as 0)
+        score = float(torch.nan_to_num(torch.tensor(m["recall"] + 0.25 * m["recall_at_1"])))
+        if score > self.best:
+            self.best = score
+            save_checkpoint(self.out / "best.pt", self.model, meta={"step": self.step, "val_score": score})
+        tqdm.write(f"step {self.step}: val recall@1 {m['recall_at_1']:.3f}, recall {m['recall']:.3f} at threshold "
+                   f"{m['threshold']:.3f} (precision 1.00; best wrong {m['best_wrong']:.3f})")
+        return {"step": self.step, **{k: f"{m[k]:.4f}" for k in self.val_fields[1:]}}
+
+    def extra_state(self) -> dict:
+        return {"best": self.best, "config": self.cfg.model_dump()}
+
+
+def _init_model(cfg: DeitTrainConfig, input_hw: tuple[int, int]) -> VisionTransformer:
+    """A new model, or the ``init`` checkpoint's (fine-tuning: its architecture, this run's drop-path rate)."""
+    model = make_model(cfg, input_hw)
+    if cfg.init is None:
+        return model
+    init = load_checkpoint(cfg.init).model
+    if init.config.variant != model.config.variant or tuple(init.config.img_size) != tuple(input_hw):
+        raise ValueError(f"init {cfg.init}: a {init.config.variant} DeiT at {init.config.img_size}, but this run "
+                         f"trains a {model.config.variant} one at {input_hw}")
+    init.config.drop_path_rate = cfg.drop_path
+    model = build_vit(init.config)
+    model.load_state_dict(init.state_dict())
+    return model
+
+
+def run_training(cfg: DeitTrainConfig, out: Path, resume: bool) -> dict:
+    """The registered trainer (see the module docstring); returns the summary."""
+    overlap = set(cfg.train_seeds) & set(cfg.val_seeds)
+    if overlap:
+        raise ValueError(f"train_seeds and val_seeds share {sorted(overlap)}: validation must be held out")
+    out, cache = prepare_run(cfg, out)
+    t_load = time.time()
+    train = load_sequences(_sequence_roots(cfg, cfg.train_seeds), cfg.input_size, cfg.hard_k, cache, cfg.neg_factor,
+                           cfg.neg_angle_deg)
+    val = load_sequences(_sequence_roots(cfg, cfg.val_seeds), cfg.input_size, cfg.hard_k, cache, cfg.neg_factor,
+                         cfg.neg_angle_deg)
+    input_hw = train[0].input_hw
+    print(f"data: {len(train)} training sequences ({sum(map(len, train))} frames), {len(val)} validation "
+          f"({sum(map(len, val))} frames), input {input_hw[0]}x{input_hw[1]}, loaded in {time.time() - t_load:.0f} s")
+    torch.manual_seed(cfg.seed)  # again: the model's initialisation does not depend on what loading the data drew
+    random.seed(cfg.seed)
+    loop = DeitLoop(cfg, out, _init_model(cfg, input_hw), train, val, resume)
+    loop.run()
+    summary = {"steps": loop.step, "finished": loop.step >= cfg.steps, "minutes": round(loop.elapsed / 60, 1),
                "input": list(input_hw), "train_seeds": cfg.train_seeds, "val_seeds": cfg.val_seeds}
     plot_curves(out)
     if (out / "best.pt").is_file():

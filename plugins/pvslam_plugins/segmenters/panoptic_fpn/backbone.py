@@ -36,7 +36,7 @@ class BasicStem(nn.Module):
 
 
 class BottleneckBlock(nn.Module):
-    """1x1 -> 3x3 -> 1x1 with a projection shortcut when the channel count changes.
+    """A 1x1, a 3x3 and a 1x1 convolution with a projection shortcut when the channel count changes.
 
     With ``stride_in_1x1`` (MSRA models) a stride-2 block downsamples in conv1, otherwise in the 3x3 conv2."""
 

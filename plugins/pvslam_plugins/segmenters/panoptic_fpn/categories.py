@@ -66,7 +66,7 @@ class CategorySet:
         return torch.tensor([c.id for c in self.things], dtype=torch.int64)
 
     def semantic_ids(self) -> torch.Tensor:
-        """int64 ``[num_sem_classes]``: semantic channel -> dataset category id (channel 0 -> 0, "things")."""
+        """int64 ``[num_sem_classes]``: semantic channel -> dataset category id (channel 0 is "things", id 0)."""
         return torch.tensor([0] + [c.id for c in self.stuff], dtype=torch.int64)
 
     def by_id(self, category_id: int) -> Category:

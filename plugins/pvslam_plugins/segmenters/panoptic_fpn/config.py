@@ -33,7 +33,7 @@ class ResNetConfig(PluginConfig):
     norm: Literal["FrozenBN", "BN", "GN"] = Field(
         "FrozenBN", description="FrozenBN for pretrained checkpoints; GN (or BN) to train from scratch")
     gn_groups: int = Field(32, ge=1, description="groups when norm = GN")
-    stem_out_channels: int = Field(64, ge=1)
+    stem_out_channels: int = Field(64, ge=1, description="output channels of the stem convolution")
     res2_out_channels: int = Field(256, ge=1, description="output channels of res2; doubled at each later stage")
     width_per_group: int = Field(64, ge=1, description="bottleneck width of res2 (BottleneckBlock only)")
     stride_in_1x1: bool = Field(
@@ -42,52 +42,54 @@ class ResNetConfig(PluginConfig):
 
 
 class FPNConfig(PluginConfig):
-    out_channels: int = Field(256, ge=1)
+    out_channels: int = Field(256, ge=1, description="channels of every pyramid level p2..p6")
     norm: Literal["", "GN"] = Field("", description="'' = lateral/output convs with bias, no norm (detectron2)")
-    gn_groups: int = Field(32, ge=1)
+    gn_groups: int = Field(32, ge=1, description="groups when norm = GN")
 
 
 class RPNConfig(PluginConfig):
     anchor_sizes: tuple[float, ...] = Field((32, 64, 128, 256, 512), description="one anchor size per level p2..p6")
     aspect_ratios: tuple[float, ...] = Field((0.5, 1.0, 2.0), description="anchor h/w ratios")
     anchor_offset: float = Field(0.0, description="anchor centres at (x + offset) * stride")
-    bbox_reg_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    bbox_reg_weights: tuple[float, float, float, float] = Field(
+        (1.0, 1.0, 1.0, 1.0), description="scales of the (dx, dy, dw, dh) box deltas")
     pre_nms_topk_test: int = Field(1000, ge=1, description="proposals kept per level before NMS")
     post_nms_topk_test: int = Field(1000, ge=1, description="proposals kept per image after NMS")
-    pre_nms_topk_train: int = Field(2000, ge=1)
-    post_nms_topk_train: int = Field(1000, ge=1)
-    nms_thresh: float = Field(0.7, gt=0.0, le=1.0)
+    pre_nms_topk_train: int = Field(2000, ge=1, description="training: proposals kept per level before NMS")
+    post_nms_topk_train: int = Field(1000, ge=1, description="training: proposals kept per image after NMS")
+    nms_thresh: float = Field(0.7, gt=0.0, le=1.0, description="IoU of the proposals' non-maximum suppression")
     min_size: float = Field(0.0, ge=0.0, description="drop proposals not wider and taller than this")
 
 
 class BoxHeadConfig(PluginConfig):
     num_classes: int = Field(80, ge=1, description="thing classes (background is an extra last logit)")
-    pooler_resolution: int = Field(7, ge=1)
+    pooler_resolution: int = Field(7, ge=1, description="ROIAlign output side (bins)")
     sampling_ratio: int = Field(0, ge=0, description="ROIAlign samples per bin and axis; 0 = adaptive")
-    num_fc: int = Field(2, ge=1)
-    fc_dim: int = Field(1024, ge=1)
-    bbox_reg_weights: tuple[float, float, float, float] = (10.0, 10.0, 5.0, 5.0)
-    score_thresh_test: float = Field(0.05, ge=0.0, le=1.0)
-    nms_thresh_test: float = Field(0.5, gt=0.0, le=1.0)
-    detections_per_image: int = Field(100, ge=1)
+    num_fc: int = Field(2, ge=1, description="fully connected layers of the box head")
+    fc_dim: int = Field(1024, ge=1, description="width of those layers")
+    bbox_reg_weights: tuple[float, float, float, float] = Field(
+        (10.0, 10.0, 5.0, 5.0), description="scales of the (dx, dy, dw, dh) box deltas")
+    score_thresh_test: float = Field(0.05, ge=0.0, le=1.0, description="test: boxes scoring below this are dropped")
+    nms_thresh_test: float = Field(0.5, gt=0.0, le=1.0, description="test: IoU of the per-class box NMS")
+    detections_per_image: int = Field(100, ge=1, description="test: boxes kept per image")
     canonical_box_size: float = Field(224.0, gt=0.0, description="box side mapped to canonical_level")
     canonical_level: int = Field(4, description="FPN level of a canonical_box_size box")
 
 
 class MaskHeadConfig(PluginConfig):
-    pooler_resolution: int = Field(14, ge=1)
-    sampling_ratio: int = Field(0, ge=0)
-    num_conv: int = Field(4, ge=1)
-    conv_dim: int = Field(256, ge=1)
+    pooler_resolution: int = Field(14, ge=1, description="ROIAlign output side (bins)")
+    sampling_ratio: int = Field(0, ge=0, description="ROIAlign samples per bin and axis; 0 = adaptive")
+    num_conv: int = Field(4, ge=1, description="3x3 convolutions of the mask head")
+    conv_dim: int = Field(256, ge=1, description="their channels")
     cls_agnostic: bool = Field(False, description="one mask for all classes instead of one per class")
     mask_threshold: float = Field(0.5, ge=0.0, le=1.0, description="paste threshold on the sigmoid")
 
 
 class SemSegConfig(PluginConfig):
     num_classes: int = Field(54, ge=2, description="channel 0 = all things, 1.. = stuff classes")
-    conv_dims: int = Field(128, ge=1)
-    norm: Literal["GN", ""] = "GN"
-    gn_groups: int = Field(32, ge=1)
+    conv_dims: int = Field(128, ge=1, description="channels of the semantic head's convolutions")
+    norm: Literal["GN", ""] = Field("GN", description="their normalisation ('' = none)")
+    gn_groups: int = Field(32, ge=1, description="groups when norm = GN")
     common_stride: int = Field(4, description="output stride of the head before the final x4 upsampling")
 
 
@@ -95,18 +97,19 @@ class CombineConfig(PluginConfig):
     overlap_thresh: float = Field(0.5, ge=0.0, le=1.0, description="drop an instance whose mask is covered more "
                                   "than this by earlier (higher-scoring) instances")
     stuff_area_limit: int = Field(4096, ge=0, description="stuff segments smaller than this (px) are dropped")
-    instances_confidence_thresh: float = Field(0.5, ge=0.0, le=1.0)
+    instances_confidence_thresh: float = Field(0.5, ge=0.0, le=1.0, description="instances scoring below this are "
+                                               "left out of the panoptic result")
 
 
 class PanopticFPNConfig(PluginConfig):
-    input: InputConfig = InputConfig()
-    resnet: ResNetConfig = ResNetConfig()
-    fpn: FPNConfig = FPNConfig()
-    rpn: RPNConfig = RPNConfig()
-    box_head: BoxHeadConfig = BoxHeadConfig()
-    mask_head: MaskHeadConfig = MaskHeadConfig()
-    sem_seg: SemSegConfig = SemSegConfig()
-    combine: CombineConfig = CombineConfig()
+    input: InputConfig = Field(InputConfig(), description="input format and test-time resize")
+    resnet: ResNetConfig = Field(ResNetConfig(), description="backbone")
+    fpn: FPNConfig = Field(FPNConfig(), description="feature pyramid")
+    rpn: RPNConfig = Field(RPNConfig(), description="region proposal network")
+    box_head: BoxHeadConfig = Field(BoxHeadConfig(), description="box head")
+    mask_head: MaskHeadConfig = Field(MaskHeadConfig(), description="mask head")
+    sem_seg: SemSegConfig = Field(SemSegConfig(), description="semantic segmentation head")
+    combine: CombineConfig = Field(CombineConfig(), description="panoptic combination of instances and stuff")
     categories: str = Field("coco_panoptic", description="category set: coco_panoptic | vkitti2 | a custom name")
 
     @model_validator(mode="after")

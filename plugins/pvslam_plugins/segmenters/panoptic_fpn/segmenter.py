@@ -71,7 +71,7 @@ class DeferredPanoptic(PanopticSegmentation):
     """A :class:`PanopticSegmentation` computed on first access, in two stages: reading ``features`` runs only
     the backbone + FPN; reading ``ids`` or ``segments`` also runs the heads and the panoptic combine (on the
     pyramid already computed, if any).  A feature-level VPS head (e.g. ``fusion``) decodes its own fused pyramid
-    on most frames, so the segmenter's own decode (about 60 % of a reduced-model call) runs only where something
+    on most frames, so the segmenter's own decode (most of a reduced-model call) runs only where something
     reads the segmentation itself (keyframes for dynamic masking, the outputs)."""
 
     def __init__(self, extract: Callable[[], Any], decode: Callable[[Any], PanopticSegmentation],

@@ -26,7 +26,7 @@ import torch
 from pydantic import Field, field_validator
 
 from pvslam_core.config_base import PluginConfig
-from pvslam_core.training import load_training_state, prepare_run, save_training_state
+from pvslam_core.training import TrainingLoop, prepare_run
 
 __all__ = ["TrainConfig", "run", "DEFAULT_SCENARIOS"]
 
@@ -40,29 +40,28 @@ class TrainConfig(PluginConfig):
     train_seeds: list[int] = Field([1, 2, 3, 4, 5, 6, 7, 8], description="generator seeds of the training frames")
     val_seeds: list[int] = Field([100, 101], description="held-out generator seeds for validation")
     frames_per_sequence: int = Field(24, ge=1, description="training frames per (scenario, seed), evenly spaced")
-    val_frames_per_sequence: int = Field(8, ge=1)
-    width: int = Field(320, ge=32)
-    height: int = Field(240, ge=32)
+    val_frames_per_sequence: int = Field(8, ge=1, description="validation frames per (scenario, seed)")
+    width: int = Field(320, ge=32, description="rendered frame width (px)")
+    height: int = Field(240, ge=32, description="rendered frame height (px)")
     iterations: int = Field(6000, ge=1, description="iterations at most (see time_budget_min)")
-    batch_size: int = Field(4, ge=1)
-    lr: float = Field(1e-3, gt=0)
-    weight_decay: float = Field(1e-4, ge=0)
+    batch_size: int = Field(4, ge=1, description="frames per iteration")
+    lr: float = Field(1e-3, gt=0, description="peak learning rate (AdamW)")
+    weight_decay: float = Field(1e-4, ge=0, description="AdamW weight decay")
     warmup: int = Field(200, ge=0, description="iterations of linear learning-rate warm-up")
     final_lr_fraction: float = Field(0.02, ge=0, le=1, description="cosine decay ends at lr * this")
-    grad_clip: float = Field(10.0, gt=0)
+    grad_clip: float = Field(10.0, gt=0, description="gradient-norm clip")
     crop: Optional[tuple[int, int]] = Field((192, 256), description="training crop (h, w); null = whole frames")
     scale: tuple[float, float] = Field((0.75, 1.25), description="random rescale range before the crop")
     min_instance_area: int = Field(8, ge=1, description="thing instances smaller than this (px) are no targets")
-    checkpoint_every: int = Field(50, ge=1)
+    checkpoint_every: int = Field(50, ge=1, description="write the resumable state every this many iterations")
     time_budget_min: float = Field(100.0, gt=0, description="training minutes at most (rendering and evaluation "
                                    "come on top: ~5 + ~2 min with the defaults)")
-    # 1 thread: on this 2-core machine shared with other jobs a 2-thread step took 4-20 s of wall time (OpenMP
-    # threads waiting for each other), a 1-thread step ~1.1 s
-    threads: int = Field(1, ge=0, description="torch threads (0 = leave torch's default)")
-    seed: int = 0
+    threads: int = Field(1, ge=0, description="torch threads (0 = torch's default); more threads wait for each other "
+                         "on a busy machine (docs/decisions.md: train.threads)")
+    seed: int = Field(0, description="seed of the initialisation, the batches and the augmentation")
     data_cache: Optional[str] = Field(None, description="folder of the rendered-frame cache (default: OUT/data)")
     eval_min_gt_area: int = Field(64, ge=0, description="also report PQ with GT segments under this area as void")
-    progress: bool = True
+    progress: bool = Field(True, description="progress bar (only on a terminal)")
 
     @field_validator("scenarios")
     @classmethod
@@ -154,15 +153,61 @@ def _write_plot(csv_path: Path, png_path: Path) -> None:
     fig.savefig(png_path, dpi=100)
 
 
+class PanopticFPNLoop(TrainingLoop):
+    """The shared loop with this trainer's batches (one permutation of the frames per epoch, drawn from a generator
+    seeded by the epoch, so a resumed run sees the same order), schedule and loss terms."""
+
+    counter = "iteration"
+    log_fields = ["iteration", "elapsed_s", "lr", "loss", *LOSS_TERMS]
+    desc = "train panoptic_fpn"
+
+    def __init__(self, cfg: TrainConfig, out: Path, model, cats, train: list, resume: bool, opt, gen) -> None:
+        from .data import Augment
+
+        super().__init__(cfg, out, model, opt, gen, resume, cfg.iterations)
+        self.grad_clip, self.checkpoint_every = cfg.grad_clip, cfg.checkpoint_every
+        self.cats, self.train = cats, train
+        self.augment = Augment(scale=tuple(cfg.scale), crop=tuple(cfg.crop) if cfg.crop else None)
+        self.epoch_len = max(1, len(train) // cfg.batch_size)
+        self.order, self.order_epoch = None, -1
+        model.train()
+
+    def stop_reason(self) -> Optional[str]:
+        if schedule_progress(self.cfg, self.step, self.elapsed) < 1.0:
+            return None
+        return "iterations" if self.step >= self.cfg.iterations else "time budget"
+
+    def learning_rate(self) -> float:
+        return lr_at(self.cfg, self.step, schedule_progress(self.cfg, self.step, self.elapsed))
+
+    def loss(self) -> tuple[torch.Tensor, dict]:
+        from .losses import panoptic_fpn_losses
+
+        cfg, it = self.cfg, self.step
+        epoch = it // self.epoch_len
+        if epoch != self.order_epoch:
+            self.order = torch.randperm(len(self.train), generator=torch.Generator().manual_seed(cfg.seed + epoch))
+            self.order_epoch = epoch
+        batch, sizes, sem, targets = _batch(self.model, self.train, self.order, (it % self.epoch_len) * cfg.batch_size,
+                                            cfg, self.augment, self.cats, self.generator)
+        losses = panoptic_fpn_losses(self.model, batch, sizes, sem, targets, generator=self.generator)
+        loss = sum(losses.values())
+        return loss, {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in losses.items()}}
+
+    def log_row(self, values: dict, lr: float) -> dict:
+        return {"iteration": self.step, "elapsed_s": f"{self.elapsed:.1f}", "lr": f"{lr:.3g}",
+                **{k: f"{v:.5f}" for k, v in values.items()}}
+
+    def postfix(self, values: dict) -> dict:
+        return {"loss": f"{values['loss']:.3f}", "sem": f"{values['loss_sem_seg']:.3f}",
+                "min": f"{self.elapsed / 60:.0f}"}
+
+
 def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     """The registered trainer: train, checkpoint, evaluate; returns the summary (saved as summary.json)."""
-    from tqdm import tqdm
-
     from .checkpoint import save_checkpoint
     from .config import preset
-    from .data import Augment, synthetic_category_set
-    from .evaluate import evaluate, format_table
-    from .losses import panoptic_fpn_losses
+    from .data import synthetic_category_set
     from .model import PanopticFPN
 
     out, cache = prepare_run(cfg, out)
@@ -170,90 +215,17 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     model = PanopticFPN(preset("reduced"), cats)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     gen = torch.Generator().manual_seed(cfg.seed)
-    start, elapsed = 0, 0.0
-    last = out / "last.pt"
-    if resume and last.is_file():
-        start, elapsed = load_training_state(last, model, opt, gen, "iteration")
-
     t_data = time.perf_counter()
     train = _samples(cfg, cache, cfg.train_seeds, cfg.frames_per_sequence, cfg.progress, "render train frames")
     val = _samples(cfg, cache, cfg.val_seeds, cfg.val_frames_per_sequence, cfg.progress, "render val frames")
     data_s = time.perf_counter() - t_data
-    augment = Augment(scale=tuple(cfg.scale), crop=tuple(cfg.crop) if cfg.crop else None)
-
-    csv_path = out / "loss.csv"
-    fields = ["iteration", "elapsed_s", "lr", "loss", *LOSS_TERMS]
-    rows = list(csv.DictReader(csv_path.open())) if (resume and csv_path.is_file()) else []
-    rows = [r for r in rows if int(r["iteration"]) <= start]  # drop rows after the checkpoint
-    with csv_path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(rows)
-
-    def save_state(it: int) -> None:
-        save_training_state(last, model, opt, gen, "iteration", it, elapsed)
-
-    # one permutation per epoch, drawn from the (checkpointed) generator: a resumed run sees the same order
-    epoch_len = max(1, len(train) // cfg.batch_size)
-    order, order_epoch = None, -1
-    model.train()
-    it = start
-    stopped = "iterations"
-    bar = tqdm(total=cfg.iterations, initial=start, desc="train panoptic_fpn", disable=not cfg.progress,
-               dynamic_ncols=True)
-    try:
-        with csv_path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=fields)
-            while True:
-                progress = schedule_progress(cfg, it, elapsed)
-                if progress >= 1.0:
-                    stopped = "iterations" if it >= cfg.iterations else "time budget"
-                    break
-                t0 = time.perf_counter()
-                epoch = it // epoch_len
-                if epoch != order_epoch:
-                    order = torch.randperm(len(train), generator=torch.Generator().manual_seed(cfg.seed + epoch))
-                    order_epoch = epoch
-                batch, sizes, sem, targets = _batch(model, train, order, (it % epoch_len) * cfg.batch_size, cfg,
-                                                    augment, cats, gen)
-                lr = lr_at(cfg, it, progress)
-                for g in opt.param_groups:
-                    g["lr"] = lr
-                losses = panoptic_fpn_losses(model, batch, sizes, sem, targets, generator=gen)
-                loss = sum(losses.values())
-                losses = {k: v.detach() for k, v in losses.items()}
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"iteration {it}: non-finite loss {({k: float(v) for k, v in losses.items()})}")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
-                it += 1
-                elapsed += time.perf_counter() - t0
-                writer.writerow({"iteration": it, "elapsed_s": f"{elapsed:.1f}", "lr": f"{lr:.3g}",
-                                 "loss": f"{float(loss.detach()):.5f}", **{k: f"{float(v):.5f}" for k, v in losses.items()}})
-                bar.update(1)
-                bar.set_postfix(loss=f"{float(loss.detach()):.3f}", sem=f"{float(losses['loss_sem_seg']):.3f}",
-                                min=f"{elapsed / 60:.0f}")
-                if it % cfg.checkpoint_every == 0:
-                    f.flush()
-                    save_state(it)
-    except KeyboardInterrupt:
-        save_state(it)
-        bar.close()
-        raise
-    bar.close()
-    save_state(it)
+    loop = PanopticFPNLoop(cfg, out, model, cats, train, resume, opt, gen)
+    stopped = loop.run()
+    csv_path = out / loop.log_file
     _write_plot(csv_path, out / "loss.png")
     model.eval()
-    save_checkpoint(model, out / "model_final.pth", extra={"iterations": it, "train_minutes": elapsed / 60})
-    res = evaluate(model, val, cfg.eval_min_gt_area)
-    (out / "eval.json").write_text(json.dumps(res, indent=1, default=float))
-    table = format_table(res)
-    if "pq_min_area" in res:
-        table += (f"\n\nWith ground-truth segments under {res['min_gt_area']} px as void:\n\n"
-                  + format_table({"pq": res["pq_min_area"]}))
-    (out / "eval.md").write_text(table + "\n")
+    save_checkpoint(model, out / "model_final.pth", extra={"iterations": loop.step, "train_minutes": loop.elapsed / 60})
+    res = _evaluate(model, val, cfg, out)
     rows = list(csv.DictReader(csv_path.open()))
     first = rows[: max(1, len(rows) // 20)]
     final = rows[-max(1, len(rows) // 20):]
@@ -263,7 +235,7 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
 
     p = res["pq"]
     return {
-        "iterations": it, "stopped_by": stopped, "train_minutes": round(elapsed / 60, 2),
+        "iterations": loop.step, "stopped_by": stopped, "train_minutes": round(loop.elapsed / 60, 2),
         "data_minutes": round(data_s / 60, 2), "train_frames": len(train), "val_frames": len(val),
         "loss_first_5pct": round(mean(first, "loss"), 4) if rows else None,
         "loss_last_5pct": round(mean(final, "loss"), 4) if rows else None,
@@ -273,3 +245,17 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
         "val_seconds_per_frame": round(res["seconds_per_frame"], 4),
         "checkpoint": str(out / "model_final.pth"),
     }
+
+
+def _evaluate(model, val: list, cfg: TrainConfig, out: Path) -> dict:
+    """PQ/SQ/RQ on the validation frames, written as ``eval.json`` and ``eval.md``."""
+    from .evaluate import evaluate, format_table
+
+    res = evaluate(model, val, cfg.eval_min_gt_area)
+    (out / "eval.json").write_text(json.dumps(res, indent=1, default=float))
+    table = format_table(res)
+    if "pq_min_area" in res:
+        table += (f"\n\nWith ground-truth segments under {res['min_gt_area']} px as void:\n\n"
+                  + format_table({"pq": res["pq_min_area"]}))
+    (out / "eval.md").write_text(table + "\n")
+    return res

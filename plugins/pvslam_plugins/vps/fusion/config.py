@@ -1,7 +1,7 @@
 """Configuration of the ``fusion`` VPS head."""
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Any, ClassVar, Literal, Optional
 
 from pydantic import Field
 
@@ -17,11 +17,10 @@ class FusionConfig(PluginConfig):
         None, description="the segmenter's weights (catalogue name or path); default: the preset's, as in "
         "segmenter panoptic_fpn (the shipped reduced checkpoint)")
     weights: Optional[str] = Field(
-        None, description="fusion layer weights: a file with `fusion_conv1.weight/bias` (ours, or PVO's panFPN.pth, "
-        "whose other keys are ignored) or a catalogue name; default: the shipped weights/fusion_reduced.pth for "
-        "the reduced preset, else the identity initialisation (fused = current features)")
+        None, description="fusion layer weights (`fusion_conv1.weight/bias`: ours or PVO's panFPN.pth) or a catalogue "
+        "name; default: the shipped ones for the reduced preset, else identity (fused = current)")
     proposals: Optional[int] = Field(None, ge=1, description="RPN proposals kept for the fused decode (default: "
-                                     "the preset's, 100 for reduced); fewer is cheaper (50: ~6 ms less at 320x240)")
+                                     "the preset's, 100 for reduced); fewer is cheaper")
     fuse: bool = Field(True, description="False: decode nothing, only track the segmenter's ids (like warp_iou, "
                        "plus the track memory)")
     z_order: bool = Field(True, description="forward-warp features with depth z-ordering when the motion cue has "
@@ -35,8 +34,6 @@ class FusionConfig(PluginConfig):
                                "segment reappearing where the track is predicted gets its id back")
     memory_min_score: float = Field(0.5, gt=0.0, le=1.0, description="fraction of a reappearing segment that must "
                                     "lie inside the lost track's predicted mask")
-    flow_preset: Literal["ultrafast", "fast", "medium"] = Field(
-        "ultrafast", description="OpenCV DIS preset when the motion cue carries no flow")
-    flow_max_side: int = Field(320, ge=32, description="DIS flow on images of at most this longer side")
-    splat: Literal["nearest", "bilinear"] = Field("bilinear", description="id-map warping splat (see warp_iou)")
     threads: int = Field(0, ge=0, description="torch threads for the fusion and decode (0 = leave as is)")
+    # the DIS flow and splatting settings are the warp_iou head's (constants of ..matching)
+    retired: ClassVar[dict[str, Any]] = {"flow_preset": "ultrafast", "flow_max_side": 320, "splat": "bilinear"}

@@ -26,6 +26,8 @@ from pvslam_core.interfaces import MotionCue, VPSHead, VPSState
 from pvslam_core.types import Frame, PanopticSegmentation, Segment
 
 from ..matching import (
+    FLOW_MAX_SIDE,
+    FLOW_PRESET,
     IdAllocator,
     TrackMemory,
     WarpOptions,
@@ -136,8 +138,7 @@ class FusionHead(VPSHead):
                 return None
             from ..warp_iou.warp import dis_flow
 
-            c = self.config
-            flow = torch.from_numpy(dis_flow(prev.image, frame.image, c.flow_preset, c.flow_max_side))[None]
+            flow = torch.from_numpy(dis_flow(prev.image, frame.image, FLOW_PRESET, FLOW_MAX_SIDE))[None]
         model = self.model
         pyr = model.pyramid_for(cur.maps, (H, W))
         old_pyr = model.pyramid_for(old.maps, (H, W))
@@ -171,7 +172,7 @@ class FusionHead(VPSHead):
         self.last_matches = []
         if prev is not None:
             self._ids.reserve(prev.panoptic.segments)
-            opts = WarpOptions(c.flow_preset, c.flow_max_side, c.rigid_static, c.splat)
+            opts = WarpOptions(rigid_stuff=c.rigid_static)
             flow = previous_flow(prev, frame.image, cue, h, w, opts)
             prev_ids = prev.panoptic.ids.detach().cpu().numpy().astype(np.int64)
             prev_cat = {s.id: s.category_id for s in prev.panoptic.segments if s.isthing}

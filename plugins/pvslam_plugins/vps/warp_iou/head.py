@@ -23,7 +23,6 @@ from ..matching import (  # noqa: F401 - the id layout is re-exported for caller
     subsample,
     unique_ids,
     warp_previous_ids,
-    working_shape,
 )
 from .config import WarpIoUConfig
 
@@ -40,16 +39,8 @@ class WarpIoUHead(VPSHead):
         self.config = config or WarpIoUConfig()
         self._ids = IdAllocator()
         self.last_matches: list[tuple[int, int, float]] = []
-        self._last_warped: Optional[np.ndarray] = None  # at the working resolution
-        self._full_shape: tuple[int, int] = (0, 0)
-
-    @property
-    def last_warped(self) -> Optional[np.ndarray]:
-        """The warped previous ids of the last update (int64 ``[H, W]``, nearest-upsampled from the working
-        resolution), for diagnostics."""
-        if self._last_warped is None:
-            return None
-        return subsample(self._last_warped, *self._full_shape)
+        self.last_warped: Optional[np.ndarray] = None  # the warped previous ids of the last update (int64 [H, W])
+        self.warp_options = WarpOptions()  # the warping settings (constants of ..matching)
 
     def reset(self) -> None:
         self._ids.reset()
@@ -66,23 +57,19 @@ class WarpIoUHead(VPSHead):
         present = set(unique_ids(ids).tolist()) - {0}
         cur_things = sorted(sid for sid in present if sid in cur_segments and cur_segments[sid].isthing)
 
-        # warping and matching at the working resolution (see WarpIoUConfig.warp_max_side)
-        hs, ws = working_shape(h, w, c.warp_max_side)
         warped = None
         if prev is not None:
             self._ids.reserve(prev.panoptic.segments)
             if cur_things:
-                opts = WarpOptions(c.flow_preset, c.flow_max_side, c.rigid_stuff, c.splat)
-                warped = warp_previous_ids(prev, frame.image, cue, hs, ws, opts)
-        self._last_warped, self._full_shape = warped, (h, w)
+                warped = warp_previous_ids(prev, frame.image, cue, h, w, self.warp_options)
+        self.last_warped = warped
 
         assign: dict[int, int] = {}  # current segment id -> output id
         self.last_matches = []
         if warped is not None:
             prev_cat = {s.id: s.category_id for s in prev.panoptic.segments if s.isthing}
             cur_cat = {g: cur_segments[g].category_id for g in cur_things}
-            for g, p, score in match_segments(subsample(ids, hs, ws), warped, cur_things, cur_cat, prev_cat,
-                                              c.match, c.min_score):
+            for g, p, score in match_segments(ids, warped, cur_things, cur_cat, prev_cat, c.match, c.min_score):
                 assign[g] = p
                 self.last_matches.append((g, p, score))
         panoptic = relabel(seg, ids, cur_segments, cur_things, present, assign, self._ids)

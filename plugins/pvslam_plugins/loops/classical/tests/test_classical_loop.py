@@ -216,9 +216,11 @@ def test_registered_and_fast():
     assert per_call < 0.05, per_call
 
 
-def test_adaptive_threshold_follows_the_neighbours_similarity():
-    """adaptive_neighbours (ORB-SLAM's rule): a candidate scoring below the fixed threshold is retrieved when the
-    new keyframe's own predecessors look no more alike; never below adaptive_floor."""
+def test_adaptive_threshold_follows_the_neighbours_similarity(monkeypatch):
+    """ADAPTIVE_NEIGHBOURS (ORB-SLAM's rule): a candidate scoring below the fixed threshold is retrieved when the
+    new keyframe's own predecessors look no more alike; never below ADAPTIVE_FLOOR."""
+    from pvslam_plugins.loops.classical import detector as D
+
     e = np.eye(6, dtype=np.float32)
 
     def unit(c, k):  # cosine c to e0, the rest along axis k
@@ -231,7 +233,9 @@ def test_adaptive_threshold_follows_the_neighbours_similarity():
         def descriptor(self, image):
             return vecs[self._n]
 
-    def retrieved(**kw):
+    def retrieved(adaptive_neighbours=D.ADAPTIVE_NEIGHBOURS, adaptive_floor=D.ADAPTIVE_FLOOR, **kw):
+        monkeypatch.setattr(D, "ADAPTIVE_NEIGHBOURS", adaptive_neighbours)
+        monkeypatch.setattr(D, "ADAPTIVE_FLOOR", adaptive_floor)
         det = Preset(cfg(exclude_recent=2, verify=False, **kw))  # the predecessors are no candidates
         for k in range(5):
             det._n = k
@@ -247,7 +251,7 @@ def test_adaptive_threshold_follows_the_neighbours_similarity():
 
 def test_adaptive_candidates_must_be_a_revisit_not_a_distant_view(monkeypatch):
     """A candidate retrieved only through the adaptive threshold passes verification only when the new view sees
-    the matched structure about as large as the old one (adaptive_min_spread); above `threshold` the spread is not
+    the matched structure about as large as the old one (ADAPTIVE_MIN_SPREAD); above `threshold` the spread is not
     asked."""
     from pvslam_plugins.loops.verification import Verification
 

@@ -10,7 +10,7 @@ import torch
 from pvslam_core.interfaces import MotionCue, VPSState
 from pvslam_core.types import Frame, Intrinsics, PanopticSegmentation, Segment
 from pvslam_plugins.vps.warp_iou.config import WarpIoUConfig
-from pvslam_plugins.vps.warp_iou.head import WarpIoUHead, compose_id, decompose_id
+from pvslam_plugins.vps.warp_iou.head import WarpIoUHead, WarpOptions, compose_id, decompose_id
 from pvslam_plugins.vps.warp_iou.warp import dis_flow, forward_warp, rigid_flow
 
 W, H = 320, 240
@@ -119,7 +119,8 @@ def test_two_cars_keep_ids_with_dis_flow():
     seq = []
     for t in range(4):
         seq.append({"a": (60 + 10 * t, 130, 40, 40, CAR), "b": (100 + 10 * t, 130, 40, 40, CAR)})
-    head = WarpIoUHead(WarpIoUConfig(flow_preset="medium"))
+    head = WarpIoUHead()
+    head.warp_options = WarpOptions(flow_preset="medium")
     states, prev = [], None
     for t, objs in enumerate(seq):
         fr, seg = scene(objs, t, seg_ids={"a": 30 - t, "b": 20 + t})

@@ -1,15 +1,9 @@
-"""``forward_warp`` against a brute-force per-target reference (many collisions, equal depths, unknown depths), and
-the head's working resolution (``warp_max_side``) against full resolution."""
+"""``forward_warp`` against a brute-force per-target reference (many collisions, equal depths, unknown depths)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
-from pvslam_core.interfaces import MotionCue
-from pvslam_core.types import Frame, Intrinsics, PanopticSegmentation, Segment
-from pvslam_plugins.vps.warp_iou.config import WarpIoUConfig
-from pvslam_plugins.vps.warp_iou.head import WarpIoUHead
 from pvslam_plugins.vps.warp_iou.warp import forward_warp
 
 
@@ -67,34 +61,3 @@ def test_forward_warp_matches_brute_force(seed, splat, with_depth):
     mask = rng.random((h, w)) > 0.2
     got = forward_warp(ids, flow, depth, mask, splat=splat)
     np.testing.assert_array_equal(got, reference_warp(ids, flow, depth, mask, splat))
-
-
-def _frame(ids: np.ndarray, index: int) -> tuple[Frame, PanopticSegmentation]:
-    h, w = ids.shape
-    k = Intrinsics(fx=100.0, fy=100.0, cx=(w - 1) / 2, cy=(h - 1) / 2, width=w, height=h)
-    img = torch.zeros(3, h, w, dtype=torch.uint8)
-    segs = [Segment(int(s), int(s) // 1000, int(s) // 1000 == 3) for s in np.unique(ids) if s]
-    return Frame(index=index, timestamp=0.1 * index, image=img, intrinsics=k), PanopticSegmentation(
-        torch.from_numpy(ids), segs)
-
-
-def test_working_resolution_keeps_ids_of_moving_things():
-    """Two cars drive right by 6 px a frame; at half the working resolution they keep their ids as at full
-    resolution, output ids stay full size, and last_warped is reported at full size."""
-    h, w = 60, 80
-    heads = {side: WarpIoUHead(WarpIoUConfig(warp_max_side=side)) for side in (None, 40)}
-    states = {side: None for side in heads}
-    for t in range(5):
-        ids = np.full((h, w), 1000, np.int64)
-        ids[20:36, 4 + 6 * t: 20 + 6 * t] = 3001 + t  # segmenter ids change every frame
-        ids[40:52, 30 + 6 * t: 40 + 6 * t] = 3101 - t
-        fr, seg = _frame(ids, t)
-        flow = torch.zeros(2, 15, 20)
-        flow[0] = 6.0 / 4  # the cue's flow at 1/4 resolution (pixels of that resolution)
-        for side, head in heads.items():
-            states[side] = head.update(states[side], fr, seg, MotionCue(flow=flow) if t else MotionCue())
-        full, half = states[None].panoptic.ids, states[40].panoptic.ids
-        assert full.shape == half.shape == (h, w)
-        assert bool((full == half).all())
-        assert heads[40].last_warped is None if t == 0 else heads[40].last_warped.shape == (h, w)
-    assert len({int(v) for v in torch.unique(states[40].panoptic.ids)}) == 3  # road + two tracked cars
