@@ -126,7 +126,7 @@ def matrix_summary(r: dict, synthetic_only: bool = False) -> tuple[str, str]:
 def matrix_scenario(scenario: str) -> Callable[[dict], tuple[str, str]]:
     def render(r: dict) -> tuple[str, str]:
         cells = [c for c in _cells(r) if c["scenario"] == scenario]
-        pv = " / ".join(_pct(c["pvslam"]["ate_pct"], 2) for c in cells)
+        pv = " / ".join(_pct(c["pvslam"]["ate_pct"]) for c in cells)
         vo = " / ".join(_pct(c["vo"].get("ate_pct"), 2) for c in cells)
         return f"{pv} %", f"textbook VO {vo} %"
     return render
@@ -137,7 +137,7 @@ def kitti(r: dict) -> tuple[str, str]:
     if not cells:
         raise KeyError("no KITTI cells (excerpts not found when it ran)")
     order = [k for k in ("kitti_06", "kitti_01") if k in cells]
-    fig = " / ".join(_pct(cells[k]["pvslam"]["ate_pct"], 2) for k in order)
+    fig = " / ".join(_pct(cells[k]["pvslam"]["ate_pct"]) for k in order)
     vo = " / ".join(_pct(cells[k]["vo"].get("ate_pct"), 2) for k in order)
     line = " / ".join(_pct(cells[k]["line"].get("ate_pct"), 2) for k in order)
     return f"{fig} %", f"textbook VO {vo} %; constant-velocity line {line} %"

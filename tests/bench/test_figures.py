@@ -72,8 +72,8 @@ def test_every_figure_is_read_or_tbd_with_its_command(results):
     assert by["report"].value == ("median 0.150 %, mean 0.163 %; **7 / 8** cells >= 3x below the VO; 8 / 8 "
                                   "initialised within 2 s, every frame posed")
     assert by["report"].compared == "textbook VO median 2.00 %; closest cell handheld_fast/5 (2.5x)"
-    assert by["kitti"].value == "0.05 / 0.35 %" and "line 5.00 / 5.00 %" in by["kitti"].compared
-    assert by["busy_street"].value == "0.10 / 0.10 / 0.10 %"
+    assert by["kitti"].value == "0.050 / 0.350 %" and "line 5.00 / 5.00 %" in by["kitti"].compared
+    assert by["busy_street"].value == "0.100 / 0.100 / 0.100 %"
     assert by["default"].value.startswith("0.044 % of 325 m") and "textbook VO 2.60 %" == by["default"].compared
     assert by["long"].value == "0.0077 % of 2.0 km; 1 map, 118 loops" and by["long"].commit == SHA[:7]
     for key in ("heldout", "throughput", "long_speed"):
