@@ -1,4 +1,4 @@
-"""Benchmark of the learned ``raft_gru`` frontend (issue 10): speed at 320x240 with a per-stage profile, memory on a
+"""Benchmark of the learned ``raft_gru`` frontend: speed at 320x240 with a per-stage profile, memory on a
 long run, and ATE against the classical ``flow`` frontend on held-out synthetic seeds.
 
     python bench/bench_raft_gru.py --only ops                              # per network call, fp32 vs bf16
@@ -314,7 +314,7 @@ def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours:
     the dense BA the mapper would run (``pvslam_core.geometry.ba.dense_ba``, configs/raft_gru.toml's optimizer: 2
     iterations, no robust kernel, the learned damping; every keyframe of the window free but the oldest), timed as
     stage ``ba``: the per-frame CPU then includes the online BA.  Independent of the weights (a random
-    network's flow cannot initialise the mapper on a realistically slow sequence, see RESULTS.md), RSS sampled every
+    network's flow cannot initialise the mapper on a realistically slow sequence), RSS sampled every
     100 frames on stderr as it runs."""
     import torch
     import torch.nn.functional as F

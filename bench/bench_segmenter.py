@@ -1,4 +1,4 @@
-"""Benchmark of the ``panoptic_fpn`` segmenter (issue 11): speed, panoptic quality on held-out seeds, and the ATE of
+"""Benchmark of the ``panoptic_fpn`` segmenter: speed, panoptic quality on held-out seeds, and the ATE of
 the moving-vehicles scenario with it against the ``labels`` oracle and no segmenter.
 
     python bench/bench_segmenter.py                       # everything (about 30-40 minutes on 2 shared cores)

@@ -1,4 +1,4 @@
-"""Benchmark of the VPS heads (issue 18): ``fusion`` vs ``warp_iou`` vs no VPS, on the same non-oracle segmenter
+"""Benchmark of the VPS heads: ``fusion`` vs ``warp_iou`` vs no VPS, on the same non-oracle segmenter
 (the shipped ``panoptic_fpn``), on held-out seeds of the generator's scenarios with moving vehicles.
 
     python bench/bench_vps.py                                         # report seeds 200 201 202, 80 frames each
