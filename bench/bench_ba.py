@@ -18,6 +18,7 @@ import os
 import resource
 import subprocess
 import sys
+from pathlib import Path
 import tempfile
 import time
 from dataclasses import fields
@@ -29,6 +30,11 @@ from pvslam_core.geometry.ba import dense_ba, weighted_cost
 from pvslam_core.geometry.lie import se3_exp, se3_mul
 from pvslam_core.geometry.projective import edge_transforms, project_points
 from pvslam_core.geometry.testing import SyntheticBAProblem, drifted_loop, make_problem, perturb
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+from bench import provenance  # noqa: E402
 
 
 def _sync(device):
@@ -273,7 +279,8 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: leave torch's default)")
     ap.add_argument("--dtype", default="auto", choices=["auto", "float32", "float64"])
     ap.add_argument("--quick", action="store_true", help="fewer sizes")
-    ap.add_argument("--out", default="", help="also write the tables as markdown to this file")
+    ap.add_argument("--out", default="", help="also write the tables as markdown to this file (with the commit of "
+                    "the measured code; refused without one; not into bench/)")
     ap.add_argument("--mem-keyframes", type=int, default=400, help="keyframes of the memory problem (radius 3: "
                     "about 6 edges per keyframe)")
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory table")
@@ -293,6 +300,12 @@ def main(argv=None) -> None:
     if args.memory_child:
         _memory_child(args.memory_child, args.mcp, args.mem_iters, args.mem_reps)
         return
+    prov = None
+    if args.out:
+        try:
+            prov = provenance.check(args.out)
+        except provenance.ProvenanceError as exc:
+            sys.exit(provenance.fail(exc))
     dtype = {"auto": None, "float32": torch.float32, "float64": torch.float64}[args.dtype]
     if args.only_pose_graph:
         print_pose_graph(pose_graph_timing())
@@ -356,8 +369,7 @@ def main(argv=None) -> None:
         for line in print_pose_graph(pose_graph_timing((50, 150, 450) if args.quick else (50, 150, 450, 900)), quiet=True):
             emit(line)
     if args.out:
-        with open(args.out, "w") as fh:
-            fh.write("\n".join(lines) + "\n")
+        provenance.write_text(args.out, "\n".join(lines) + "\n", prov)
 
 
 if __name__ == "__main__":

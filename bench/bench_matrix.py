@@ -1,32 +1,19 @@
-"""The benchmark matrix of issue 13: pvslam's default pipeline, as a new user runs it, on every built-in synthetic
-scenario x seeds plus the KITTI excerpts, beside the textbook VO peer (and COLMAP with ``--colmap``).
+"""The benchmark matrix: pvslam's default pipeline, as a new user runs it, on every built-in synthetic scenario x
+seeds plus the KITTI excerpts, beside the textbook VO peer (and COLMAP with ``--colmap``).
 
-    python bench/bench_matrix.py --set report                  # the figures to report (seeds 3-5)
-    python bench/bench_matrix.py --set tune --jobs 2           # the seeds to choose parameters on (1, 2, 6, 7, 8)
+    python bench/bench_matrix.py --set report --jobs 2 --json runs/bench/report.json   # the report figures
+    python bench/bench_matrix.py --set tune --jobs 2           # the seeds to choose parameters on
+    python bench/bench_matrix.py --seeds $(python bench/seeds.py --fresh 3) --jobs 2    # a decision's fresh seeds
     python bench/bench_matrix.py --scenarios busy_street kitti_06 --seeds 3 --frames 60   # a smoke run
-    python bench/bench_matrix.py --set report --labels --colmap --json out.json
-    python bench/bench_matrix.py --reprint out.json [--markdown]  # the table, summary and targets of a saved run
-    python bench/bench_matrix.py --set tune --exposure --jobs 2    # under auto-exposure changes
+    python bench/bench_matrix.py --set report --override optimizer.iters=5   # a variant on the same cells
+    python bench/bench_matrix.py --reprint runs/bench/report.json [--markdown] [--compare BEFORE.json]
 
-**Seed sets.**  ``tune`` = seeds 1, 2, 6, 7, 8: choose parameters on these.  ``report`` = seeds 3, 4, 5: report on
-these, never tune on them.  ``default`` = seed 0 (the sequences ``pvslam run`` and the published figures use).
-``all`` = those three sets.  ``used`` = seeds 9-89: 9-17 and 21-35 each batch of three was run once, fresh, to
-decide whether a change becomes the default, 18-20 once as an unseen report of the default, 36-41 on busy_street
-only, 42-50 on the six car scenarios (the road-plane profile), 51-53 on all nine (the road's depth prior as the
-default), 54-56 on the six car scenarios (its loops without the Sim(3) pose graph), 57-59 started and stopped
-(two cells seen; bench/RESULTS.md says which), 60-62 on all nine (the road profile made the default), 63-65 on all
-nine as an unseen report of that default, 66-68 on all nine (the road's distance prior made the default), 69-71 on
-all nine as an unseen report of it, 72-74 on all nine (the initialisation's chain check, kept opt-in), 75-77 on
-all nine (the row fill of a new keyframe's depth made the default), 78-80 on all nine (the chain check with the
-parallax quantile), 81-83 on all nine (frames that lost their anchor held between keyframes), 84-86 on all nine (the
-predicted start of a frame without a velocity init), 87-89 on all nine (the initialisation's ambiguity decline),
-90-146 (bench/RESULTS.md, sessions 12-04 b-d), 147-149 on all nine through three lenses (``--hfov``; two of the
-45 deg cells diagnosed), 150-152 on all nine at 45 deg (the initialisation's chained links made the default),
-153-155 on all nine at 640x480 and at 320x240 (``--size``; no decision, but seen), 156-158 on all nine at 45 deg
-(``frontend.max_dynamic_fraction`` 0.8 made the default), 159-161 on all nine as an unseen report of that default;
-they are seen now, so the next decision takes fresh seeds from 162 up (``--seeds``).  The KITTI excerpts (06 and 01,
-51 frames each) have no seeds: they are in every set, so whoever tunes sees them too.  The printout and the JSON say
-which set ran.
+**Seed sets** come from the ledger ``bench/seeds.toml`` (:mod:`bench.seeds`): ``tune`` (choose parameters on
+these), ``report`` (report on these, never tune on them), ``heldout`` (run once on the final default), ``default``
+(seed 0, the sequences ``pvslam run`` uses); ``all`` = default + tune + report.  Every printed row and the JSON say
+which set a seed belongs to (``used``: spent on an earlier decision; ``fresh``: never run).  The KITTI excerpts (06
+and 01, 51 frames each) have no seeds: they run with every set.  ``--json`` records the commit of the measured code
+(:mod:`bench.provenance`) and refuses to write without one.
 
 **What runs per cell** (see :mod:`bench.matrix_jobs`): the synthetic folder is generated (cached); pvslam runs
 with the default config and the ``images`` reader (no labels: ``segmenter.plugin = "none"``, ``vps.plugin =
@@ -39,7 +26,7 @@ Columns: ``posed`` frames with a pose estimate (not a placeholder: tracking did 
 initialised), ``init`` the frame where the map first initialised and the seconds of camera motion before it,
 ``reinit`` re-initialisations, ``fps`` pvslam's frames per second (one torch thread; wall time, so a loaded machine
 lowers it), ``VO %`` with ``*`` when the textbook VO never initialised (identity poses), ``VO/pv`` textbook VO ATE /
-pvslam ATE (the issue's target is >= 3), ``line`` the straight line.  Below the table, the summary's "map at
+pvslam ATE (the target is >= 3), ``line`` the straight line.  Below the table, the summary's "map at
 initialisation" line: the median rotation and translation-direction errors of each run's first map against the
 ground truth (``matrix_jobs.init_errors``) and the cells whose map started wrong (R > 3 deg or t > 20 deg).
 """
@@ -51,7 +38,6 @@ import math
 import os
 import platform
 import re
-import subprocess
 import sys
 import tempfile
 import time
@@ -65,10 +51,12 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench import provenance, seeds as seed_ledger  # noqa: E402
 from bench.matrix_jobs import KITTI, run_cell  # noqa: E402
 
-SEED_SETS = {"default": (0,), "tune": (1, 2, 6, 7, 8), "report": (3, 4, 5)}
-USED_SEEDS = tuple(range(9, 162))  # fresh validation seeds already spent on decisions (see the module docstring)
+LEDGER = seed_ledger.load()
+SEED_SETS = LEDGER.sets  # name -> seeds: default, tune, report, heldout (bench/seeds.toml)
+USED_SEEDS = LEDGER.spent_seeds  # seeds already spent on decisions
 KITTI_SEQS = ("kitti_06", "kitti_01")
 INIT_TARGET_S = 2.0
 
@@ -80,7 +68,8 @@ def synthetic_scenarios() -> list[str]:
 
 
 def seed_set_of(seed: int) -> str:
-    return next((k for k, v in SEED_SETS.items() if seed in v), "used" if seed in USED_SEEDS else "other")
+    """``default``, ``tune``, ``report``, ``heldout``, ``used`` (spent) or ``fresh`` (bench/seeds.toml)."""
+    return LEDGER.set_of(seed)
 
 
 def plan(scenarios: list[str], seeds: list[int], frames, out: Path, labels: bool, colmap: bool,
@@ -148,7 +137,7 @@ def table(rows: list[dict], labels: bool, colmap: bool) -> list[str]:
 
 
 def table_md(rows: list[dict], labels: bool, colmap: bool) -> list[str]:
-    """The same table as Markdown (for bench/RESULTS.md)."""
+    """The same table as Markdown."""
     cols = ["scenario", "seed", "frames", "path m", "pvslam ATE %", "posed", "init frame (s)", "reinit", "fps",
             "textbook VO ATE %", "VO / pvslam", "line %"] + (["COLMAP ATE % (registered)"] if colmap else []) + (
         ["pvslam + labels ATE % (init)"] if labels else [])
@@ -257,7 +246,7 @@ def init_summary(rows: list[dict], out: dict) -> list[str]:
 
 
 def targets(rows: list[dict]) -> list[dict]:
-    """The issue's targets, each PASS / MISS with the measured value (or 'not measured')."""
+    """The targets, each PASS / MISS with the measured value (or 'not measured')."""
     ok = [r for r in rows if "error" not in r and "error" not in r.get("pvslam", {})]
     name = lambda r: r["scenario"] + ("" if r["seed"] is None else f"/{r['seed']}")  # noqa: E731
     res = []
@@ -299,22 +288,11 @@ def targets(rows: list[dict]) -> list[dict]:
     return res
 
 
-def commit() -> str:
-    """``git rev-parse HEAD`` of this tree; ``$PVSLAM_BENCH_COMMIT`` when the tree is an exported copy."""
-    if os.environ.get("PVSLAM_BENCH_COMMIT"):
-        return os.environ["PVSLAM_BENCH_COMMIT"]
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 # ------------------------------------------------------------------------------------------------ main
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--set", choices=["tune", "report", "default", "all"], default="report",
-                    help="seed set (default: report)")
+    ap.add_argument("--set", choices=[*SEED_SETS, "all"], default="report",
+                    help="seed set of bench/seeds.toml (default: report; all = default + tune + report)")
     ap.add_argument("--scenarios", nargs="+", help="synthetic scenario names and/or kitti_06 kitti_01 "
                     "(kitti = both); default: every built-in scenario and both KITTI excerpts")
     ap.add_argument("--seeds", nargs="+", type=int, help="seeds instead of the set's (the output says which set "
@@ -333,7 +311,8 @@ def main(argv=None) -> int:
     ap.add_argument("--exposure", action="store_true", help="every synthetic sequence (for every method) under a "
                     "camera's auto-exposure changes: the synthetic plugin's exposure.auto_exposure_gain, a 1.5x ramp, "
                     "a 0.7x step and back every 140 frames (KITTI as it is)")
-    ap.add_argument("--json", help="write the rows, summary and targets to this JSON file")
+    ap.add_argument("--json", help="write the rows, summary and targets to this JSON file, with the commit of the "
+                    "measured code (refused without one; not into bench/)")
     ap.add_argument("--out", help="folder for run directories and the KITTI peer folders (default: temporary)")
     ap.add_argument("--reprint", metavar="JSON", help="print the table, summary and targets of a saved --json run")
     ap.add_argument("--markdown", action="store_true", help="with --reprint: the table as Markdown")
@@ -342,8 +321,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.reprint:
         saved = json.loads(Path(args.reprint).read_text())
+        prov = saved.get("provenance") or {"commit": saved.get("commit")}
+        dirty = {True: " (dirty)", False: "", None: ""}[prov.get("dirty")]
         print(f"seed set: {saved['set'].upper()} -- seeds {', '.join(map(str, saved['seeds']))}; commit "
-              f"{saved['commit']}; jobs {saved['jobs']}; frames {saved['frames'] or 'default lengths'}")
+              f"{prov.get('commit') or 'not recorded'}{dirty}; jobs {saved['jobs']}; frames "
+              f"{saved['frames'] or 'default lengths'}")
         rows = saved["rows"]
         labels, colmap = any("labels" in r for r in rows), any("colmap" in r for r in rows)
         if args.markdown:
@@ -362,8 +344,14 @@ def main(argv=None) -> int:
     if any(n in KITTI_SEQS for n in names) and not (KITTI / "sequences").is_dir():
         print(f"KITTI excerpts not found in {KITTI}: skipped")
         names = [n for n in names if n not in KITTI_SEQS]
-    seeds = args.seeds if args.seeds else ([s for v in SEED_SETS.values() for s in v] if args.set == "all"
-                                           else list(SEED_SETS[args.set]))
+    prov = None
+    if args.json:
+        try:
+            prov = provenance.check(args.json)
+        except provenance.ProvenanceError as exc:
+            return provenance.fail(exc)
+    seeds = args.seeds if args.seeds else ([s for k in ("default", "tune", "report") for s in SEED_SETS[k]]
+                                           if args.set == "all" else list(SEED_SETS[args.set]))
     label = "custom" if args.seeds else args.set
     sets = sorted({seed_set_of(s) for s in seeds})
     out = Path(args.out or tempfile.mkdtemp(prefix="pvslam-matrix-"))
@@ -371,9 +359,10 @@ def main(argv=None) -> int:
     print(f"seed set: {label.upper()} -- seeds {', '.join(map(str, seeds))} ({'/'.join(sets)}; tune = "
           f"{SEED_SETS['tune']}, report = {SEED_SETS['report']}, default = {SEED_SETS['default']}; KITTI is in every "
           f"set)")
-    if "report" in sets:
-        print("REPORT seeds: measure on them, never tune on them.")
-    print(f"commit {commit()}; {platform.node()} {os.cpu_count()} CPUs; jobs {args.jobs}; frames "
+    if {"report", "heldout"} & set(sets):
+        print("REPORT / HELD-OUT seeds: measure on them, never tune on them.")
+    where = f"commit {prov['commit']}{' (dirty)' if prov['dirty'] else ''}" if prov else "no result file"
+    print(f"{where}; {platform.node()} {os.cpu_count()} CPUs; jobs {args.jobs}; frames "
           f"{args.frames or 'default lengths'}; run directories in {out}", flush=True)
     if args.override:
         from pvslam_core.config import load_config
@@ -418,12 +407,11 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - t0
     print(f"\nmatrix wall time {wall:.0f} s")
     if args.json:
-        Path(args.json).write_text(json.dumps({
+        provenance.write_json(args.json, {
             "set": label, "seeds": seeds, "seed_sets": SEED_SETS, "argv": sys.argv[1:] if argv is None else argv,
-            "commit": commit(), "host": platform.node(), "cpus": os.cpu_count(), "jobs": args.jobs,
-            "frames": args.frames, "size": list(size), "hfov_deg": args.hfov, "exposure": args.exposure,
-            "wall_s": wall, "rows": rows,
-            "summary": summ, "targets": tg}, indent=1, default=str))
+            "jobs": args.jobs, "frames": args.frames, "size": list(size), "hfov_deg": args.hfov,
+            "exposure": args.exposure, "overrides": list(args.override), "wall_s": wall, "rows": rows,
+            "summary": summ, "targets": tg}, prov)
         print(f"results written to {args.json}")
     return 0
 
@@ -437,7 +425,7 @@ def report(rows: list[dict], labels: bool, colmap: bool) -> tuple[dict, list[dic
     print("\nper scenario (mean ± std over seeds, ATE % of path):")
     sl, summ = summary(rows)
     print("\n".join(sl))
-    print("\ntargets (issue 13):")
+    print("\ntargets:")
     tg = targets(rows)
     for t in tg:
         status = "n/a " if t["ok"] is None else ("PASS" if t["ok"] else "MISS")

@@ -1,4 +1,4 @@
-"""End-to-end benchmark of the default pipeline, with every target of the end-to-end issue and two peers.
+"""End-to-end benchmark of the default pipeline, with its targets and two peers.
 
     python bench/bench_pipeline.py                 # everything (about 15-25 minutes on 2 cores)
     python bench/bench_pipeline.py --only accuracy throughput
@@ -13,8 +13,9 @@ Sections (each prints its figures and a target line ``[PASS]``/``[MISS]`` with t
               fragments (separate process); and a forced tracking loss (driving_block with 30 frames cut out):
               the new map fragment must be merged back by the revisit's loop
   kitti       ATE on the KITTI 06 and 01 excerpts in ../shared/data (skipped if absent)
-Results are also written as JSON to bench/results_pipeline_<sections>.json (with ``--set``:
-``..._overrides.json``, the overrides in it under ``"overrides"``).  ``--set KEY=VALUE`` applies to every run of
+Results are also written as JSON, with the commit of the measured code (:mod:`bench.provenance`; refused without
+one), to ``--json PATH`` or runs/bench/results_pipeline_<sections>.json (with ``--set``: ``..._overrides.json``, the
+overrides in it under ``"overrides"``).  ``--set KEY=VALUE`` applies to every run of
 every section (after the section's own config file and overrides), so a profile such as ``configs/accurate.toml``
 (``optimizer.iters = 5``) is benchmarked on exactly the runs of the default.
 """
@@ -33,6 +34,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+from bench import provenance  # noqa: E402
+
 KITTI = Path(os.environ.get("PVSLAM_KITTI", ROOT.parent / "shared" / "data" / "kitti-odometry"))
 RESULTS: dict = {}
 EXTRA: list[str] = []  # --set overrides, applied last to every run (the long run's child gets them as arguments)
@@ -385,6 +390,7 @@ def main() -> None:
     ap.add_argument("--long-frames", type=int, default=3000, help="frames of the long run (the target is 3000)")
     ap.add_argument("--long-child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--out", help="folder for the run directories (default: a temporary folder)")
+    ap.add_argument("--json", help="result file (default: runs/bench/results_pipeline_<sections>.json; not into bench/)")
     ap.add_argument("--set", action="append", default=[], dest="overrides", metavar="KEY=VALUE",
                     help="config override applied to every run (repeatable), e.g. --set optimizer.iters=5")
     args = ap.parse_args()
@@ -397,6 +403,12 @@ def main() -> None:
         _long_child(args.long_child, args.out)
         return
     sections = args.only or ["throughput", "accuracy", "peers", "long", "kitti"]
+    name = "results_pipeline_" + "_".join(sections) + ("_overrides" if EXTRA else "") + ".json"
+    result_path = Path(args.json) if args.json else provenance.RESULTS_DIR / name
+    try:
+        prov = provenance.check(result_path)
+    except provenance.ProvenanceError as exc:
+        sys.exit(provenance.fail(exc))
     out = Path(args.out or tempfile.mkdtemp(prefix="pvslam-bench-"))
     t0 = time.time()
     acc = None
@@ -412,8 +424,10 @@ def main() -> None:
     if "kitti" in sections:
         section_kitti(out, args.quick)
     print(f"\nbenchmark wall time {time.time() - t0:.0f} s; run directories in {out}")
-    name = "results_pipeline_" + "_".join(sections) + ("_overrides" if EXTRA else "") + ".json"
-    (ROOT / "bench" / name).write_text(json.dumps(RESULTS, indent=2, default=str))
+    RESULTS["sections"] = sections
+    RESULTS["wall_s"] = time.time() - t0
+    provenance.write_json(result_path, RESULTS, prov)
+    print(f"results written to {result_path}")
 
 
 if __name__ == "__main__":

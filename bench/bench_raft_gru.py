@@ -1,4 +1,4 @@
-"""Benchmark of the learned ``raft_gru`` frontend (issue 10): speed at 320x240 with a per-stage profile, memory on a
+"""Benchmark of the learned ``raft_gru`` frontend: speed at 320x240 with a per-stage profile, memory on a
 long run, and ATE against the classical ``flow`` frontend on held-out synthetic seeds.
 
     python bench/bench_raft_gru.py --only ops                              # per network call, fp32 vs bf16
@@ -19,11 +19,12 @@ otherwise idle machine with that many cores.
 
 Memory.  ``memory``: a separate process runs ``--long-frames`` frames of the driving loop through the pipeline and
 samples RSS every 100 frames (the peak at 3000 frames extrapolated from the second half); it needs weights that
-initialise the map (a map that never initialises keeps every keyframe: see RESULTS.md).  ``memory_frontend``: the
+initialise the map (a map that never initialises keeps every keyframe).  ``memory_frontend``: the
 frontend and frame graph without the mapper, keyframes at ground-truth poses (independent of the weights; also the
 steady-state per-frame CPU, ``--mf-stop N`` for a short run).
 
-Results go to bench/results_raft_gru.json (and are summarised in bench/RESULTS.md by hand).
+Results go to ``--json`` (default runs/bench/results_raft_gru.json) with the commit of the measured code
+(:mod:`bench.provenance`; refused without one).
 """
 from __future__ import annotations
 
@@ -38,6 +39,9 @@ import warnings
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+from bench import provenance  # noqa: E402
 RESULTS: dict = {}
 
 
@@ -310,7 +314,7 @@ def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours:
     the dense BA the mapper would run (``pvslam_core.geometry.ba.dense_ba``, configs/raft_gru.toml's optimizer: 2
     iterations, no robust kernel, the learned damping; every keyframe of the window free but the oldest), timed as
     stage ``ba``: the per-frame CPU then includes the online BA.  Independent of the weights (a random
-    network's flow cannot initialise the mapper on a realistically slow sequence, see RESULTS.md), RSS sampled every
+    network's flow cannot initialise the mapper on a realistically slow sequence), RSS sampled every
     100 frames on stderr as it runs."""
     import torch
     import torch.nn.functional as F
@@ -432,12 +436,17 @@ def main() -> None:
                                                        "busy_street"])
     ap.add_argument("--ate-frames", type=int, default=150)
     ap.add_argument("--out", default=str(Path("/tmp") / "bench_raft_gru"))
-    ap.add_argument("--json", default=str(ROOT / "bench" / "results_raft_gru.json"))
+    ap.add_argument("--json", default=str(provenance.RESULTS_DIR / "results_raft_gru.json"),
+                    help="result file (not into bench/)")
     ap.add_argument("--long-child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.long_child:
         _long_child(args.long_child, args.out, args.weights, args.profile, args.extra)
         return
+    try:
+        prov = provenance.check(args.json)
+    except provenance.ProvenanceError as exc:
+        sys.exit(provenance.fail(exc))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     sections = args.only or ["ops", "speed", "memory", "ate"]
@@ -455,7 +464,7 @@ def main() -> None:
         section_ate(out, args.weights, args.seeds, args.scenarios[:1] if args.quick else args.scenarios,
                     40 if args.quick else args.ate_frames, args.profile, args.extra)
     RESULTS["machine"]["load_end"] = load()
-    Path(args.json).write_text(json.dumps(RESULTS, indent=1, default=str))
+    provenance.write_json(args.json, RESULTS, prov)
     print(f"\nresults: {args.json}")
 
 

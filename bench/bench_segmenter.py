@@ -1,4 +1,4 @@
-"""Benchmark of the ``panoptic_fpn`` segmenter (issue 11): speed, panoptic quality on held-out seeds, and the ATE of
+"""Benchmark of the ``panoptic_fpn`` segmenter: speed, panoptic quality on held-out seeds, and the ATE of
 the moving-vehicles scenario with it against the ``labels`` oracle and no segmenter.
 
     python bench/bench_segmenter.py                       # everything (about 30-40 minutes on 2 shared cores)
@@ -16,7 +16,8 @@ Sections (each prints its figures and target lines ``[PASS]``/``[MISS]``):
           segments under 64 px as void
   ate     Sim(3) ATE of ``configs/moving_vehicles.toml`` on held-out seeds (``--seeds``, ``--repeats`` runs a seed,
           starting at raw frames 0, 1, ...) with segmenter panoptic_fpn / labels / none
-Results are written as JSON to bench/results_segmenter.json.  Torch runs with one thread (``--threads``): on this
+Results are written as JSON to ``--json`` (default runs/bench/results_segmenter.json) with the commit of the
+measured code (:mod:`bench.provenance`; refused without one).  Torch runs with one thread (``--threads``): on this
 shared 2-core VM two threads were several times slower in wall time.
 """
 from __future__ import annotations
@@ -34,6 +35,9 @@ from typing import Optional
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+from bench import provenance  # noqa: E402
 RESULTS: dict = {}
 
 
@@ -200,8 +204,13 @@ def main(argv=None) -> int:
     ap.add_argument("--override", action="append", default=[],
                     help="ATE: an extra `pvslam run --set` KEY=VALUE for every run (repeatable)")
     ap.add_argument("--out", help="run folder for the ATE runs (default: a temporary folder)")
-    ap.add_argument("--json", default=str(ROOT / "bench" / "results_segmenter.json"))
+    ap.add_argument("--json", default=str(provenance.RESULTS_DIR / "results_segmenter.json"),
+                    help="result file (not into bench/)")
     args = ap.parse_args(argv)
+    try:
+        prov = provenance.check(args.json)
+    except provenance.ProvenanceError as exc:
+        return provenance.fail(exc)
     torch.set_num_threads(args.threads)
     RESULTS["meta"] = {"threads": args.threads, "torch": torch.__version__, "argv": sys.argv[1:],
                        "load_at_start": load()}
@@ -215,7 +224,7 @@ def main(argv=None) -> int:
             section_ate(args.seeds, args.repeats, Path(args.out) if args.out else Path(tmp), args.variants,
                         args.override)
     RESULTS["meta"]["seconds"] = time.perf_counter() - t0
-    Path(args.json).write_text(json.dumps(RESULTS, indent=1, default=float))
+    provenance.write_json(args.json, json.loads(json.dumps(RESULTS, default=float)), prov)
     print(f"results: {args.json} ({RESULTS['meta']['seconds']:.0f} s)")
     return 0
 

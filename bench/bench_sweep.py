@@ -1,4 +1,4 @@
-"""Sweep benchmark (issue 16's target): the same grid run serially in one process and on a local Ray instance.
+"""Sweep benchmark: the same grid run serially in one process and on a local Ray instance.
 
     python bench/bench_sweep.py                                  # the target: 4 variants x 3 scenarios x 2 seeds
     python bench/bench_sweep.py --scenarios driving_loop --seeds 0 --variants 2 --frames 36 --width 160 --height 120

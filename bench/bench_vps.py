@@ -1,8 +1,8 @@
-"""Benchmark of the VPS heads (issue 18): ``fusion`` vs ``warp_iou`` vs no VPS, on the same non-oracle segmenter
+"""Benchmark of the VPS heads: ``fusion`` vs ``warp_iou`` vs no VPS, on the same non-oracle segmenter
 (the shipped ``panoptic_fpn``), on held-out seeds of the generator's scenarios with moving vehicles.
 
     python bench/bench_vps.py                                         # report seeds 200 201 202, 80 frames each
-    python bench/bench_vps.py --seeds 101 --frames 60 --out bench/results_vps_tune.json   # the tuning seed
+    python bench/bench_vps.py --seeds 101 --frames 60 --out runs/bench/results_vps_tune.json   # the tuning seed
     python bench/bench_vps.py --timing 15                             # CPU ms per update, one frame pair
 
 One pipeline run per (scenario, seed) (synthetic reader, panoptic_fpn segmenter, the default VO, no loop closure):
@@ -11,7 +11,8 @@ so all three see identical inputs.  Per head: PQ and VPQ (VPSNet's k = 0, 5, 10,
 labels, and ms per frame of its ``update`` (wall and thread CPU time; the machine is shared, CPU time is the
 figure to read).  ``none`` is the segmenter's own per-frame ids (no temporal consistency).  The fusion head's
 weights were trained on seeds 10-14 and validated on seed 100 (``pvslam train vps --plugin fusion``); the
-segmenter was trained on seeds 1-8.  Results: JSON (``--out``) and a printed table.
+segmenter was trained on seeds 1-8.  Results: JSON (``--out``, default runs/bench/results_vps.json, with the
+commit of the measured code: :mod:`bench.provenance`) and a printed table.
 """
 from __future__ import annotations
 
@@ -28,6 +29,9 @@ from typing import Optional
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+from bench import provenance  # noqa: E402
 HEADS = ("none", "warp_iou", "fusion")
 
 
@@ -203,7 +207,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[200, 201, 202])
     ap.add_argument("--frames", type=int, default=80)
     ap.add_argument("--fusion", nargs="*", default=[], help="FusionConfig overrides KEY=JSON (e.g. z_order=false)")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results_vps.json")
+    ap.add_argument("--out", type=Path, default=provenance.RESULTS_DIR / "results_vps.json",
+                    help="result file (not into bench/)")
     ap.add_argument("--timing", type=int, default=0, metavar="REPS",
                     help="only the per-call CPU timing of the heads on one frame pair, REPS calls each")
     a = ap.parse_args(argv)
@@ -212,6 +217,10 @@ def main(argv=None) -> int:
     if a.timing:
         section_timing(a.timing, fusion_cfg)
         return 0
+    try:
+        prov = provenance.check(a.out)
+    except provenance.ProvenanceError as exc:
+        return provenance.fail(exc)
     rows = []
     for scenario in a.scenarios:
         for seed in a.seeds:
@@ -222,7 +231,7 @@ def main(argv=None) -> int:
                 f"{n} VPQ {100 * h[n]['vpq']:.1f} PQ {100 * h[n]['pq']:.1f}" for n in HEADS)
                 + f"  | fusion {h['fusion']['ms_cpu_median']:.0f} ms CPU, warp_iou {h['warp_iou']['ms_cpu_median']:.0f}"
                 f" ms CPU  ({r['seconds']:.0f} s, load {r['load']:.1f})", flush=True)
-            a.out.write_text(json.dumps({"fusion_config": fusion_cfg, "frames": a.frames, "runs": rows}, indent=1))
+            provenance.write_json(a.out, {"fusion_config": fusion_cfg, "frames": a.frames, "runs": rows}, prov)
     print("\nmean over seeds (VPQ / PQ, x100):")
     ok = True
     for scenario in a.scenarios:

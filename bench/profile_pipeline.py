@@ -22,6 +22,11 @@ import tempfile
 import time
 from pathlib import Path
 
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+from bench import provenance  # noqa: E402
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -31,8 +36,15 @@ def main() -> None:
     ap.add_argument("--no-profile", action="store_true", help="no cProfile (its overhead is ~10-20 %%)")
     ap.add_argument("--top", type=int, default=35, help="functions listed by cumulative CPU time")
     ap.add_argument("--out", default=None, help="folder for the run directory (default: a temporary folder)")
-    ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    ap.add_argument("--json", default=None, help="also write the figures to this JSON file (with the commit of the "
+                    "measured code; refused without one; not into bench/)")
     args = ap.parse_args()
+    prov = None
+    if args.json:
+        try:
+            prov = provenance.check(args.json)
+        except provenance.ProvenanceError as exc:
+            sys.exit(provenance.fail(exc))
 
     t_imp = time.process_time()
     from pvslam_core.config import load_config
@@ -97,7 +109,7 @@ def main() -> None:
         st.sort_stats("tottime").print_stats(args.top)
         print(s.getvalue())
     if args.json:
-        Path(args.json).write_text(json.dumps(figures, indent=1))
+        provenance.write_json(args.json, figures, prov)
 
 
 if __name__ == "__main__":

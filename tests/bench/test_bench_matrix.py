@@ -1,4 +1,4 @@
-"""Tests of the benchmark matrix (bench/bench_matrix.py, bench/matrix_jobs.py): the seed split, which frames count
+"""Tests of the benchmark matrix (bench/bench_matrix.py, bench/matrix_jobs.py): the seed sets of the ledger, which frames count
 as posed, the straight-line baseline against an independent Sim(3) alignment, the KITTI excerpt as a TUM folder,
 the target verdicts, the map at initialisation against the ground truth, and (slow) one real cell end to end."""
 from __future__ import annotations
@@ -17,15 +17,17 @@ from bench import bench_matrix, matrix_jobs  # noqa: E402
 from bench.peers.common import ate_sim3, load_sequence  # noqa: E402
 
 
-def test_seed_sets_are_disjoint_and_every_set_is_known():
+def test_seed_sets_come_from_the_ledger_and_every_seed_is_classified():
     sets = bench_matrix.SEED_SETS
     assert not set(sets["tune"]) & set(sets["report"]) and 0 in sets["default"]
     assert not set(sets["default"]) & (set(sets["tune"]) | set(sets["report"]))
     assert len(sets["report"]) >= 3
     assert bench_matrix.seed_set_of(4) == "report" and bench_matrix.seed_set_of(1) == "tune"
-    fresh = max(bench_matrix.USED_SEEDS) + 1
-    assert bench_matrix.seed_set_of(fresh) == "other" and bench_matrix.seed_set_of(12) == "used"
+    fresh = bench_matrix.LEDGER.fresh(1)[0]
+    assert bench_matrix.seed_set_of(fresh) == "fresh" and bench_matrix.seed_set_of(12) == "used"
     assert not set(bench_matrix.USED_SEEDS) & {s for v in sets.values() for s in v}
+    assert [c["set"] for c in bench_matrix.plan(["driving_loop"], [3, 12, fresh], None, Path("."), False, False, 1)] \
+        == ["report", "used", "fresh"]
 
 
 def test_plan_has_every_scenario_and_seed_and_kitti_once(tmp_path):

@@ -1,0 +1,158 @@
+"""bench/figures.py: the page of current figures and the README's Status table come from result files that name
+their commit; a missing result is TBD with its command; results of a dirty tree or of other settings are refused."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench import figures, provenance  # noqa: E402
+
+SHA = "0123456789abcdef0123456789abcdef01234567"
+
+
+def _prov(**kw):
+    return {"commit": SHA, "dirty": False, "host": "vm", "cpus": 2, "libraries": {"torch": "x"}, "started": "t0",
+            "finished": "t1", **kw}
+
+
+def _cell(scenario, seed, pv, vo, init_s=0.5, posed=100):
+    return {"scenario": scenario, "seed": seed, "set": "report" if seed else "shared", "frames": 100,
+            "pvslam": {"ate_pct": pv, "init_s": init_s, "posed": posed, "frames": 100}, "vo": {"ate_pct": vo},
+            "line": {"ate_pct": 5.0}}
+
+
+def _matrix(name, seeds):
+    rows = [_cell(sc, s, 0.1 * (k + 1), 2.0) for k, sc in enumerate(["busy_street", "handheld_fast"]) for s in seeds]
+    rows += [_cell("kitti_06", None, 0.05, 2.1), _cell("kitti_01", None, 0.35, 6.5)]
+    rows[-3]["vo"]["ate_pct"] = 0.5  # one cell only 2.5x below the VO
+    return {"provenance": _prov(), "set": name, "seeds": seeds, "overrides": [], "frames": None, "size": [320, 240],
+            "hfov_deg": None, "exposure": False, "rows": rows}
+
+
+def _metrics(ate):
+    return {"ate": {"rmse_percent_of_path": ate, "path_length": 324.7}, "loops": {"precision": 1.0, "recall": 1.0,
+            "num_detected": 2}, "panoptic": {"pq": 1.0, "vpq": 0.998}, "timing": {"keyframes": 200}}
+
+
+def _accuracy():
+    names = ["online_ba+loop", "online_ba+loop (start 1)", "online_ba, no loop", "offline_ba+loop",
+             "offline_ba, no loop"]
+    return {"provenance": _prov(), "sections": ["accuracy", "peers"],
+            "accuracy": {n: _metrics(a) for n, a in zip(names, [0.044, 0.05, 1.5, 0.06, 0.7])},
+            "peers": {"textbook_vo": {"ate_pct": 2.6}}}
+
+
+def _long():
+    return {"provenance": _prov(), "sections": ["long"],
+            "long": {"ate_pct": 0.0077, "path_m": 1996.0, "unmerged": 1, "loops": 118, "first_cpu": 0.06,
+                     "last_cpu": 0.062, "peak_mb": 1372.0},
+            "forced_loss": {"cut": {"separate_maps": 1}}}
+
+
+@pytest.fixture
+def results(tmp_path):
+    d = tmp_path / "results"
+    d.mkdir()
+    for key, payload in (("report", _matrix("report", [3, 4, 5])), ("accuracy", _accuracy()), ("long", _long())):
+        (d / f"{key}.json").write_text(json.dumps(payload))
+    return d
+
+
+def test_every_figure_is_read_or_tbd_with_its_command(results):
+    rows, got = figures.load(results)
+    by = {r.figure.key: r for r in rows}
+    assert set(got) == {"report", "accuracy", "long"} and len(rows) == len(figures.FIGURES) <= 12
+    assert by["report"].value == ("median 0.150 %, mean 0.163 %; **7 / 8** cells >= 3x below the VO; 8 / 8 "
+                                  "initialised within 2 s, every frame posed")
+    assert by["report"].compared == "textbook VO median 2.00 %; closest cell handheld_fast/5 (2.5x)"
+    assert by["kitti"].value == "0.050 / 0.350 %" and "line 5.00 / 5.00 %" in by["kitti"].compared
+    assert by["busy_street"].value == "0.100 / 0.100 / 0.100 %"
+    assert by["default"].value.startswith("0.044 % of 325 m") and "textbook VO 2.60 %" == by["default"].compared
+    assert by["long"].value == "0.0077 % of 2.0 km; 1 map, 118 loops" and by["long"].commit == SHA[:7]
+    for key in ("heldout", "throughput", "long_speed"):
+        assert by[key].value == figures.TBD and not by[key].commit
+    table = figures.status_table(rows)
+    assert len(table) == 2 + len(figures.FIGURES)
+    assert any("`python bench/bench_matrix.py --set heldout --jobs 2 --json runs/bench/figures/heldout.json`" in t
+               and figures.TBD in t for t in table)
+    page = figures.page(rows, got)
+    assert "## Report matrix, per cell" in page and "| busy_street/3 | report | 0.100 |" in page
+    assert "Not measured yet (TBD)" in page and SHA in page
+
+
+def test_heldout_counts_the_synthetic_cells_only(results):
+    heldout = _matrix("heldout", [159, 160, 161])
+    fig, _ = figures.matrix_summary(heldout, synthetic_only=True)
+    assert "**5 / 6** cells" in fig and "5 / 6 initialised" not in fig
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda r: r["provenance"].update(dirty=True), "uncommitted changes"),
+    (lambda r: r["provenance"].update(changed_during_run=True), "uncommitted changes"),
+    (lambda r: r.update(overrides=["optimizer.iters=5"]), "not the plain report matrix"),
+    (lambda r: r.update(set="tune"), "not the plain report matrix"),
+    (lambda r: r.pop("provenance"), "no commit recorded"),
+])
+def test_results_of_another_tree_or_setting_are_refused(results, change, message):
+    report = json.loads((results / "report.json").read_text())
+    change(report)
+    (results / "report.json").write_text(json.dumps(report))
+    with pytest.raises((provenance.ProvenanceError, ValueError), match=message):
+        figures.load(results)
+
+
+def test_dirty_results_render_only_when_allowed(results):
+    report = json.loads((results / "report.json").read_text())
+    report["provenance"]["dirty"] = True
+    (results / "report.json").write_text(json.dumps(report))
+    rows, _ = figures.load(results, allow_dirty=True)
+    assert {r.commit for r in rows if r.figure.bench == "report"} == {SHA[:7] + "+dirty"}
+
+
+def test_the_readme_table_is_replaced_between_its_markers(results):
+    rows, _ = figures.load(results)
+    text = f"# x\n\nbefore\n{figures.BEGIN}\nold table\n{figures.END}\nafter\n"
+    out = figures.readme_with(text, rows)
+    assert out.startswith("# x\n\nbefore\n" + figures.BEGIN + "\n| what |") and out.endswith(figures.END + "\nafter\n")
+    assert "old table" not in out
+    with pytest.raises(ValueError, match="figures:begin"):
+        figures.readme_with("# no markers\n", rows)
+
+
+def test_render_only_writes_both_pages(results, tmp_path, monkeypatch, capsys):
+    page, readme = tmp_path / "RESULTS.md", tmp_path / "README.md"
+    readme.write_text(f"intro\n{figures.BEGIN}\n{figures.END}\n")
+    monkeypatch.setattr(figures, "PAGE", page)
+    monkeypatch.setattr(figures, "README", readme)
+    assert figures.main(["--render-only", "--results", str(results)]) == 0
+    assert page.read_text().startswith("# Current figures") and "| what | data |" in readme.read_text()
+    assert "TBD: heldout" in capsys.readouterr().out
+
+
+def test_a_benchmark_run_twice_by_two_figures_is_measured_once(tmp_path, monkeypatch):
+    calls = []
+
+    class Done:
+        returncode = 0
+
+    def fake_run(cmd, cwd, stdout, stderr):
+        calls.append(cmd)
+        Path(cmd[cmd.index("--json") + 1]).write_text("{}")
+        return Done()
+
+    monkeypatch.setattr(figures.subprocess, "run", fake_run)
+    figures.run(["long", "long_speed"], tmp_path, jobs=2)
+    assert len(calls) == 1 and (tmp_path / "long_speed.json").is_file()
+    assert calls[0][1:] == ["bench/bench_pipeline.py", "--only", "long", "--json", str(tmp_path / "long.json")]
+
+
+def test_the_speed_benchmarks_are_the_ones_skipped():
+    assert {k for k, b in figures.BENCHES.items() if b.speed} == {"long_speed", "throughput"}
+    assert all(f.bench in figures.BENCHES for f in figures.FIGURES)
