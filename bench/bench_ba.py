@@ -26,7 +26,7 @@ from dataclasses import fields
 import numpy as np
 import torch
 
-from pvslam_core.geometry.ba import dense_ba, weighted_cost
+from pvslam_core.geometry.ba import BAOptions, dense_ba, weighted_cost
 from pvslam_core.geometry.lie import se3_exp, se3_mul
 from pvslam_core.geometry.projective import edge_transforms, project_points
 from pvslam_core.geometry.testing import SyntheticBAProblem, drifted_loop, make_problem, perturb
@@ -231,9 +231,7 @@ def memory_comparison(n: int = 400, radius: int = 3, iters: int = 2, reps: int =
     A child's ``ru_maxrss`` starts at its parent's peak RSS (Linux carries the high-water mark over fork/exec), so
     the problem is built in a subprocess too and ``parent_mb`` (this process's peak at launch) is reported: it
     must stay below the children's "before BA" RSS for the table to be meaningful."""
-    import inspect
-
-    default = inspect.signature(dense_ba).parameters["max_chunk_pixels"].default
+    default = BAOptions().max_chunk_pixels
     env = dict(os.environ)
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)

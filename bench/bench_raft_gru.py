@@ -320,7 +320,7 @@ def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours:
     import torch.nn.functional as F
 
     from pvslam_core.slam.graph import FrameGraph
-    from pvslam_core.types import EdgeObservations, Frame
+    from pvslam_core.types import Frame
     from pvslam_plugins.datasets.synthetic.reader import SyntheticSequence
     from pvslam_plugins.frontends.raft_gru.config import RaftGruConfig
     from pvslam_plugins.frontends.raft_gru.frontend import RaftGruFrontend
@@ -329,7 +329,7 @@ def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours:
     warnings.simplefilter("ignore")
     seq = SyntheticSequence(generate("driving_loop", frames))
     kw = dict(x.split("=", 1) for x in extra)
-    cfg = RaftGruConfig(weights="random", profile=profile, dynamic_masking=False,
+    cfg = RaftGruConfig(weights="random", profile=profile, dynamic={"enabled": False},
                         **{k.removeprefix("frontend."): json.loads(v) for k, v in kw.items()})
     fe = RaftGruFrontend(cfg)
     intr = seq.intrinsics

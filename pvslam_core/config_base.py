@@ -16,7 +16,8 @@ class PluginConfig(BaseModel):
 
     * ``renamed = {"old": "new"}``: the key moved; ``"new"`` may be a dotted path into a nested table
       (``{"warmup": "init.warmup"}``), or ``None`` when the key was removed and is ignored.  A file that still uses
-      the old name loads, with one warning per table that names the new keys.
+      the old name loads, with one warning per table that names the new keys; both names with different values
+      are an error.
     * ``retired = {"old": value}``: the setting became a fixed part of the method (a constant in the code).  A file
       that gives exactly ``value`` loads (old run directories store every key); any other value is an error that
       says so, since the run would not do what the file asks.
@@ -46,7 +47,9 @@ class PluginConfig(BaseModel):
                 node[t] = dict(node.get(t) or {})
                 node = node[t]
             if key in node:
-                LOG.warning("config keys %r (old name) and %r both given in %s; using %r", old, new, cls.__name__, new)
+                if node[key] != value:  # e.g. --set with the old name over a file with the new one: neither may win
+                    raise ValueError(f"keys {old!r} (its old name) and {new!r} are both given, with different values "
+                                     f"({value!r}, {node[key]!r}); give {new!r} only")
             else:
                 node[key] = value
                 moved.append(f"{old} -> {new}")

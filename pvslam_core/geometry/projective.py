@@ -244,7 +244,7 @@ def fill_holes(disp: torch.Tensor, hole: torch.Tensor, row_min_frac: float = 0.0
     along an image row, so the known part of a row predicts the row's new part better than the image's median.
     It matters where a keyframe sees mostly new pixels and nothing can measure their depth yet: through a turn
     on the spot the median of the previous view walks the map's scale off (docs/decisions.md:
-    graph.fill_row_min_frac)."""
+    FILL_ROW_MIN_FRAC)."""
     known = ~hole
     whole = disp[known].median()
     if row_min_frac > 0:

@@ -1,6 +1,6 @@
 """OpenCV's two-view RANSAC, with one behaviour for every OpenCV version.
 
-Every essential-matrix fit in pvslam (the map initialisation, loop verification, the flow frontend's epipolar cue)
+Every essential-matrix fit in pvslam (the map initialisation, loop verification, the pose graph's loop check)
 goes through :func:`find_essential`.  Why a wrapper: OpenCV 5.1 raises ``cv2.error`` from
 ``cv2.findEssentialMat`` when the correspondences are degenerate -- a camera that did not move (identical points),
 a pure rotation, collinear points -- (``solvePoly``: "std::abs(coeffs[n].re) + std::abs(coeffs[n].im) >

@@ -13,8 +13,6 @@ from dataclasses import replace
 from time import thread_time
 from typing import Optional
 
-import torch
-
 from ..geometry.ba import weighted_cost
 from ..types import EdgeObservations
 from . import motion_start

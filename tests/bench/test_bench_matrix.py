@@ -182,8 +182,8 @@ def test_reprint_shows_a_saved_run(tmp_path, capsys):
 
 def test_overrides_reach_every_pvslam_run_and_a_typo_fails_first(tmp_path, monkeypatch):
     cells = bench_matrix.plan(["busy_street", "kitti_06"], [3], None, tmp_path, False, False, 1,
-                              ("graph.warmup=3",))
-    assert all(c["overrides"] == ["graph.warmup=3"] for c in cells)
+                              ("graph.init.warmup=3",))
+    assert all(c["overrides"] == ["graph.init.warmup=3"] for c in cells)
     seen = []
 
     def fake_run(overrides, out, name):  # what the cell hands to the pipeline

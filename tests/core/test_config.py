@@ -23,7 +23,7 @@ def test_typo_in_core_section_names_file_key_and_allowed(tmp_path):
         load_config(p)
     msg = str(err.value)
     assert str(p) in msg and "graph.warmupp" in msg
-    assert "allowed keys here:" in msg and "warmup" in msg and "proximity_window" in msg
+    assert "allowed keys here:" in msg and "init" in msg and "edges" in msg and "ba_downsample" in msg
 
 
 def test_typo_in_plugin_params_lists_the_plugins_keys(tmp_path, fake_registry):
@@ -76,15 +76,15 @@ def test_invalid_toml_names_the_file(tmp_path):
 
 
 def test_set_overrides_parse_toml_values():
-    assert parse_override("graph.warmup=7") == ("graph.warmup", 7)
+    assert parse_override("graph.init.warmup=7") == ("graph.init.warmup", 7)
     assert parse_override("run.progress=false") == ("run.progress", False)
     assert parse_override("evaluation.vpq_ks=[0, 5]") == ("evaluation.vpq_ks", [0, 5])
     assert parse_override("dataset.path=/data/kitti") == ("dataset.path", "/data/kitti")
     assert parse_value('"quoted"') == "quoted"
     with pytest.raises(ConfigError):
         parse_override("graph.warmup")
-    cfg = load_config(overrides=["graph.warmup=7", "loop.plugin=none", "run.name=abc"])
-    assert cfg.pipeline.graph.warmup == 7 and not cfg.pipeline.loop.enabled and cfg.pipeline.run.name == "abc"
+    cfg = load_config(overrides=["graph.init.warmup=7", "loop.plugin=none", "run.name=abc"])
+    assert cfg.pipeline.graph.init.warmup == 7 and not cfg.pipeline.loop.enabled and cfg.pipeline.run.name == "abc"
     assert cfg.models["loop"] is None
 
 
@@ -92,13 +92,13 @@ def test_null_unsets_an_optional_key(tmp_path):
     """An optional key set in a config file can be set back to None from the command line; ``none`` stays the
     plugin name, and null on a required key is an error naming it."""
     cfg_file = tmp_path / "c.toml"
-    cfg_file.write_text("[graph]\nretired_margin = 3\n")
-    assert load_config(cfg_file).pipeline.graph.retired_margin == 3
-    assert load_config(cfg_file, overrides=["graph.retired_margin=null"]).pipeline.graph.retired_margin is None
+    cfg_file.write_text("[run]\nmax_frames = 3\n")
+    assert load_config(cfg_file).pipeline.run.max_frames == 3
+    assert load_config(cfg_file, overrides=["run.max_frames=null"]).pipeline.run.max_frames is None
     assert parse_value("none") == "none" and parse_value("null") is None
     with pytest.raises(ConfigError) as err:
-        load_config(overrides=["graph.warmup=null"])
-    assert "graph.warmup" in str(err.value)
+        load_config(overrides=["graph.init.warmup=null"])
+    assert "graph.init.warmup" in str(err.value)
 
 
 def test_override_typo_is_reported():
@@ -115,7 +115,7 @@ def test_apply_overrides_does_not_mutate_and_expands_shorthand():
 
 
 def test_resolved_config_reloads_identically(tmp_path, fake_registry, fake_config_file):
-    cfg = load_config(fake_config_file, overrides=["graph.warmup=4"], registry=fake_registry)
+    cfg = load_config(fake_config_file, overrides=["graph.init.warmup=4"], registry=fake_registry)
     path = tmp_path / "config.json"
     path.write_text(cfg.to_json())
     again = load_config(path, registry=fake_registry)
@@ -145,7 +145,7 @@ name = "no_loop"
 [[variant]]
 name = "offline"
 "optimizer.plugin" = "offline_ba"
-"graph.warmup" = 6
+"graph.init.warmup" = 6
 """
 
 
@@ -157,7 +157,7 @@ def test_ablation_variants(tmp_path):
     assert variants[0].config.pipeline.loop.plugin == "classical"
     assert not variants[1].config.pipeline.loop.enabled
     assert variants[2].config.pipeline.optimizer.plugin == "offline_ba"
-    assert variants[2].config.pipeline.graph.warmup == 6
+    assert variants[2].config.pipeline.graph.init.warmup == 6
     assert all(v.config.pipeline.run.name == "x" for v in variants)
     with pytest.raises(ConfigError, match="ablation file"):
         load_config(p)
@@ -179,12 +179,12 @@ def test_dict_and_model_configs_resolve_like_toml(tmp_path):
     from pvslam_core.config import PipelineConfig
 
     p = tmp_path / "c.toml"
-    p.write_text('[graph]\nwarmup = 7\n[loop]\nplugin = "none"\n')
+    p.write_text('[graph.init]\nwarmup = 7\n[loop]\nplugin = "none"\n')
     from_file = load_config(p)
-    from_dict = load_config({"graph": {"warmup": 7}, "loop": {"plugin": "none"}})
+    from_dict = load_config({"graph": {"init": {"warmup": 7}}, "loop": {"plugin": "none"}})
     from_model = load_config(from_dict.pipeline)
     assert from_dict.pipeline == from_file.pipeline == from_model.pipeline
     with pytest.raises(ConfigError, match="graph.warmupp"):
         load_config({"graph": {"warmupp": 7}})
-    assert load_config({"loop": {"plugin": "none"}}, overrides=["graph.warmup=9"]).pipeline.graph.warmup == 9
+    assert load_config({"loop": {"plugin": "none"}}, overrides=["graph.init.warmup=9"]).pipeline.graph.init.warmup == 9
     assert isinstance(from_model.pipeline, PipelineConfig)

@@ -154,12 +154,12 @@ def test_api_run_path_on_an_image_folder_with_overrides(data, tmp_path):
 
 def test_a_config_file_keeps_everything_but_its_dataset(data, tmp_path):
     cfg = tmp_path / "kitti.toml"
-    cfg.write_text('[dataset]\nplugin = "kitti"\npath = "/nowhere"\nsequence = "06"\n[graph]\nwarmup = 4\n'
+    cfg.write_text('[dataset]\nplugin = "kitti"\npath = "/nowhere"\nsequence = "06"\n[graph.init]\nwarmup = 4\n'
                    f'[run]\noutput_dir = {json.dumps(str(tmp_path / "runs"))}\nprogress = false\nmax_frames = 12\n')
     res = run_path(data / "frames", config=cfg)
     saved = json.loads((Path(res.run_dir) / "config.json").read_text())
     assert saved["dataset"]["plugin"] == "images" and "sequence" not in saved["dataset"]
-    assert saved["graph"]["warmup"] == 4 and res.poses.shape == (12, 7)
+    assert saved["graph"]["init"]["warmup"] == 4 and res.poses.shape == (12, 7)
 
 
 # ---------------------------------------------------------------------------------- fitting to the data --
@@ -247,9 +247,9 @@ def test_a_video_that_claims_too_few_frames_is_read_to_its_end(data, tmp_path, m
     assert f"the container claims 10 frames, {N} were decoded" in caplog.text
 
 
-def test_ba_resolution_follows_the_focal_length():
-    """graph.ba_downsample is halved while the focal length at BA resolution would be below graph.ba_min_focal (24
-    BA px per radian) unless the user set it, graph.ba_min_focal is 0, or the frontend registered a fixed one
+def test_ba_resolution_follows_the_focal_length(monkeypatch):
+    """graph.ba_downsample is halved while the focal length at BA resolution would be below adapt.BA_MIN_FOCAL (24
+    BA px per radian) unless the user set it, the rule is off (0), or the frontend registered a fixed one
     (raft_gru: its feature stride).  A wide image of few rows keeps 1/8: KITTI at half size was halved by the
     earlier row-count rule, which quadrupled its BA grid and cut its speed 3x."""
     reg = build_registry(extra_modules=(fakes,))
@@ -271,9 +271,12 @@ def test_ba_resolution_follows_the_focal_length():
     assert fitted(640, 480, f=160)[0] == 4  # a wide-angle lens: 20 BA px at 1/8, though the grid has 60 rows
     assert fitted(64, 48)[0] == 2 and fitted(64, 48, f=40)[0] == 1  # 8 -> 16 -> 32; 5 -> 10 -> 20 -> 40
     assert fitted(160, 120, "graph.ba_downsample=8", f=136) == (8, [])  # the user's choice stands
-    assert fitted(160, 120, "graph.ba_min_focal=0", f=136) == (8, [])
     assert fitted(160, 120, "graph.ba_downsample=6", f=136)[0] == 6  # set explicitly: never touched
     assert fitted(160, 120, "frontend.plugin=raft_gru", f=136) == (8, [])  # a network's fixed stride
+    import pvslam_core.adapt as adapt
+
+    monkeypatch.setattr(adapt, "BA_MIN_FOCAL", 0.0)
+    assert fitted(160, 120, f=136) == (8, [])  # the rule off
 
 
 def test_the_pipeline_builds_its_frontend_at_the_fitted_resolution(tmp_path):
@@ -299,6 +302,8 @@ def test_old_ba_min_rows_key_still_loads_with_a_warning(caplog):
     with caplog.at_level("WARNING", logger="pvslam.config"):
         cfg = load_config({"graph": {"ba_min_rows": 30}})
     assert "ba_min_rows" in caplog.text and "ignored" in caplog.text
-    assert cfg.pipeline.graph.ba_min_focal == 24.0
+    import pvslam_core.adapt as adapt
+
+    assert cfg.pipeline.graph.ba_downsample == 8 and adapt.BA_MIN_FOCAL == 24.0
     with pytest.raises(ConfigError, match="ba_min_row"):  # a typo of it is still an error
         load_config({"graph": {"ba_min_row": 30}})

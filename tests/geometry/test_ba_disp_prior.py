@@ -136,10 +136,9 @@ def test_prior_on_some_keyframes_in_any_order(problem):
 
 
 def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
-    """Mapper._with_prior: the frontend's Frontend.depth_prior for the unique depth sources of the observations
+    """EdgeObserver.with_prior: the frontend's Frontend.depth_prior for the unique depth sources of the observations
     (after live and retired edges are joined), nothing when the frontend has none."""
-    from pvslam_core.slam.mapper import Mapper
-    from pvslam_core.slam.window_ba import _concat
+    from pvslam_core.slam.observe import EdgeObserver, concat
 
     pr = problem
     asked = []
@@ -156,12 +155,11 @@ def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
             one = torch.ones(len(idx) - 1, dtype=torch.float64)
             return DistancePrior(idx[:-1], idx[1:], one, 5 * one)
 
-    m = Mapper.__new__(Mapper)
-    m.frontend, m.graph = FE(), pr.graph()
+    m = EdgeObserver(pr.graph(), FE())
     o = pr.obs()
     sel = o.ii > 0
     part = EdgeObservations(o.ii[sel], o.jj[sel], o.target[sel], o.weight[sel])
-    got = m._with_prior(_concat([part, part], torch.arange(2 * int(sel.sum()))))
+    got = m.with_prior(concat([part, part], torch.arange(2 * int(sel.sum()))))
     assert asked[-1] == sorted(set(o.ii[sel].tolist()))
     assert got.disp_prior.ids.tolist() == asked[-1] and got.disp_prior.disp.shape == (len(asked[-1]), *pr.shape)
     torch.testing.assert_close(got.disp_prior.disp, pr.disps[got.disp_prior.ids])
@@ -169,4 +167,4 @@ def test_the_mapper_asks_the_frontend_for_the_sources_prior(problem):
     assert asked_dist[-1] == sorted(set(o.ii[sel].tolist()) | set(o.jj[sel].tolist()))
     assert got.dist_prior.ii.tolist() == asked_dist[-1][:-1] and got.dist_prior.jj.tolist() == asked_dist[-1][1:]
     assert got.dist_prior.weight.tolist() == [5.0] * (len(asked_dist[-1]) - 1)
-    assert m._with_prior(o).disp_prior is None  # keyframe 0 among the sources: this frontend gives none
+    assert m.with_prior(o).disp_prior is None  # keyframe 0 among the sources: this frontend gives none

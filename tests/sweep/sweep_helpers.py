@@ -36,7 +36,7 @@ def sweep_text(out: Path, *, scenarios=("driving_loop",), seeds=(0,), extra_sequ
         panoptic_png = {str(panoptic).lower()}
         plots = false
 
-        [graph]
+        [graph.init]
         warmup = 3
         ''') + vps + extra_sequences + variants
 

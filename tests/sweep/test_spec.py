@@ -83,13 +83,13 @@ def test_key_ignores_run_only_settings(tmp_path):
     p = _write(tmp_path, sweep_text(tmp_path / "out"))
     a = load_sweep(p).cells[0]
     b = load_sweep(p, overrides=["run.threads=7", "run.progress=false"]).cells[0]
-    c = load_sweep(p, overrides=["graph.warmup=4"]).cells[0]
+    c = load_sweep(p, overrides=["graph.init.warmup=4"]).cells[0]
     assert a.key == b.key and a.key != c.key and a.key == config_key(a.config)
 
 
 def test_set_overrides_reach_sweep_and_base_not_the_grid(tmp_path):
     p = _write(tmp_path, sweep_text(tmp_path / "out", seeds=(0, 1)))
-    plan = load_sweep(p, overrides=["sweep.seeds=[5]", "graph.warmup=4"])
-    assert {c.seed for c in plan.cells} == {5} and all(c.config.pipeline.graph.warmup == 4 for c in plan.cells)
+    plan = load_sweep(p, overrides=["sweep.seeds=[5]", "graph.init.warmup=4"])
+    assert {c.seed for c in plan.cells} == {5} and all(c.config.pipeline.graph.init.warmup == 4 for c in plan.cells)
     with pytest.raises(ConfigError, match=r"--set dataset.num_frames.*scenario_params"):
         load_sweep(p, overrides=["dataset.num_frames=10"])

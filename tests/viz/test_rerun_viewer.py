@@ -18,7 +18,15 @@ from pvslam_core.outputs.ply import read_ply  # noqa: E402
 from pvslam_core.outputs.trajectory_io import read_tum  # noqa: E402
 from pvslam_core.viz.rerun_viewer import RerunViewer  # noqa: E402
 
-LOOPS = ['loop.plugin="every_kf"', "dataset.frames=16", "loop_closure.nms_keyframes=0"]
+LOOPS = ['loop.plugin="every_kf"', "dataset.frames=16"]
+
+
+@pytest.fixture
+def every_loop(monkeypatch):
+    """No suppression around accepted loops, so that the fake detector's every candidate closes one."""
+    import pvslam_core.slam.loops as loops
+
+    monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)
 
 
 def read_rrd(path: Path) -> dict[str, list[dict]]:
@@ -50,7 +58,7 @@ class Watching(RerunViewer):
         super().on_finish(result, keyframes)
 
 
-def test_a_live_run_is_recorded(fake_registry, fake_config_file, tmp_path):
+def test_a_live_run_is_recorded(fake_registry, fake_config_file, tmp_path, every_loop):
     viewer = Watching(spawn=False, save=tmp_path / "live.rrd")
     res = run_config(fake_config_file, overrides=LOOPS, registry=fake_registry, observer=viewer)
     viewer.close()
@@ -91,7 +99,7 @@ def test_memory_recording_without_sinks(fake_registry, fake_config_file, tmp_pat
     assert len(rows["/world/camera"]) == 12
 
 
-def test_cli_view_replays_a_run_directory(fake_registry, fake_config_file, tmp_path, monkeypatch, capsys):
+def test_cli_view_replays_a_run_directory(fake_registry, fake_config_file, tmp_path, monkeypatch, capsys, every_loop):
     res = run_config(fake_config_file, overrides=LOOPS, registry=fake_registry)
     run = Path(res.run_dir)
     out = tmp_path / "replay.rrd"

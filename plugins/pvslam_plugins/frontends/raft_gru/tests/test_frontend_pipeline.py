@@ -99,18 +99,22 @@ def _run(tmp_path: Path, seq: Path, *extra: str):
 
 def test_pipeline_run_writes_a_trajectory(tmp_path, small_seq):
     res = _run(tmp_path, small_seq, 'frontend.plugin="raft_gru"', 'frontend.profile="fast"', "frontend.rounds=1",
-               "optimizer.final_iters=1")
+               "optimizer.final.iters=1")
     traj = Path(res.run_dir) / "trajectory.txt"
     ts, poses = read_tum(traj)
     assert poses.shape == (FRAMES, 7) and np.isfinite(np.asarray(poses)).all()
     assert res.metrics["tracking"]["keyframes_added"] >= FRAMES // 2
 
 
-def test_state_follows_retirement_and_removal_and_rounds(tmp_path, small_seq):
+def test_state_follows_retirement_and_removal_and_rounds(tmp_path, small_seq, monkeypatch):
+    from pvslam_core.slam.keyframes import KeyframePolicy
+
+    # every proposal an ordinary keyframe (none provisional), so that each new keyframe is optimised while newest
+    monkeypatch.setattr(KeyframePolicy, "_would_be_redundant", lambda self, pose, timestamp: False)
     AuditedFrontend.instances.clear()
     res = _run(tmp_path, small_seq, 'frontend.plugin="raft_gru_audit"', "frontend.rounds=2", 'frontend.profile="fast"',
-               "graph.active_window=3", "graph.warmup=3", "graph.remove_redundant=true", "graph.redundant_thresh=0.3",
-               "graph.provisional_keyframes=false", "optimizer.final_iters=1")
+               "graph.edges.active_window=3", "graph.init.warmup=3", "graph.keyframes.redundant_thresh=0.3",
+               "optimizer.final.iters=1")
     fe = AuditedFrontend.instances[-1]
     assert fe.errors == []
     assert fe.removed and fe.retired, "the run should remove keyframes and retire edges"

@@ -1,6 +1,6 @@
 """Overfitting one tiny clip: a few optimiser steps on DROID's losses (through the differentiable BA) lower that
 clip's loss and its induced-flow error.  A sign error, a detached head or a broken BA gradient makes this fail;
-the long version of the same run (hundreds of steps, the flow error near its floor) is in bench/RESULTS.md."""
+the long version of the same run (hundreds of steps, the flow error near its floor) is in the raft_gru README ("Status on this CPU")."""
 from __future__ import annotations
 
 import pytest
