@@ -3,7 +3,7 @@ the setting became a constant of the code, load only at that constant's value an
 import json
 
 import pytest
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from pvslam_core.slam.dynamic_config import DynamicMaskingConfig
 from pvslam_plugins.frontends.flow import dynamic_masking, frontend, pair_flow, road_prior, track_starts
@@ -84,9 +84,10 @@ def test_old_flat_keys_land_in_the_nested_tables(caplog):
         assert _get(cfg, path) == value, key
     assert "dis.preset" in caplog.text and "dynamic.enabled" in caplog.text
     assert FlowFrontendConfig.model_validate({"eta": 3.0}).dynamic.panoptic_offset == 3.0
-    # a nested table and an old key for the same setting: the new key wins
-    both = FlowFrontendConfig.model_validate({"preset": "fast", "dis": {"preset": "medium"}})
-    assert both.dis.preset == "medium"
+    # a nested table and an old key for the same setting: they must agree (neither silently wins)
+    assert FlowFrontendConfig.model_validate({"preset": "medium", "dis": {"preset": "medium"}}).dis.preset == "medium"
+    with pytest.raises(ValidationError, match="'preset' \\(its old name\\) and 'dis.preset' are both given"):
+        FlowFrontendConfig.model_validate({"preset": "fast", "dis": {"preset": "medium"}})
 
 
 def test_retired_keys_load_at_their_constant_and_fail_otherwise():
