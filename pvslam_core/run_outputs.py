@@ -122,9 +122,10 @@ class RunOutputs:
         self._raise_write_errors()
 
     def close(self, snap: "MapSnapshot", partial: bool = False, frames_done: Optional[int] = None) -> None:
-        """Final files: segments.json, the point clouds, keyframe depth (from the map's snapshot, which need not hold
-        the trajectory); with ``partial`` a metrics.json that says the run stopped early. Write failures are
-        collected as in :meth:`checkpoint`."""
+        """Final files: segments.json and the final map's files (point clouds, keyframe depth: the writers of
+        ``outputs/formats.py``'s ``MAP_WRITERS``, from the map's snapshot, which need not hold the trajectory);
+        with ``partial`` a metrics.json that says the run stopped early. Write failures are collected as in
+        :meth:`checkpoint`."""
         behind, self.behind = self.behind, None
         try:
             if behind is not None:
@@ -133,26 +134,13 @@ class RunOutputs:
             if self.pan_writer is not None:
                 self._write("panoptic/segments.json", self.pan_writer.close)
         kf = snap.keyframes
-        if len(kf.ids) and kf.initialized and (self.cfg.outputs.ply or self.cfg.outputs.keyframe_depth):
-            poses, disps, intr = kf.poses, kf.disps, kf.intrinsics
-            ids = kf.ids.tolist()
-            if self.cfg.outputs.ply:
-                from .outputs.cloud import write_clouds
+        if len(kf.ids) and kf.initialized:  # the final map's files (outputs/formats.py: MAP_WRITERS)
+            from .outputs.formats import MAP_WRITERS, MapOutput
 
-                images = torch.stack([kf.images[i] for i in ids])
-                segs = [kf.segs.get(i) for i in ids]
-                stats = self._write("cloud_rgb.ply", write_clouds, self.dir, poses, disps, intr, images, segs,
-                                    self.categories, kf.frame_index, self.cfg.outputs)
-                if stats:
-                    LOG.info("point cloud: %d of %d keyframe depth pixels kept (relative depth, edges, multi-view "
-                             "consistency, categories), %d points written", stats["kept"], stats["valid"],
-                             stats["rgb"])
-            if self.cfg.outputs.keyframe_depth:
-                from .outputs.keyframes_io import write_keyframes
-
-                fi = kf.frame_index
-                self._write("keyframes/keyframes.json", write_keyframes, self.dir, fi, kf.timestamps, poses,
-                            disps, intr, self.info.intrinsics, [self.names.get(int(i), "") for i in fi.tolist()])
+            run = MapOutput(self.dir, kf, self.categories, self.cfg.outputs, self.info.intrinsics, self.names)
+            for w in MAP_WRITERS:
+                if getattr(self.cfg.outputs, w.enabled):
+                    self._write(w.file, w.load(), run)
         if partial or self.write_errors:
             done = snap.frames if frames_done is None else frames_done
             self._partial_metrics({"frames_written": done})

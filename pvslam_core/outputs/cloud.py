@@ -16,6 +16,7 @@ All masks are computed for every keyframe at once (torch, ``[K, h, w]``).  Poses
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import Any, Optional, Sequence
 
@@ -24,7 +25,9 @@ import torch
 import torch.nn.functional as F
 
 __all__ = ["CloudFilter", "clean_mask", "far_mask", "edge_mask", "consistency_count", "category_mask",
-           "voxel_downsample", "median_depth"]
+           "voxel_downsample", "median_depth", "write_clouds", "write_run_clouds"]
+
+LOG = logging.getLogger("pvslam")
 
 
 #: flying pixels: a 3x3 neighbourhood spanning a disparity ratio above this is a depth discontinuity
@@ -226,4 +229,17 @@ def write_clouds(run_dir: Any, poses_wc: torch.Tensor, disps: torch.Tensor, intr
             pts2, cols2, extra2 = voxel_downsample(pts2, voxel, cols2, extra2, average=False)
         write_ply(run_dir / "cloud_panoptic.ply", pts2, cols2, extra=extra2)
         stats["panoptic"] = len(pts2)
+    return stats
+
+
+def write_run_clouds(run) -> dict[str, int]:
+    """The run's clouds from its final map (``run``: :class:`.formats.MapOutput`; a line of ``MAP_WRITERS``)."""
+    kf = run.keyframes
+    ids = kf.ids.tolist()
+    images = torch.stack([kf.images[i] for i in ids])
+    segs = [kf.segs.get(i) for i in ids]
+    stats = write_clouds(run.dir, kf.poses, kf.disps, kf.intrinsics, images, segs, run.categories, kf.frame_index,
+                         run.outputs)
+    LOG.info("point cloud: %d of %d keyframe depth pixels kept (relative depth, edges, multi-view consistency, "
+             "categories), %d points written", stats["kept"], stats["valid"], stats["rgb"])
     return stats

@@ -118,3 +118,12 @@ def read_keyframes(run_dir: str | os.PathLike, load_depth: bool = True) -> dict[
         out["depth"] = (np.stack([np.load(d / e["depth_file"]) for e in kfs]) if kfs
                         else np.zeros((0, di["height"], di["width"]), np.float32))
     return out
+
+
+def write_run_keyframes(run) -> Path:
+    """The run's ``keyframes/`` from its final map (``run``: :class:`.formats.MapOutput`; a line of
+    ``MAP_WRITERS``)."""
+    kf = run.keyframes
+    fi = kf.frame_index
+    return write_keyframes(run.dir, fi, kf.timestamps, kf.poses, kf.disps, kf.intrinsics, run.intrinsics,
+                           [run.names.get(int(i), "") for i in fi.tolist()])
