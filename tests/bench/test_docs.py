@@ -70,7 +70,8 @@ def test_named_files_exist(doc):
 def _keys(text: str) -> set[str]:
     """Dotted config keys the text names in backticks, with or without a value (`frontend.road.enabled=false`)."""
     sections = "graph|frontend|optimizer|loop_closure|outputs|run|dataset|segmenter|vps|evaluation"
-    return {m.group(1) for m in re.finditer(rf"`(?:--set )?((?:{sections})\.[a-z_.]*[a-z_])(?:\s*=[^`]*)?`", text)}
+    found = re.finditer(rf"`(?:--set )?((?:{sections})\.[a-z_.]*[a-z_])(?:\s*=[^`]*)?`", text)
+    return {m.group(1) for m in found if not m.group(1).endswith(".py")}  # `frontend.py` is a file
 
 
 def _plugin_keys(interface: str) -> set[str]:
