@@ -116,6 +116,10 @@ def test_the_path_sets_the_reader_and_where_the_data_is(layouts, tmp_path, caplo
                              "fps": 30.0}  # --calib wins over the config's calib
     assert "dataset: timestamps='filename' in the config ignored: not a valid video option" in caplog.text
     assert merged(layouts["tum"], {"dataset": "tum"}) == merged(layouts["tum"], None)
+    # time-like file names give timestamps='filename', but a config for the image reader may say otherwise
+    assert merged(layouts["tum"] / "rgb", None)["timestamps"] == "filename"
+    ds = merged(layouts["tum"] / "rgb", {"dataset": {"plugin": "images", "timestamps": "fps", "fps": 20.0}})
+    assert (ds["timestamps"], ds["fps"]) == ("fps", 20.0)
 
 
 def test_api_run_path_keeps_the_config_dataset_keys(data, tmp_path):

@@ -180,7 +180,7 @@ def detect(path: Path):  # type: ignore[no-untyped-def]
             options["timestamps"] = "filename"
     except DatasetError:
         pass
-    return DatasetMatch(0.5, options, f"folder of {len(files)} images")
+    return DatasetMatch(0.5, options, f"folder of {len(files)} images", guessed=("timestamps",))
 
 
 def make_reader(config: ImagesConfig, context=None) -> ImagesReader:  # type: ignore[no-untyped-def]
