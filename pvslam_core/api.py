@@ -43,31 +43,64 @@ def run_config(config: ConfigLike = None, overrides=None, run_dir: Optional[Unio
 
 
 def path_overrides(path: Union[str, Path], calib: Optional[Union[str, Path]] = None, overrides=None,
-                   registry=None) -> tuple[dict[str, Any], Any]:
+                   registry=None, config: ConfigLike = None) -> tuple[dict[str, Any], Any]:
     """The overrides that point a pipeline at ``path`` (the reader detected from it, ``calib`` as its calibration,
-    a run name from the file name unless ``overrides`` set one), and the detection."""
-    from .datasets.detect import dataset_section, run_name_for
+    a run name from the file name unless ``overrides`` set one), and the detection.  The ``[dataset]`` keys of
+    ``config`` that the detected reader has still apply (``resize``, ``stride``, ``end`` ...); the others are
+    dropped with a notice that names them (see :func:`~pvslam_core.datasets.detect.merge_config_section`)."""
+    from .adapt import NOTICE
+    from .datasets.detect import dataset_section, merge_config_section, run_name_for
 
     det = dataset_section(path, calib, registry)
     ov = _normalise_overrides(overrides)
-    out = {"dataset": det.section()}  # the whole [dataset] table: a config's other reader keys do not apply
+    table = _config_dataset_table(config)
+    section, taken, dropped = merge_config_section(det, table, registry)
+    where = config if isinstance(config, (str, Path)) else "the config"
+    if taken:
+        NOTICE.warning("dataset: from %s: %s", where, ", ".join(f"{k}={section[k]!r}" for k in taken))
+    for why, keys in dropped.items():
+        NOTICE.warning("dataset: %s in %s ignored: %s", ", ".join(keys), where, why)
+    out: dict[str, Any] = {"dataset": section}
     if "run.name" not in ov:
         out["run.name"] = run_name_for(path)
     return {**out, **{k: v for k, v in ov.items() if not k.startswith("dataset.") and k != "dataset"},
             **{k: v for k, v in ov.items() if k.startswith("dataset.")}}, det
 
 
+def _config_dataset_table(config: ConfigLike) -> dict[str, Any]:
+    """The ``[dataset]`` table of a config as written (no defaults filled in): {} without a config."""
+    from .config import read_config_text, read_toml
+
+    if config is None or isinstance(config, ResolvedConfig):
+        return {}
+    if isinstance(config, PipelineConfig):
+        table: Any = config.dataset.model_dump(mode="json")
+    elif isinstance(config, dict):
+        table = config.get("dataset")
+    elif str(config).endswith(".json"):
+        try:
+            table = json.loads(read_config_text(config)).get("dataset")
+        except (json.JSONDecodeError, AttributeError):
+            return {}  # load_config reports it
+    else:
+        table = read_toml(config).get("dataset")
+    if isinstance(table, str):  # `dataset = "kitti"`
+        return {"plugin": table}
+    return dict(table) if isinstance(table, dict) else {}
+
+
 def run_path(path: Union[str, Path], calib: Optional[Union[str, Path]] = None, config: ConfigLike = None,
              overrides=None, run_dir: Optional[Union[str, Path]] = None, registry=None, observer=None) -> RunResult:
     """Run on a video file, an image folder or a dataset layout detected from ``path`` (see
-    :mod:`pvslam_core.datasets.detect`); ``config`` supplies everything but the dataset (None: the default).
-    Components that need labels the data lacks are switched off (see :mod:`pvslam_core.adapt`)."""
+    :mod:`pvslam_core.datasets.detect`); ``config`` supplies everything else, its ``[dataset]`` keys that the
+    detected reader has included (None: the default).  Components that need labels the data lacks are switched off
+    (see :mod:`pvslam_core.adapt`)."""
     from .adapt import NOTICE
 
-    ov, det = path_overrides(path, calib, overrides, registry)
-    NOTICE.warning("input: %s (%s reader)", det.description, det.plugin)
     if isinstance(config, ResolvedConfig):
         raise ValueError("run_path takes a config path, dict or PipelineConfig (the dataset is replaced)")
+    ov, det = path_overrides(path, calib, overrides, registry, config=config)
+    NOTICE.warning("input: %s (%s reader)", det.description, det.plugin)
     return run_config(config, overrides=ov, run_dir=run_dir, registry=registry, observer=observer)
 
 

@@ -125,7 +125,7 @@ def _cmd_run(args) -> int:
             return _fail(f"{len(failed)} of {len(results)} variants failed: {', '.join(failed)}", EXIT_RUNTIME)
         return 0
     if args.path:
-        overrides, det = path_overrides(args.path, args.calib, overrides)
+        overrides, det = path_overrides(args.path, args.calib, overrides, config=args.config)
         print(f"pvslam: input: {det.description} ({det.plugin} reader)", file=sys.stderr)
     viewer = _viewer(spawn=args.viz, save=args.viz_save) if (args.viz or args.viz_save) else None
     try:

@@ -6,6 +6,8 @@
   is not part of the file: the caller supplies it (usually from the first image).
 * **YAML / XML** (ORB-SLAM2 ``Camera.fx``..., ORB-SLAM3 ``Camera1.fx``..., OpenCV FileStorage ``camera_matrix`` /
   ``distortion_coefficients``): see :mod:`pvslam_core.datasets.calib_yaml`.
+* **KITTI projection rows** (odometry ``calib.txt``: ``P0: 12 numbers`` ...; raw ``calib_cam_to_cam.txt``:
+  ``P_rect_02: ...``): the row of the camera in use, see :mod:`pvslam_core.datasets.calib_kitti`.
 
 :func:`read_calibration` tells the formats apart by content; anything else is an error that names the file and
 lists what was expected.
@@ -15,18 +17,20 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Sequence
+from typing import Optional, Sequence
 
 from ..types import Intrinsics
 from .base import DatasetError
+from .calib_kitti import intrinsics_from_projection_file, is_projection_text
 
 _SPLIT = re.compile(r"[\s,]+")
 VALID_COUNTS = (4, 8, 9, 12)
 VALUE_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 VALUES_FORMAT = "fx fy cx cy [k1 k2 p1 p2 [k3 [k4 k5 k6]]]"
 #: what a calibration file may be, for error messages
-EXPECTED_FORMATS = (f"one line '{VALUES_FORMAT}' (DROID-SLAM), an ORB-SLAM YAML (Camera.fx ... or Camera1.fx ...) "
-                    "or an OpenCV FileStorage YAML/XML with camera_matrix and distortion_coefficients")
+EXPECTED_FORMATS = (f"one line '{VALUES_FORMAT}' (DROID-SLAM), an ORB-SLAM YAML (Camera.fx ... or Camera1.fx ...), "
+                    "an OpenCV FileStorage YAML/XML with camera_matrix and distortion_coefficients, or KITTI "
+                    "projection rows (P0: 12 numbers ... / P_rect_02: 12 numbers)")
 
 
 def intrinsics_from_values(values: Sequence[float], width: int, height: int, source: str = "calib") -> Intrinsics:
@@ -93,10 +97,13 @@ def _value_name(k: int) -> str:
     return VALUE_NAMES[k] if k < len(VALUE_NAMES) else f"value {k + 1}"
 
 
-def read_calibration(path: str | Path, width: int, height: int) -> Intrinsics:
-    """The intrinsics in ``path`` (values, ORB-SLAM or OpenCV YAML/XML) for an image of ``width`` x ``height``."""
+def read_calibration(path: str | Path, width: int, height: int, camera: Optional[int] = None) -> Intrinsics:
+    """The intrinsics in ``path`` (values, ORB-SLAM or OpenCV YAML/XML, KITTI projection rows) for an image of
+    ``width`` x ``height``; ``camera`` picks a KITTI file's row (``P2`` / ``P_rect_02`` for 2; None: P0)."""
     p = Path(path)
     text = _read_text(p)
+    if is_projection_text(text):
+        return intrinsics_from_projection_file(p, text, width, height, camera)
     if is_structured(p, text):
         from .calib_yaml import intrinsics_from_filestorage
 
@@ -109,14 +116,15 @@ def read_calibration(path: str | Path, width: int, height: int) -> Intrinsics:
 
 def calibration_from_option(
     calib: "str | Path | Sequence[float] | None", width: int, height: int, search: Sequence[Path] = (),
-    owner: str = "reader",
+    owner: str = "reader", camera: Optional[int] = None,
 ) -> Intrinsics:
-    """A reader's ``calib`` option: values, a file path, or None (then the first ``calib.txt`` in ``search``)."""
+    """A reader's ``calib`` option: values, a file path, or None (then the first ``calib.txt`` in ``search``);
+    ``camera``: the KITTI camera whose projection row a KITTI file gives (see :func:`read_calibration`)."""
     if calib is None:
         for d in search:
             p = Path(d) / "calib.txt"
             if p.is_file():
-                return read_calibration(p, width, height)
+                return read_calibration(p, width, height, camera)
         where = ", ".join(str(Path(d) / "calib.txt") for d in search) or "(nowhere)"
         raise DatasetError(
             f"{owner}: no calibration: set 'calib' (--calib) to a file or to [fx, fy, cx, cy, (k1, k2, p1, p2, "
@@ -124,5 +132,5 @@ def calibration_from_option(
             f"looked for {where}"
         )
     if isinstance(calib, (str, Path)):
-        return read_calibration(Path(calib).expanduser(), width, height)
+        return read_calibration(Path(calib).expanduser(), width, height, camera)
     return intrinsics_from_values(list(calib), width, height, source=f"{owner} config 'calib'")

@@ -6,6 +6,11 @@ files, never decoding a whole video -- and says how specific its match is and wh
 most specific match wins (a KITTI ``image_2`` folder is also a plain image folder: the ``kitti`` match scores
 higher).  Scores: 1.0 for a layout identified by its own files (``rgb.txt``, ``mav0/``, ``sequences/NN``), 0.9 for
 a file type (a video extension), 0.5 for a generic folder of images.
+
+With a config (``pvslam run PATH --config FILE``), :func:`merge_config_section` keeps the config's ``[dataset]``
+keys the detected reader has (a ``resize``, ``stride``, ``end`` ...); the path sets the reader and where the data
+is.  A match lists in ``guessed`` the options it chose without reading them from the path (KITTI's camera when
+the path is a sequence folder): a config for the same reader may set those.
 """
 from __future__ import annotations
 
@@ -27,6 +32,7 @@ class DatasetMatch:
     score: float
     options: dict[str, Any] = field(default_factory=dict)
     description: str = ""
+    guessed: tuple[str, ...] = ()  # options picked for the path, not read from it: a config for the reader may set them
 
 
 @dataclass
@@ -36,6 +42,7 @@ class Detection:
     score: float
     description: str
     others: list[tuple[str, float]] = field(default_factory=list)  # the other plugins that matched, with scores
+    guessed: tuple[str, ...] = ()
 
     def section(self) -> dict[str, Any]:
         """The ``[dataset]`` table of a config: ``{"plugin": ..., **options}``."""
@@ -81,7 +88,7 @@ def detect_dataset(path: str | Path, registry=None) -> Detection:
         tied = ", ".join(n for s, n, _ in matches if s == score)
         LOG.warning("%s: recognised equally well by %s; using %s", p, tied, name)
     return Detection(name, dict(best.options), score, best.description or name,
-                     [(n, s) for s, n, _ in matches[1:]])
+                     [(n, s) for s, n, _ in matches[1:]], tuple(best.guessed))
 
 
 def dataset_section(path: str | Path, calib: Optional[str | Path] = None, registry=None) -> Detection:
@@ -101,6 +108,40 @@ def dataset_section(path: str | Path, calib: Optional[str | Path] = None, regist
                               f"({det.description}); it has no 'calib' option")
         det.options["calib"] = str(c)
     return det
+
+
+def merge_config_section(det: Detection, table: dict[str, Any],
+                         registry=None) -> tuple[dict[str, Any], list[str], dict[str, list[str]]]:
+    """The ``[dataset]`` table of a run on a path with a config: the detected reader and the options the path
+    sets (a config for the same reader, or for none, may set its ``guessed`` ones), plus the config table's other
+    keys where the detected reader has them (``resize``, ``stride``, ``end``, a ``calib`` ...).  Returns the table,
+    the config keys taken, and the config keys dropped by why (the reader has no such option, or, from a config
+    for another reader, a value this one does not accept)."""
+    from pydantic import ValidationError
+
+    from ..registry import get_registry
+
+    model = (registry or get_registry()).get("dataset", det.plugin).config_model
+    fields = getattr(model, "model_fields", {})
+    same = str(table.get("plugin", det.plugin)) == det.plugin  # a table without `plugin` is for any reader
+    section, taken = det.section(), []
+    absent, invalid = f"the {det.plugin} reader has no such option", f"not a valid {det.plugin} option"
+    dropped: dict[str, list[str]] = {absent: [], invalid: []}
+    for key, value in table.items():
+        if key == "plugin" or (key in det.options and not (same and key in det.guessed)):
+            continue  # the path sets it
+        if key not in fields:
+            dropped[absent].append(key)
+            continue
+        if not same:
+            try:
+                model.model_validate({**det.options, **{k: section[k] for k in taken}, key: value})
+            except ValidationError:
+                dropped[invalid].append(f"{key}={value!r}")
+                continue
+        section[key] = value
+        taken.append(key)
+    return section, taken, {why: keys for why, keys in dropped.items() if keys}
 
 
 def run_name_for(path: str | Path) -> str:

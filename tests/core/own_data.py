@@ -46,3 +46,61 @@ def own_data(tmp_path_factory) -> Path:
     (root / "orb.yaml").write_text(ORB_SLAM2_YAML)
     _CACHE["root"] = root
     return root
+
+
+def kitti_rows(fx: float = FX, cx: float = CX, cy: float = CY, baseline: float = 0.54) -> str:
+    """KITTI odometry calib.txt text: P0..P3 (P1/P3 a stereo pair ``baseline`` m to the right), Tr."""
+    rows = []
+    for k, t in enumerate((0.0, -fx * baseline, 0.06 * fx, -fx * (baseline - 0.06))):
+        rows.append(f"P{k}: " + " ".join(f"{v:.12e}" for v in (fx, 0, cx, t, 0, fx, cy, 0, 0, 0, 1, 0)))
+    rows.append("Tr: " + " ".join(f"{v:.12e}" for v in (1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0)))
+    return "\n".join(rows) + "\n"
+
+
+EUROC_SENSOR = f"""sensor_type: camera
+T_BS:
+  cols: 4
+  rows: 4
+  data: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+rate_hz: {FPS}
+resolution: [{W}, {H}]
+camera_model: pinhole
+intrinsics: [{FX}, {FX}, {CX}, {CY}]
+distortion_model: radial-tangential
+distortion_coefficients: [0.0, 0.0, 0.0, 0.0]
+"""
+
+
+def own_layouts(tmp_path_factory) -> dict[str, Path]:
+    """The own-data frames as the layouts users bring, each with its own calibration: a KITTI sequence folder under
+    a parent not named ``sequences`` (calib.txt of P0..P3; times.txt with 5 rows more than images), an EuRoC
+    sequence (mav0/cam0 + sensor.yaml), a TUM folder (rgb.txt; its calibration: ORB-SLAM's YAML, ``orb.yaml``)."""
+    if "layouts" in _CACHE:
+        return _CACHE["layouts"]
+    root = own_data(tmp_path_factory)
+    out = root / "layouts"
+    frames = sorted((root / "frames").glob("*.png"))
+    kitti = out / "drives" / "my_drive"
+    (kitti / "image_0").mkdir(parents=True)
+    (kitti / "calib.txt").write_text(kitti_rows())
+    (kitti / "times.txt").write_text("".join(f"{i / FPS:.6e}\n" for i in range(len(frames) + 5)))
+    cam0 = out / "euroc_mine" / "mav0" / "cam0"
+    (cam0 / "data").mkdir(parents=True)
+    (cam0 / "sensor.yaml").write_text(EUROC_SENSOR)
+    tum = out / "tum_mine"
+    (tum / "rgb").mkdir(parents=True)
+    csv, rgb = ["#timestamp [ns],filename"], ["# timestamp filename"]
+    for i, f in enumerate(frames):
+        shutil.copy(f, kitti / "image_0" / f"{i:06d}.png")
+        ns = 1403636579763555584 + i * int(1e9 / FPS)
+        shutil.copy(f, cam0 / "data" / f"{ns}.png")
+        csv.append(f"{ns},{ns}.png")
+        t = 1305031102.175304 + i / FPS
+        shutil.copy(f, tum / "rgb" / f"{t:.6f}.png")
+        rgb.append(f"{t:.6f} rgb/{t:.6f}.png")
+    (cam0 / "data.csv").write_text("\n".join(csv) + "\n")
+    (tum / "rgb.txt").write_text("\n".join(rgb) + "\n")
+    (root / "kitti_calib.txt").write_text(kitti_rows())
+    _CACHE["layouts"] = {"kitti": kitti, "euroc": out / "euroc_mine", "tum": tum, "video": root / "clip.avi",
+                         "orb": root / "orb.yaml", "kitti_calib": root / "kitti_calib.txt"}
+    return _CACHE["layouts"]

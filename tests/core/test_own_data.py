@@ -116,8 +116,9 @@ def test_calib_goes_to_the_reader_or_is_refused(tmp_path):
     spec = build_registry().get("dataset", det.plugin)
     k = spec.factory(spec.config_model(**det.options, crop_multiple=1), None).info().intrinsics
     assert (k.fx, k.cx, k.width) == (100, 15.5, 32)
-    with pytest.raises(ConfigError, match=r"the kitti reader takes its calibration from the dataset .*no 'calib'"):
-        dataset_section(L["kitti_seq"], calib)
+    with pytest.raises(ConfigError, match=r"the euroc reader takes its calibration from the dataset .*no 'calib'"):
+        dataset_section(L["euroc"], calib)
+    assert dataset_section(L["kitti_seq"], calib).options["calib"] == str(calib)  # KITTI's calib.txt ships apart
     with pytest.raises(ConfigError, match=r"--calib .*missing\.txt: calibration file not found"):
         dataset_section(L["images"], tmp_path / "missing.txt")
     assert main(["run", "--calib", str(calib)]) == 2  # --calib without a PATH

@@ -225,9 +225,9 @@ def detect(path: Path):  # type: ignore[no-untyped-def]
     from pvslam_core.datasets.detect import DatasetMatch
 
     p = path.resolve()
-    camera = "cam0"
+    camera, guessed = "cam0", ("camera",)
     if p.name in ("cam0", "cam1") and p.parent.name == "mav0":
-        camera, mav = p.name, p.parent
+        camera, mav, guessed = p.name, p.parent, ()
     elif p.name == "mav0":
         mav = p
     else:
@@ -236,7 +236,8 @@ def detect(path: Path):  # type: ignore[no-untyped-def]
     if not ((cam / "data.csv").is_file() and (cam / "sensor.yaml").is_file()):
         return None
     name = mav.parent.name if mav.name == "mav0" else mav.name
-    return DatasetMatch(1.0, {"path": str(mav.parent), "camera": camera}, f"EuRoC MAV sequence {name} ({camera})")
+    return DatasetMatch(1.0, {"path": str(mav.parent), "camera": camera}, f"EuRoC MAV sequence {name} ({camera})",
+                        guessed)
 
 
 def make_reader(config: EurocConfig, context=None) -> EurocReader:  # type: ignore[no-untyped-def]

@@ -30,6 +30,7 @@ import torch
 
 from pvslam_core.datasets.base import DatasetError, ImageFileReader
 from pvslam_core.datasets.calib import calibration_from_option
+from pvslam_core.datasets.calib_kitti import camera_from_folder
 from pvslam_core.datasets.io import (associate_nearest, associate_poses, check_timestamps, image_size, list_images,
                                      natural_key, read_rgb)
 from pvslam_core.types import Frame
@@ -72,7 +73,8 @@ class ImagesReader(ImageFileReader):
             self.timestamps = np.arange(len(self.files), dtype=np.float64) / options.fps
         w, h = image_size(self.files[0])
         self._intr = calibration_from_option(
-            options.calib, w, h, search=(self.folder, self.folder.parent), owner=f"images reader ({self.folder})"
+            options.calib, w, h, search=(self.folder, self.folder.parent), owner=f"images reader ({self.folder})",
+            camera=camera_from_folder(self.folder),  # a KITTI calib.txt: image_2 takes P2
         )
         self.poses: Optional[np.ndarray] = None
         self._gt: Optional[tuple[np.ndarray, np.ndarray]] = None
@@ -178,7 +180,7 @@ def detect(path: Path):  # type: ignore[no-untyped-def]
             options["timestamps"] = "filename"
     except DatasetError:
         pass
-    return DatasetMatch(0.5, options, f"folder of {len(files)} images")
+    return DatasetMatch(0.5, options, f"folder of {len(files)} images", guessed=("timestamps",))
 
 
 def make_reader(config: ImagesConfig, context=None) -> ImagesReader:  # type: ignore[no-untyped-def]

@@ -5,7 +5,7 @@
     <path>/rgb.txt            "timestamp rgb/<t>.png" lines ('#' comments)
     <path>/depth.txt          "timestamp depth/<t>.png" (16-bit PNG, value / 5000 = metres, 0 = invalid); optional
     <path>/groundtruth.txt    TUM trajectory "timestamp tx ty tz qx qy qz qw" (T_wc); optional
-    <path>/calib.txt          "fx fy cx cy [k1 k2 p1 p2 [k3]]"; optional
+    <path>/calib.txt          "fx fy cx cy [k1 k2 p1 p2 [k3]]" (or any format --calib reads); optional
 
 Every rgb frame is yielded; depth and ground truth are attached by nearest timestamp within ``max_diff``
 (0.02 s, as TUM's associate.py).  Intrinsics, in increasing precedence: the freiburg preset chosen from the
@@ -30,7 +30,7 @@ from typing import Optional
 import numpy as np
 
 from pvslam_core.datasets.base import BaseReader, DatasetError
-from pvslam_core.datasets.calib import calibration_from_option, intrinsics_from_values, read_calibration_values
+from pvslam_core.datasets.calib import calibration_from_option, intrinsics_from_values, read_calibration
 from pvslam_core.datasets.io import (
     associate_nearest,
     associate_poses,
@@ -103,7 +103,7 @@ class TumReader(BaseReader):
             return calibration_from_option(self.cfg.calib, w, h, owner="tum reader")
         calib_txt = self.root / "calib.txt"
         if calib_txt.is_file():
-            return intrinsics_from_values(read_calibration_values(calib_txt), w, h, source=str(calib_txt))
+            return read_calibration(calib_txt, w, h)
         preset = preset_for(self.root)
         if preset is None:
             raise DatasetError(

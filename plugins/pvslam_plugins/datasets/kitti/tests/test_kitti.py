@@ -1,7 +1,12 @@
-"""The ``kitti`` reader: on the shared KITTI excerpts (when present) and on layouts written by the test."""
+"""The ``kitti`` reader: on the shared KITTI excerpts (when present) and on layouts written by the test; a
+sequence folder is recognised by its content wherever it is (symlinks included), times.txt may have more rows
+than images, and the real excerpts run in one line (`pvslam run PATH --calib calib.txt`)."""
 from __future__ import annotations
 
+import json
 import logging
+import os
+import shutil
 from pathlib import Path
 
 import cv2
@@ -9,7 +14,9 @@ import numpy as np
 import pytest
 import torch
 
+from pvslam_core.cli import main
 from pvslam_core.datasets.base import DatasetError
+from pvslam_core.datasets.detect import dataset_section, detect_dataset
 from pvslam_core.outputs.trajectory_io import pose_to_matrix
 from pvslam_plugins.datasets.kitti.config import KittiConfig
 from pvslam_plugins.datasets.kitti.reader import KittiReader
@@ -186,3 +193,119 @@ def test_invalid_projection_matrix_names_the_calibration_file(tmp_path):
         KittiReader(KittiConfig(path=str(tmp_path), sequence="07"))
     msg = str(err.value)
     assert str(calib) in msg and "P0" in msg and "fx=0.0" in msg
+
+
+# ------------------------------------------------------------------------- sequence folders anywhere ----
+def reader(det) -> KittiReader:
+    assert det.plugin == "kitti", det
+    return KittiReader(KittiConfig(**det.options, crop_multiple=1))
+
+
+def test_a_sequence_folder_is_recognised_by_its_content_wherever_it_is(tmp_path):
+    fake_kitti(tmp_path / "kitti")
+    mine = tmp_path / "my drives" / "drive_a"
+    shutil.copytree(tmp_path / "kitti" / "sequences" / "07", mine)
+    det = detect_dataset(mine)
+    assert det.options == {"path": str(mine), "sequence": "drive_a", "camera": "image_0"}
+    r = reader(det)
+    info = r.info()
+    assert info.num_frames == 4 and info.name == "kitti_drive_a_image_0" and not info.has_gt_pose
+    assert (info.intrinsics.fx, info.intrinsics.cx) == (K[0, 0], K[0, 2])
+    assert r[2].timestamp == pytest.approx(0.2074)
+    det = detect_dataset(mine / "image_2")
+    assert det.options["camera"] == "image_2" and reader(det)[0].image.shape[1:] == (48, 64)
+
+
+def test_a_symlinked_sequences_folder_and_a_symlinked_sequence(tmp_path):
+    """`sequences` is a link to a folder of another name (its ground truth is found through the link), and a
+    link named anything points at one sequence."""
+    fake_kitti(tmp_path / "store")
+    os.rename(tmp_path / "store" / "sequences", tmp_path / "store" / "odometry_seqs")
+    root = tmp_path / "kitti"
+    root.mkdir()
+    (root / "sequences").symlink_to(tmp_path / "store" / "odometry_seqs")
+    (root / "poses").symlink_to(tmp_path / "store" / "poses")
+    det = detect_dataset(root / "sequences" / "07")
+    assert det.options == {"path": str(root), "sequence": "07", "camera": "image_0"}
+    assert reader(det).info().has_gt_pose
+    link = tmp_path / "latest"
+    link.symlink_to(root / "sequences" / "07")
+    det = detect_dataset(link)
+    assert det.options == {"path": str(link), "sequence": "latest", "camera": "image_0"}
+    assert len(reader(det)) == 4
+
+
+def test_times_txt_with_more_rows_than_images_uses_the_first(tmp_path, caplog):
+    fake_kitti(tmp_path)
+    times = tmp_path / "sequences" / "07" / "times.txt"
+    times.write_text("".join(f"{0.1 * i:.6e}\n" for i in range(6)))
+    with caplog.at_level(logging.WARNING):
+        r = KittiReader(KittiConfig(path=str(tmp_path), sequence="07"))
+    assert len(r) == 4 and r[3].timestamp == pytest.approx(0.3) and r.info().has_gt_pose
+    assert f"{times}: 6 timestamps for 4 images" in caplog.text and "using the first 4" in caplog.text
+    times.write_text("0\n0.1\n0.2\n")
+    with pytest.raises(DatasetError, match=r"times\.txt: 3 timestamps for 4 images in .*image_0"):
+        KittiReader(KittiConfig(path=str(tmp_path), sequence="07"))
+
+
+def test_a_sequence_without_calib_txt_takes_calib(tmp_path):
+    """KITTI ships calib.txt in a separate archive: a sequence folder with times.txt is recognised without it, and
+    `--calib` gives it (the kitti reader's `calib`)."""
+    fake_kitti(tmp_path)
+    seq = tmp_path / "sequences" / "07"
+    (seq / "calib.txt").rename(tmp_path / "calib.txt")
+    det = detect_dataset(seq)
+    with pytest.raises(DatasetError, match=r"calib\.txt: calibration file not found \(KITTI ships it in "
+                                           r"data_odometry_calib; or give --calib FILE\)"):
+        reader(det)
+    det = dataset_section(seq, tmp_path / "calib.txt")
+    assert det.options["calib"] == str(tmp_path / "calib.txt") and reader(det).info().intrinsics.fx == K[0, 0]
+
+
+# ------------------------------------------------------------------------------------------- real excerpts ----
+SHORT = '[dataset]\nresize = [620, 188]\nend = 24\n[loop]\nplugin = "none"\n'
+
+
+@pytest.fixture(scope="module")
+def seq00(shared_dir) -> Path:
+    seq = shared_dir / "data" / "kitti-odometry" / "sequences" / "00"
+    if not (seq / "calib.txt").is_file():
+        pytest.skip(f"{seq}: KITTI excerpt not present")
+    return seq
+
+
+def run_cli(path: Path, calib: Path, tmp_path: Path, capsys) -> tuple[dict, dict, str]:
+    cfg = tmp_path / "short.toml"
+    cfg.write_text(SHORT)
+    out = tmp_path / "runs"
+    code = main(["run", str(path), "--calib", str(calib), "--config", str(cfg), "--output-dir", str(out), "-q"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    (run,) = out.iterdir()
+    return (json.loads((run / "config.json").read_text()), json.loads((run / "metrics.json").read_text()),
+            err + (run / "log.txt").read_text())
+
+
+def test_real_excerpt_runs_in_one_line_with_its_calib_txt(seq00, tmp_path, capsys):
+    cfg, metrics, said = run_cli(seq00, seq00 / "calib.txt", tmp_path, capsys)
+    assert "pvslam: input: KITTI odometry sequence 00 (image_0)" in said
+    assert cfg["dataset"]["plugin"] == "kitti" and cfg["dataset"]["sequence"] == "00"
+    assert cfg["dataset"]["resize"] == [620, 188] and metrics["timing"]["frames"] == 24  # the config's keys apply
+    assert metrics["tracking"]["initialized"]
+    assert "ate" in metrics  # poses/00.txt found beside sequences/
+
+
+def test_real_excerpt_under_a_parent_not_named_sequences(seq00, tmp_path, capsys):
+    """The excerpt's images linked into a folder of another name, calib.txt copied, a full-length times.txt (more
+    rows than the excerpt's images)."""
+    mine = tmp_path / "drives" / "city"
+    mine.mkdir(parents=True)
+    (mine / "image_0").symlink_to(seq00 / "image_0")
+    shutil.copy(seq00 / "calib.txt", mine / "calib.txt")
+    n = len(list((seq00 / "image_0").glob("*.png")))
+    (mine / "times.txt").write_text("".join(f"{i / 10:.6e}\n" for i in range(4541)))
+    cfg, metrics, said = run_cli(mine, mine / "calib.txt", tmp_path, capsys)
+    assert "pvslam: input: KITTI odometry sequence city (image_0)" in said
+    assert f"4541 timestamps for {n} images" in said
+    assert cfg["dataset"]["path"] == str(mine) and metrics["timing"]["frames"] == 24
+    assert metrics["tracking"]["initialized"]
