@@ -284,7 +284,7 @@ def resolve_weights(spec: Union[str, os.PathLike], progress: bool = True) -> Pat
 # ------------------------------------------------------------------------------------------- local files --
 #: the first bytes of a Git LFS pointer file (a checkout without ``git lfs pull`` holds these instead of the data)
 LFS_POINTER = b"version https://git-lfs"
-_UNSAFE = re.compile(r"GLOBAL (\S+) was not an allowed global|whose module (\S+) is blocked")
+_UNSAFE = re.compile(r"GLOBAL (\S+) (?:was not an allowed global|whose module \S+ is blocked)")
 
 
 def is_lfs_pointer(path: Union[str, os.PathLike]) -> bool:
@@ -344,7 +344,7 @@ def load_torch_file(path: Union[str, os.PathLike], what: str, error: type[Except
         if m:
             raise (refused or error)(
                 f"{what}: {p}: refused - the file holds objects that torch.load(weights_only=True) will not "
-                f"unpickle ({m.group(1) or m.group(2)}; loading them could run code); re-save only the tensors "
+                f"unpickle ({m.group(1)}; loading them could run code); re-save only the tensors "
                 "(a state_dict) on a trusted machine") from None
         raise error(f"{what}: {p}: not a readable torch file ({_torch_reason(text)})") from None
     except Exception as exc:  # noqa: BLE001 - zip, storage and pickle errors of a file that is not a torch file
