@@ -140,6 +140,15 @@ def expected_checksum(w: Weights) -> Optional[Expected]:
     return None
 
 
+def file_digest(path: Union[str, os.PathLike], algo: str = "sha256") -> str:
+    """One hex digest of a file, read in chunks."""
+    h = hashlib.new(algo)
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(_CHUNK), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def file_digests(path: Path) -> dict[str, str]:
     """SHA-256 and MD5 of a file, read in chunks."""
     h = {"sha256": hashlib.sha256(), "md5": hashlib.md5()}
@@ -245,7 +254,7 @@ def _verify_cached(w: Weights, path: Path) -> None:
     expected = expected_checksum(w)
     if expected is None:
         return
-    got = file_digests(path)[expected.algo]
+    got = file_digest(path, expected.algo)
     if not got.startswith(expected.digest):
         lfs = " (a Git LFS pointer: run `git lfs pull`)" if is_lfs_pointer(path) else ""
         raise WeightsError(
@@ -314,7 +323,7 @@ def check_shipped(path: Union[str, os.PathLike], sha256: str, what: str, fix: st
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"{what}: the shipped file {p} is missing; {fix}")
-    got = file_digests(p)["sha256"]
+    got = file_digest(p)
     if got != sha256.lower():
         if is_lfs_pointer(p):
             raise error(f"{_lfs_message(what, p)}; {fix}")
