@@ -11,7 +11,6 @@
 """
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any, Optional, Union
@@ -147,17 +146,21 @@ def evaluate_run_dir(run_dir: Union[str, Path], registry=None) -> dict[str, Any]
     ``groundtruth_loops.json``); the dataset named in its ``config.json`` is opened only for panoptic labels, and
     a dataset (or dataset plugin) that is gone is reported in ``evaluation_sources``, not an error."""
     from .config import ConfigError, EvaluationSection, OutputsSection
+    from .evaluation.run_eval import read_json_object
     from .run_outputs import evaluate_saved_run
-    from .outputs.metrics import read_json
 
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file():
         raise FileNotFoundError(f"{run_dir}: not a pvslam run directory (no config.json)")
     timing = {}
     if (run_dir / "metrics.json").is_file():
-        timing = json.loads((run_dir / "metrics.json").read_text()).get("timing", {})
-    raw = read_json(run_dir / "config.json")
-    fed = str((raw.get("dataset") or {}).get("plugin", "?")) == "none"  # a Tracker's run: frames were fed
+        timing = read_json_object(run_dir / "metrics.json").get("timing", {})
+    raw = read_json_object(run_dir / "config.json")
+    if not (run_dir / "trajectory.txt").is_file():  # its metrics would be an earlier evaluation's, not this one's
+        raise FileNotFoundError(f"{run_dir / 'trajectory.txt'} not found: without the run's trajectory there is "
+                                "nothing to evaluate (metrics.json is left as it was)")
+    dataset = raw.get("dataset") if isinstance(raw.get("dataset"), dict) else {}
+    fed = str(dataset.get("plugin", "?")) == "none"  # a Tracker's run: frames were fed
     try:
         if fed:
             raise ConfigError("frames were fed through the streaming API (Tracker): there is no dataset to reopen")
@@ -165,7 +168,7 @@ def evaluate_run_dir(run_dir: Union[str, Path], registry=None) -> dict[str, Any]
     except ConfigError as exc:  # e.g. the dataset plugin is not installed here: evaluate from the run directory
         pcfg = PipelineConfig(evaluation=EvaluationSection.model_validate(raw.get("evaluation", {})),
                               outputs=OutputsSection.model_validate(raw.get("outputs", {})))
-        pcfg.dataset.plugin = str((raw.get("dataset") or {}).get("plugin", "?"))
+        pcfg.dataset.plugin = str(dataset.get("plugin", "?"))
         why = str(exc) if fed else f"the run's config no longer resolves here: {exc}"
         return evaluate_saved_run(run_dir, None, timing, registry=registry, pcfg=pcfg, dataset_error=why)
     return evaluate_saved_run(run_dir, resolved, timing, registry=registry)

@@ -113,13 +113,20 @@ def load_training_state(path: Path, model, optimizer, generator, counter_key: st
     """Restore what :func:`save_training_state` wrote (``weights_only``); returns ``(counter, elapsed, state)``,
     ``state`` holding the trainer's extra entries.  Files of the deit trainer's earlier format (``opt``, ``gen``)
     load too."""
-    import torch
+    from .weights import load_torch_file
 
-    state = torch.load(Path(path), map_location="cpu", weights_only=True)
-    model.load_state_dict(state["model"])
-    optimizer.load_state_dict(state["optimizer"] if "optimizer" in state else state["opt"])
-    generator.set_state(state["generator"] if "generator" in state else state["gen"])
-    return int(state[counter_key]), float(state["elapsed"]), state
+    what = "--resume: the training state"
+    state = load_torch_file(path, what, error=ValueError)
+    try:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"] if "optimizer" in state else state["opt"])
+        generator.set_state(state["generator"] if "generator" in state else state["gen"])
+        return int(state[counter_key]), float(state["elapsed"]), state
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as exc:
+        lines = str(exc).strip().splitlines() or [""]
+        why = f"no entry {exc.args[0]!r}" if isinstance(exc, KeyError) else lines[0]
+        raise ValueError(f"{what} {path} does not fit this trainer ({type(exc).__name__}: {why}); start without "
+                         "--resume or give another --out") from None
 
 
 def _keep_rows(path: Path, fields: list[str], counter_key: str, upto: Optional[int]) -> None:

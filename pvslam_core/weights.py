@@ -9,13 +9,18 @@ file name) -- fetched once into the cache and reused -- or the path of a local f
 Cache: ``$PVSLAM_CACHE/weights`` (the same root as the synthetic sequences), else ``$XDG_CACHE_HOME/pvslam/weights``,
 else ``%LOCALAPPDATA%/pvslam/weights`` on Windows, else ``~/.cache/pvslam/weights``.  A download streams into a
 temporary file in the cache folder, is verified, and is renamed onto its final name only then, so the cache never
-holds a partial or unverified file: a cached file is a verified (or, without a catalogued checksum, a complete)
-download and is not hashed again.
+holds a partial or unverified file; a cached file is hashed again before each use (a file changed on disk since, or
+copied there by hand, is refused with the command that downloads it again).
 
 Checksums: ``sha256`` or ``md5`` in the catalogue, either the full hex digest or a prefix of it (torch.hub file names
 carry a SHA-256 prefix, detectron2 model-zoo names an MD5 prefix).  An entry without any checksum is downloaded
 unverified with a warning that shows the SHA-256 to record.  Only the standard library is used here (plus tqdm for
-the progress bar), so ``pvslam weights`` starts fast and the module is importable without torch.
+the progress bar, and torch inside :func:`load_torch_file`), so ``pvslam weights`` starts fast and the module is
+importable without torch.
+
+Files the plugins load themselves go through the same checks: :func:`check_shipped` compares a file shipped with a
+plugin with the SHA-256 the plugin records for it, and :func:`load_torch_file` reads a torch file with
+``weights_only=True``; both name a Git LFS pointer as such, and every failure is one line naming the file.
 """
 from __future__ import annotations
 
@@ -135,6 +140,15 @@ def expected_checksum(w: Weights) -> Optional[Expected]:
     return None
 
 
+def file_digest(path: Union[str, os.PathLike], algo: str = "sha256") -> str:
+    """One hex digest of a file, read in chunks."""
+    h = hashlib.new(algo)
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(_CHUNK), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def file_digests(path: Path) -> dict[str, str]:
     """SHA-256 and MD5 of a file, read in chunks."""
     h = {"sha256": hashlib.sha256(), "md5": hashlib.md5()}
@@ -160,6 +174,7 @@ def fetch(name: str, force: bool = False, progress: bool = True, timeout: float 
     w = lookup(name)
     dest = cached_path(w)
     if dest.is_file() and not force:
+        _verify_cached(w, dest)
         return dest
     if w.manual:
         raise WeightsError(
@@ -234,6 +249,20 @@ def _verify(w: Weights, expected: Optional[Expected], digests: dict[str, str], d
             "the file on the server changed")
 
 
+def _verify_cached(w: Weights, path: Path) -> None:
+    """A cached file against its catalogued checksum (none recorded: nothing to check)."""
+    expected = expected_checksum(w)
+    if expected is None:
+        return
+    got = file_digest(path, expected.algo)
+    if not got.startswith(expected.digest):
+        lfs = " (a Git LFS pointer: run `git lfs pull`)" if is_lfs_pointer(path) else ""
+        raise WeightsError(
+            f"weights {w.name!r}: the cached file {path} does not match its checksum{lfs}: expected "
+            f"{expected.describe()}, got {expected.algo} {got}; download it again with `pvslam weights fetch "
+            f"{w.name} --force`, or delete the file")
+
+
 # ------------------------------------------------------------------------------------------------ specs --
 def resolve_weights(spec: Union[str, os.PathLike], progress: bool = True) -> Path:
     """A plugin's ``weights`` value -> the path of an existing file.
@@ -259,3 +288,83 @@ def resolve_weights(spec: Union[str, os.PathLike], progress: bool = True) -> Pat
     known = _known(entries if entries is not None else catalog_weights())
     raise WeightsError(f"weights {text!r}: no such file ({p.resolve()}) and not a catalogue name; known names: "
                        f"{known}")
+
+
+# ------------------------------------------------------------------------------------------- local files --
+#: the first bytes of a Git LFS pointer file (a checkout without ``git lfs pull`` holds these instead of the data)
+LFS_POINTER = b"version https://git-lfs"
+_UNSAFE = re.compile(r"GLOBAL (\S+) (?:was not an allowed global|whose module \S+ is blocked)")
+
+
+def is_lfs_pointer(path: Union[str, os.PathLike]) -> bool:
+    """Whether the file starts like a Git LFS pointer."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(LFS_POINTER)) == LFS_POINTER
+    except OSError:
+        return False
+
+
+def _lfs_message(what: str, path: Path) -> str:
+    return f"{what}: {path} is a Git LFS pointer, not the weights: run `git lfs pull`"
+
+
+def refuse_lfs_pointer(path: Union[str, os.PathLike], what: str, error: type[Exception] = WeightsError) -> None:
+    """Raise ``error`` saying "Git LFS pointer: run `git lfs pull`" when the file is one."""
+    if is_lfs_pointer(path):
+        raise error(_lfs_message(what, Path(path)))
+
+
+def check_shipped(path: Union[str, os.PathLike], sha256: str, what: str, fix: str,
+                  error: type[Exception] = WeightsError) -> Path:
+    """``path``, a weights file shipped with a plugin, checked against the full SHA-256 the plugin records for it:
+    a missing file raises :class:`FileNotFoundError`, other bytes (a truncated copy, a Git LFS pointer, a replaced
+    file) ``error``; both name ``what`` (the plugin and setting), the file and ``fix`` (what to do)."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{what}: the shipped file {p} is missing; {fix}")
+    got = file_digest(p)
+    if got != sha256.lower():
+        if is_lfs_pointer(p):
+            raise error(f"{_lfs_message(what, p)}; {fix}")
+        raise error(f"{what}: the shipped file {p} is corrupt or was replaced: sha256 {got[:16]}..., "
+                    f"{p.stat().st_size} bytes, expected {sha256[:16]}...; {fix}")
+    return p
+
+
+def load_torch_file(path: Union[str, os.PathLike], what: str, error: type[Exception] = WeightsError,
+                    refused: Optional[type[Exception]] = None) -> object:
+    """``torch.load(path, map_location="cpu", weights_only=True)`` with one-line errors that name ``what`` and the
+    file: a missing file, a Git LFS pointer and a file that is not a torch file raise ``error``; a file whose pickle
+    asks for objects ``weights_only`` does not build (they could run code) raises ``refused`` (default ``error``)."""
+    import pickle
+
+    import torch
+
+    p = Path(path)
+    if not p.is_file():
+        raise error(f"{what}: {p}: no such file")
+    refuse_lfs_pointer(p, what, error)
+    try:
+        return torch.load(p, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        text = str(exc)
+        m = _UNSAFE.search(text)
+        if m:
+            raise (refused or error)(
+                f"{what}: {p}: refused - the file holds objects that torch.load(weights_only=True) will not "
+                f"unpickle ({m.group(1)}; loading them could run code); re-save only the tensors "
+                "(a state_dict) on a trusted machine") from None
+        raise error(f"{what}: {p}: not a readable torch file ({_torch_reason(text)})") from None
+    except Exception as exc:  # noqa: BLE001 - zip, storage and pickle errors of a file that is not a torch file
+        raise error(f"{what}: {p}: not a readable torch file ({type(exc).__name__}: "
+                    f"{_torch_reason(str(exc))})") from None
+
+
+def _torch_reason(text: str) -> str:
+    """The one informative line of torch.load's message (it wraps the pickle error in advice about weights_only)."""
+    if text.startswith("Weights only load failed"):
+        parts = [t.strip() for t in text.split("\n\n") if t.strip()]
+        text = parts[1] if len(parts) >= 3 else parts[0][len("Weights only load failed."):]
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return (lines[0] if lines else "no details")[:200]

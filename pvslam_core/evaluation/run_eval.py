@@ -12,7 +12,9 @@ Reads (see ``pvslam_core/outputs`` for the layout):
   (PQ and VPQ).
 
 The results are merged into ``metrics.json`` (atomically; keys the pipeline wrote before, e.g. timing, are
-kept). A section that cannot be computed records ``{"error": "..."}`` instead of failing the others.
+kept). A section that cannot be computed records ``{"error": "..."}`` instead of failing the others; trajectory
+metrics that cannot be computed any more (no ground truth or no trajectory) are removed, never left from an earlier
+evaluation.
 """
 from __future__ import annotations
 
@@ -25,7 +27,26 @@ import numpy as np
 
 LOG = logging.getLogger("pvslam")
 
-__all__ = ["evaluate_run"]
+__all__ = ["evaluate_run", "read_json_object"]
+
+#: the keys of metrics.json that :func:`_trajectory_metrics` computes from trajectory.txt and the ground truth
+TRAJECTORY_KEYS = ("ate", "ate_segments", "rpe", "ate_keyframes")
+
+
+def read_json_object(path: str | os.PathLike) -> dict:
+    """A run file that must hold a JSON object (``config.json``, ``metrics.json``); :class:`ValueError` naming the
+    file when it is not valid JSON or holds another JSON value."""
+    import json
+
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a UTF-8 text file ({e})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, found a JSON {type(data).__name__}")
+    return data
 
 
 def _load_gt_trajectory(run_dir: Path, gt: Any):
@@ -105,7 +126,13 @@ def evaluate_run(
     out.update(_loop_metrics(run_dir, loop_gt, loop_tolerance))
     out.update(_panoptic_metrics(run_dir, panoptic_gt, categories, vpq_ks))
     if write:
-        MetricsFile(run_dir / "metrics.json").update(out)
+        metrics = MetricsFile(run_dir / "metrics.json")
+        stale = [k for k in TRAJECTORY_KEYS if k in metrics.data and k not in out]
+        if stale:  # an earlier evaluation's numbers no longer describe files in the run directory
+            LOG.warning("%s: %s removed: not computable now (no trajectory.txt or no ground truth)",
+                        metrics.path, ", ".join(stale))
+            metrics.data = {k: v for k, v in metrics.data.items() if k not in stale}
+        metrics.update(out)
     return out
 
 
@@ -237,6 +264,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--max-diff", type=float, default=0.01, help="timestamp association tolerance (s)")
     ap.add_argument("--no-plots", action="store_true")
     args = ap.parse_args(argv)
+    if not (Path(args.run_dir) / "trajectory.txt").is_file():
+        ap.error(f"{Path(args.run_dir) / 'trajectory.txt'} not found: nothing to evaluate")
     out = evaluate_run(args.run_dir, gt=args.gt, align=args.align, max_diff=args.max_diff, plots=not args.no_plots)
     from pvslam_core.outputs.metrics import to_jsonable
 

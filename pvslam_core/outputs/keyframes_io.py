@@ -99,25 +99,63 @@ def write_keyframes(run_dir: str | os.PathLike, frame_index: Any, timestamps: An
 
 def read_keyframes(run_dir: str | os.PathLike, load_depth: bool = True) -> dict[str, Any]:
     """``keyframes.json`` plus arrays: ``frame_index int64 [K]``, ``timestamps [K]``, ``poses float64 [K, 7]``,
-    ``depth float32 [K, h, w]`` (with ``load_depth``), ``names``, ``intrinsics`` (the JSON's dict)."""
+    ``depth float32 [K, h, w]`` (with ``load_depth``), ``names``, ``intrinsics`` (the JSON's dict).
+
+    A file without the layout's keys, or a ``depth_file`` that leads out of the run directory (``..``, an absolute
+    path, a symbolic link), raises :class:`ValueError` naming the file, the keyframe and the key."""
     d = Path(run_dir) / "keyframes"
-    meta = read_json(d / "keyframes.json")
+    path = d / "keyframes.json"
+    try:
+        meta = read_json(path)
+    except ValueError as e:  # json.JSONDecodeError, UnicodeDecodeError
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: expected a JSON object, found a JSON {type(meta).__name__}")
     if meta.get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"{d / 'keyframes.json'}: format_version {meta.get('format_version')!r}, "
-                         f"this code reads {FORMAT_VERSION}")
-    kfs = meta["keyframes"]
-    out = {
-        "frame_index": np.array([e["frame_index"] for e in kfs], dtype=np.int64),
-        "timestamps": np.array([e["timestamp"] for e in kfs], dtype=np.float64),
-        "poses": np.array([e["pose"] for e in kfs], dtype=np.float64).reshape(-1, 7),
-        "names": [e.get("name", "") for e in kfs],
-        "intrinsics": meta["intrinsics"],
-    }
-    if load_depth:
-        di = meta["intrinsics"]["depth"]
-        out["depth"] = (np.stack([np.load(d / e["depth_file"]) for e in kfs]) if kfs
-                        else np.zeros((0, di["height"], di["width"]), np.float32))
+        raise ValueError(f"{path}: format_version {meta.get('format_version')!r}, this code reads {FORMAT_VERSION}")
+    kfs, intr = meta.get("keyframes"), meta.get("intrinsics")
+    if not isinstance(kfs, list) or not all(isinstance(e, dict) for e in kfs):
+        raise ValueError(f"{path}: 'keyframes' is missing or not a list of objects")
+    if not isinstance(intr, dict) or not all(isinstance(intr.get(k), dict) for k in ("image", "depth")):
+        raise ValueError(f"{path}: 'intrinsics' must hold 'image' and 'depth' objects")
+    for kind in ("image", "depth"):
+        lack = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in intr[kind]]
+        if lack:
+            raise ValueError(f"{path}: intrinsics.{kind} lacks {', '.join(lack)}")
+    try:
+        out = {
+            "frame_index": np.array([e["frame_index"] for e in kfs], dtype=np.int64),
+            "timestamps": np.array([e["timestamp"] for e in kfs], dtype=np.float64),
+            "poses": np.array([e["pose"] for e in kfs], dtype=np.float64).reshape(-1, 7),
+            "names": [e.get("name", "") for e in kfs],
+            "intrinsics": intr,
+        }
+        if load_depth:
+            di = intr["depth"]
+            out["depth"] = (np.stack([np.load(_depth_path(run_dir, d, e, n), allow_pickle=False)
+                                      for n, e in enumerate(kfs)]) if kfs
+                            else np.zeros((0, di["height"], di["width"]), np.float32))
+    except KeyError as e:
+        raise ValueError(f"{path}: a keyframe or the intrinsics lack the key {e.args[0]!r}") from None
+    except (TypeError, ValueError, EOFError) as e:
+        raise ValueError(f"{path}: {e}") from None
     return out
+
+
+def _depth_path(run_dir: str | os.PathLike, d: Path, entry: dict, n: int) -> Path:
+    """The depth file of keyframe ``n``, which must stay inside the run directory once resolved (symbolic links
+    followed): ``keyframes.json`` is data, so a ``depth_file`` of ``../../etc/hostname`` is refused, not read."""
+    name = entry["depth_file"]
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"keyframe {n}: depth_file {name!r} is not a file name")
+    root = Path(run_dir).resolve()
+    p = (d / name).resolve()
+    if not p.is_relative_to(root):
+        raise ValueError(f"keyframe {n}: depth_file {name!r} leads out of the run directory {root} (to {p}); "
+                         "refused")
+    if not p.is_file():
+        raise ValueError(f"keyframe {n}: depth_file {name!r} not found ({p})")
+    return p
 
 
 def write_run_keyframes(run) -> Path:

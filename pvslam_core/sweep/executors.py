@@ -12,10 +12,12 @@ import itertools
 import logging
 import os
 import sys
+from contextlib import contextmanager
 from typing import Any, Callable, Optional
 
 from . import cells
 
+LOG = logging.getLogger("pvslam")
 FUNCTIONS: dict[str, Callable[[dict], dict]] = {"cell": cells.execute_cell, "prepare": cells.prepare_dataset}
 
 
@@ -63,6 +65,31 @@ class SerialExecutor:
         pass
 
 
+#: the address the local Ray instance binds (its node address: Ray binds its servers to that)
+LOOPBACK = "127.0.0.1"
+
+
+@contextmanager
+def _single_machine_ray():
+    """Ray's single-machine mode while ``ray.init`` runs (its mode on macOS and Windows, ``ENABLE_RAY_CLUSTER``
+    False): elsewhere Ray replaces a loopback node address by the machine's network one.  A no-op where the
+    installed Ray has no such switch."""
+    try:
+        from ray._private import ray_constants
+    except ImportError:
+        yield
+        return
+    saved = getattr(ray_constants, "ENABLE_RAY_CLUSTER", None)
+    if saved is None:
+        yield
+        return
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = saved
+
+
 class RayExecutor:
     """Ray tasks; starts (and later stops) a local instance unless one is running or ``address`` is given."""
 
@@ -81,9 +108,16 @@ class RayExecutor:
                 cores = machine_cores()
                 w = workers or cores
                 t = threads or max(1, cores // w)
-                # A small object store: payloads and results are a few kB (outputs go to files).
-                ray.init(num_cpus=max(cores, w * t), include_dashboard=False,
-                         object_store_memory=128 * 1024 ** 2, **common)
+                # A small object store: payloads and results are a few kB (outputs go to files).  Every port on
+                # 127.0.0.1 only: whoever reaches a Ray port can run code as this user.
+                with _single_machine_ray():
+                    ray.init(num_cpus=max(cores, w * t), include_dashboard=False,
+                             object_store_memory=128 * 1024 ** 2, _node_ip_address=LOOPBACK, **common)
+                node_ip = ray.util.get_node_ip_address()
+                if node_ip != LOOPBACK:
+                    LOG.warning("the local Ray instance listens on %s, not only on %s (this Ray version ignores "
+                                "the request); anyone who reaches its ports can run code as this user", node_ip,
+                                LOOPBACK)
             self.owned = True
         total = int(ray.cluster_resources().get("CPU", 1))
         node_max = max((int(n["Resources"].get("CPU", 0)) for n in ray.nodes() if n.get("Alive")), default=total)

@@ -85,3 +85,48 @@ def test_run_without_any_ground_truth_says_so(archived_run, fake_registry):
     m = evaluate_run_dir(copy, registry=fake_registry)
     assert "ate" not in m
     assert m["evaluation_sources"]["trajectory"].startswith("none")
+
+
+# ------------------------------------------------------------------------------------ damaged run directories --
+@pytest.mark.parametrize("name,text,found", [("metrics.json", "[1, 2]", "list"), ("config.json", '"a run"', "str"),
+                                             ("metrics.json", "{not json", None)])
+def test_eval_of_a_run_file_that_is_no_json_object_is_one_error_line(archived_run, fake_registry, monkeypatch,
+                                                                     capsys, name, text, found):
+    from pvslam_core import registry as r
+
+    copy, _ = archived_run
+    monkeypatch.setattr(r, "_REGISTRY", fake_registry)
+    (copy / name).write_text(text)
+    assert main(["eval", str(copy)]) == 1
+    out, err = capsys.readouterr()
+    assert out == ""
+    err = err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pvslam: error: ") and str(copy / name) in err[0], err
+    assert (f"expected a JSON object, found a JSON {found}" if found else "not valid JSON") in err[0]
+    assert (copy / name).read_text() == text  # left as it was
+
+
+def test_eval_without_trajectory_fails_and_reports_no_old_ate(archived_run, fake_registry, monkeypatch, capsys):
+    from pvslam_core import registry as r
+
+    copy, _ = archived_run
+    monkeypatch.setattr(r, "_REGISTRY", fake_registry)
+    evaluate_run_dir(copy, registry=fake_registry)
+    before = (copy / "metrics.json").read_text()
+    assert "ate" in json.loads(before)
+    (copy / "trajectory.txt").unlink()
+    assert main(["eval", str(copy)]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and "ate" not in out
+    assert err.startswith("pvslam: error: ") and "trajectory.txt not found" in err and len(err.splitlines()) == 1
+    assert (copy / "metrics.json").read_text() == before  # a failed eval writes nothing
+
+
+def test_trajectory_metrics_that_cannot_be_recomputed_are_removed(archived_run, fake_registry):
+    copy, _ = archived_run
+    assert "ate" in evaluate_run_dir(copy, registry=fake_registry)
+    (copy / "groundtruth.txt").unlink()  # the ATE of metrics.json no longer has its ground truth here
+    m = evaluate_run_dir(copy, registry=fake_registry)
+    saved = json.loads((copy / "metrics.json").read_text())
+    assert "ate" not in m and "ate" not in saved and "rpe" not in saved
+    assert "timing" in saved  # what the pipeline wrote stays

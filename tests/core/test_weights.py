@@ -306,3 +306,20 @@ def test_shipped_catalogue_entries_are_complete():
             assert "checksum" in w.note.lower(), w.name
     assert W.expected_checksum(W.find("deit-base", entries)) == W.Expected("sha256", "b5f2ef4d")
     assert W.expected_checksum(W.find("panoptic-fpn-r50-3x-coco", entries)) == W.Expected("md5", "c10459")
+
+
+def test_a_cached_file_is_verified_again_before_use(catalog):
+    p = W.fetch("full-sha", progress=False)
+    p.write_bytes(PAYLOAD[:-1] + b"X")  # changed on disk after the download (bit rot, an edit, a bad copy)
+    with pytest.raises(W.WeightsError) as ei:
+        W.resolve_weights("full-sha")
+    msg = str(ei.value)
+    assert "does not match its checksum" in msg and str(p) in msg and "pvslam weights fetch full-sha --force" in msg
+    assert _Handler.hits["/good-1234.pth"] == 1  # refused, not silently downloaded again
+    assert W.fetch("full-sha", force=True).read_bytes() == PAYLOAD
+    assert W.resolve_weights("full-sha") == p  # the fresh copy passes
+    dest = W.cached_path("md5-prefix")  # a file copied into the cache by hand is checked too
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    dest.write_bytes(b"version https://git-lfs.github.com/spec/v1\noid sha256:0\n")
+    with pytest.raises(W.WeightsError, match="Git LFS pointer: run `git lfs pull`"):
+        W.fetch("md5-prefix")

@@ -3,11 +3,13 @@ checked numerically with projections written here independently of pvslam's geom
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from pvslam_core.cli import main
 from pvslam_core.outputs.export import colmap_pose, export_run, nerfstudio_c2w
 from pvslam_core.outputs.keyframes_io import read_keyframes, write_keyframes
 from pvslam_core.outputs.ply import write_ply
@@ -231,3 +233,59 @@ def test_a_new_format_is_one_line_in_the_formats_table(run_dir, monkeypatch, cap
     assert summary["frames"] == 4 and (run_dir / "export" / "toy" / "frames.txt").read_text() == "0 3 7 12"
     assert main(["export", str(run_dir), "--format", "toy", "--no-images"]) == 0
     assert "frames: 4" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------------- damaged or hostile keyframes.json --
+def _edit(run_dir, change) -> None:
+    path = run_dir / "keyframes" / "keyframes.json"
+    meta = json.loads(path.read_text())
+    change(meta)
+    path.write_text(json.dumps(meta))
+
+
+def _outside(run_dir):
+    """A float32 .npy file of the keyframes' depth shape outside the run directory (would load if followed)."""
+    secret = run_dir.parent / "secret" / "depth.npy"
+    secret.parent.mkdir()
+    np.save(secret, np.full((15, 20), 7.0, np.float32))
+    return secret
+
+
+@pytest.mark.parametrize("key", ["keyframes", "intrinsics"])
+def test_missing_top_level_keys_are_named(run_dir, key, capsys):
+    _edit(run_dir, lambda m: m.pop(key))
+    with pytest.raises(ValueError, match=f"keyframes.json: '{key}'"):
+        read_keyframes(run_dir)
+    assert main(["export", str(run_dir), "--format", "colmap", "--no-images"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pvslam: error: ") and "keyframes.json" in err[0] and key in err[0]
+
+
+def test_a_keyframe_without_a_key_is_named(run_dir):
+    _edit(run_dir, lambda m: m["keyframes"][2].pop("pose"))
+    with pytest.raises(ValueError, match="lack the key 'pose'"):
+        export_run(run_dir, "nerfstudio", images=False)
+    _edit(run_dir, lambda m: m.__setitem__("keyframes", {"not": "a list"}))
+    with pytest.raises(ValueError, match="'keyframes' is missing or not a list"):
+        export_run(run_dir, "colmap", images=False)
+
+
+def test_a_depth_file_outside_the_run_directory_is_refused(run_dir):
+    secret = _outside(run_dir)
+    for name in ("../../secret/depth.npy", str(secret)):
+        _edit(run_dir, lambda m: m["keyframes"][1].__setitem__("depth_file", name))
+        with pytest.raises(ValueError, match=r"keyframe 1: depth_file .* leads out of the run directory"):
+            export_run(run_dir, "nerfstudio", images=False)
+    assert not (run_dir / "export").exists() or not list((run_dir / "export").rglob("*.npy"))
+
+
+def test_a_symlinked_depth_file_leading_out_is_refused(run_dir):
+    secret = _outside(run_dir)
+    link = run_dir / "keyframes" / "000003_depth.npy"
+    link.unlink()
+    os.symlink(secret, link)  # the name is the writer's own; the file is elsewhere
+    with pytest.raises(ValueError, match="keyframe 1: depth_file '000003_depth.npy' leads out of the run directory"):
+        read_keyframes(run_dir)
+    link.unlink()  # a link that stays inside the run directory is fine
+    os.symlink(run_dir / "keyframes" / "000000_depth.npy", link)
+    assert read_keyframes(run_dir)["depth"].shape == (4, 15, 20)

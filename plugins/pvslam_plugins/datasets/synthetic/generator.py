@@ -5,7 +5,8 @@ described in :mod:`.writer` (and the plugin's ``README.md``).  With ``out_dir=No
 cache: ``$PVSLAM_CACHE`` or ``$XDG_CACHE_HOME/pvslam`` or ``~/.cache/pvslam``, then
 ``synthetic/<scenario>-<W>x<H>-<hash>`` where the hash covers every parameter and the generator version, so a
 cached folder is reused only for exactly the same request.  Writing goes to a temporary folder renamed at the
-end: a crash never leaves a half cache.
+end: a crash never leaves a half cache, and a killed writer's temporary folder is removed by the next start
+(:mod:`.staging`).
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from typing import Optional
 
 from .render import check_hfov
 from .scenarios import DEFAULT_SCENARIO, SCENARIOS, UnknownScenarioError, build, check_name, revision
+from .staging import sweep_stale
 from .writer import GENERATOR_VERSION, write_sequence
 
 __all__ = ["SCENARIOS", "DEFAULT_SCENARIO", "UnknownScenarioError", "generate", "ensure_cached", "cache_root",
@@ -102,6 +104,7 @@ def ensure_cached(scenario: str = DEFAULT_SCENARIO, *, num_frames: Optional[int]
     """The cached folder of this request, generated first if it is not there yet."""
     root = cache_path(scenario, num_frames=num_frames, width=width, height=height, seed=seed, laps=laps,
                       hfov_deg=hfov_deg)
+    sweep_stale(root.parent)  # what a killed writer left (SIGKILL: no handler ran)
     if is_complete(root):
         return root
     sc = build(scenario, num_frames=num_frames, width=width, height=height, seed=seed, laps=laps, hfov_deg=hfov_deg)

@@ -21,7 +21,8 @@ outdoor ones, because TUM's 5000 saturates at 13.1 m; it is recorded in ``meta.j
 ``depth.txt``).  Depths beyond ``65535 / depth_scale`` are written as 0 (invalid).
 
 Everything is written into a temporary sibling folder that is renamed onto ``<root>`` at the end, so a crash
-never leaves a half-written sequence behind.
+never leaves a half-written sequence behind (:mod:`.staging`: removed on an exception, Ctrl-C or SIGTERM, and by
+the next writer when its process was killed outright).
 """
 from __future__ import annotations
 
@@ -29,7 +30,6 @@ import json
 import os
 import shutil
 import sys
-import uuid
 from pathlib import Path
 
 import cv2
@@ -39,6 +39,7 @@ from scipy.spatial.transform import Rotation
 from .render import render
 from .scenarios import Scenario, revisit_pairs
 from .scene import CATEGORIES
+from .staging import sigterm_cleans_up, sweep_stale, temp_folder
 
 GENERATOR_VERSION = "1.1"
 
@@ -105,15 +106,17 @@ def write_sequence(sc: Scenario, root: Path, progress: bool = True) -> Path:
     """Render every frame of ``sc`` and write the folder ``root`` atomically; returns ``root``."""
     root = Path(root)
     root.parent.mkdir(parents=True, exist_ok=True)
-    tmp = root.parent / f".{root.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    try:
-        _write_into(sc, tmp, progress)
-        if root.exists() and root.is_dir() and not any(root.iterdir()):
-            root.rmdir()
-        os.rename(tmp, root)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    sweep_stale(root.parent)
+    tmp = temp_folder(root)
+    with sigterm_cleans_up():
+        try:
+            _write_into(sc, tmp, progress)
+            if root.exists() and root.is_dir() and not any(root.iterdir()):
+                root.rmdir()
+            os.rename(tmp, root)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
     return root
 
 

@@ -87,6 +87,9 @@ def read_file(path: PathLike, map_location: Any = "cpu") -> Any:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
+    from pvslam_core.weights import refuse_lfs_pointer
+
+    refuse_lfs_pointer(path, "raft_gru checkpoint", error=CheckpointError)
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:

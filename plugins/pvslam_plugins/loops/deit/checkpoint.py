@@ -244,7 +244,6 @@ def _torch_load(path: PathLike) -> Any:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"DeiT checkpoint not found: {p}")
-    try:
-        return torch.load(str(p), map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle errors name an unsupported global: say which file
-        raise CheckpointError(f"{p}: cannot be read with torch.load(weights_only=True): {exc}") from exc
+    from pvslam_core.weights import load_torch_file
+
+    return load_torch_file(p, "DeiT checkpoint", error=CheckpointError)

@@ -13,7 +13,6 @@ classifier averages the two heads) and ``concat`` ([cls, dist], 2D) are offered 
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 from pathlib import Path
 from typing import Optional
@@ -60,22 +59,12 @@ def builtin_weights(variant: str) -> Optional[Path]:
 def check_builtin_weights(variant: str) -> Path:
     """The shipped checkpoint of a variant, checked: :class:`FileNotFoundError` when it is missing,
     :class:`CheckpointError` when its sha256 is not the shipped one (both name the file and what to do)."""
-    p = WEIGHTS_DIR / f"deit_synth_{variant}.pt"
+    from pvslam_core.weights import check_shipped
+
     fix = ("reinstall pvslam (the file is package data of pvslam_plugins.loops.deit), or set loop.weights to "
            "another checkpoint, or loop.plugin = 'classical'")
-    if not p.is_file():
-        raise FileNotFoundError(f"deit loop detector: the shipped {variant} checkpoint {p} is missing "
-                                f"(loop.weights = 'builtin'); {fix}")
-    want = SHIPPED_SHA256.get(variant)
-    if want is not None:
-        data = p.read_bytes()  # 7.7 MB: hashing costs ~20 ms, once per detector
-        got = hashlib.sha256(data).hexdigest()
-        if got != want:
-            hint = " (it is a Git LFS pointer: run `git lfs pull`)" if data.startswith(b"version https://git-lfs") \
-                else ""
-            raise CheckpointError(f"deit loop detector: the shipped checkpoint {p} is corrupt or was replaced: "
-                                  f"sha256 {got[:16]}..., {len(data)} bytes, expected {want[:16]}...{hint}; {fix}")
-    return p
+    return check_shipped(WEIGHTS_DIR / f"deit_synth_{variant}.pt", SHIPPED_SHA256[variant],
+                         f"deit loop detector (loop.weights = 'builtin', {variant})", fix, error=CheckpointError)
 
 
 def resolve_model_weights(config: DeitModelConfig) -> Optional[Path]:

@@ -128,11 +128,16 @@ class PCAWhitening:
     @classmethod
     def load(cls, path: Union[str, Path]) -> "PCAWhitening":
         """A file written by :meth:`save`, or a project DeiT checkpoint that carries a ``pca`` entry."""
-        obj = torch.load(str(path), map_location="cpu", weights_only=True)
+        from pvslam_core.weights import load_torch_file
+
+        obj = load_torch_file(path, "deit loop detector: loop.pca_file", error=ValueError)
         sd = obj.get("pca") if isinstance(obj, dict) else None
         if not isinstance(sd, dict):
             raise ValueError(f"{path}: no 'pca' entry (keys: {sorted(obj) if isinstance(obj, dict) else type(obj)})")
-        return cls.from_state_dict(sd)
+        try:
+            return cls.from_state_dict(sd)
+        except (TypeError, ValueError, AttributeError, RuntimeError) as exc:
+            raise ValueError(f"{path}: the 'pca' entry cannot be used: {exc}") from None
 
 
 class OnlinePCA:

@@ -118,6 +118,9 @@ class RestrictedUnpickler(pickle.Unpickler):
 
 
 def _load_pkl(path: Path) -> Any:
+    from pvslam_core.weights import refuse_lfs_pointer
+
+    refuse_lfs_pointer(path, "panoptic_fpn weights", error=CheckpointError)
     with open(path, "rb") as f:
         try:
             return RestrictedUnpickler(f, str(path)).load()
@@ -128,13 +131,9 @@ def _load_pkl(path: Path) -> Any:
 
 
 def _load_torch(path: Path) -> Any:
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:
-        raise UnsafeCheckpoint(
-            f"{path}: torch.load(weights_only=True) refused this file: {str(e).splitlines()[0]}") from e
-    except Exception as e:
-        raise CheckpointError(f"{path}: not a readable torch file ({type(e).__name__}: {e})") from e
+    from pvslam_core.weights import load_torch_file
+
+    return load_torch_file(path, "panoptic_fpn weights", error=CheckpointError, refused=UnsafeCheckpoint)
 
 
 # --------------------------------------------------------------------------------------------------- reading

@@ -38,6 +38,8 @@ __all__ = ["PanopticFPNSegmenterConfig", "PanopticFPNSegmenter", "DeferredPanopt
 
 #: the reduced configuration trained here on the synthetic scenarios (``pvslam train segmenter``), shipped in the package
 SHIPPED_WEIGHTS = Path(__file__).with_name("weights") / "reduced_synthetic.pth"
+#: sha256 of the shipped file: other bytes (a truncated copy, a Git LFS pointer) are refused, never loaded
+SHIPPED_SHA256 = "a8d56a2b345b791df9bc83b9474ada4099586dc6e5cddf127639e52693d41fee"
 #: default ``weights`` per preset: the shipped file, or a catalogue name (``pvslam weights list``)
 DEFAULT_WEIGHTS = {"reduced": str(SHIPPED_WEIGHTS), "coco_r50": "panoptic-fpn-r50-3x-coco",
                    "vkitti2_r50": "pvo-panfpn-vkitti2"}
@@ -124,19 +126,21 @@ class DeferredPanoptic(PanopticSegmentation):
 
 def build_model(cfg: PanopticFPNSegmenterConfig, progress: bool = False):
     """The configured :class:`~.model.PanopticFPN` with its weights loaded (strictly) and thresholds applied."""
-    from pvslam_core.weights import resolve_weights
+    from pvslam_core.weights import check_shipped, resolve_weights
 
-    from .checkpoint import load_checkpoint, load_weights, read_weights
+    from .checkpoint import CheckpointError, load_checkpoint, load_weights, read_weights
     from .config import preset
     from .model import PanopticFPN
 
     spec = cfg.weights if cfg.weights is not None else DEFAULT_WEIGHTS[cfg.preset]
-    if cfg.weights is None and cfg.preset == "reduced" and not SHIPPED_WEIGHTS.is_file():
-        raise FileNotFoundError(f"segmenter panoptic_fpn: the shipped checkpoint {SHIPPED_WEIGHTS} is missing; "
-                                "reinstall pvslam or train one (`pvslam train segmenter --plugin panoptic_fpn`) and "
-                                "set segmenter.weights")
-    path = resolve_weights(Path(spec) if cfg.weights is None and cfg.preset == "reduced" else spec,
-                           progress=progress)
+    if cfg.weights is None and cfg.preset == "reduced":
+        path = SHIPPED_WEIGHTS
+    else:
+        path = resolve_weights(spec, progress=progress)
+    if path.resolve() == SHIPPED_WEIGHTS.resolve():
+        check_shipped(SHIPPED_WEIGHTS, SHIPPED_SHA256, "segmenter panoptic_fpn", "reinstall pvslam (the file is "
+                      "package data of pvslam_plugins.segmenters.panoptic_fpn) or train one (`pvslam train segmenter "
+                      "--plugin panoptic_fpn`) and set segmenter.weights", error=CheckpointError)
     if read_weights(path).kind == "pvslam":
         model = load_checkpoint(path)
         want = preset(cfg.preset)

@@ -45,6 +45,8 @@ from .layer import FeatureFusion, load_fusion
 
 #: fusion weights trained here for the shipped reduced segmenter (``pvslam train vps --plugin fusion``)
 SHIPPED_FUSION = Path(__file__).with_name("weights") / "fusion_reduced.pth"
+#: sha256 of the shipped file: other bytes (a truncated copy, a Git LFS pointer) are refused, never loaded
+SHIPPED_FUSION_SHA256 = "957287656fa0ffd49ac9f8ce6d4c27a09ba4731167a83c378111ac4d329ad81a"
 
 
 def motion_field(prev_panoptic: PanopticSegmentation, cue: MotionCue, frame_hw: tuple[int, int],
@@ -107,14 +109,20 @@ class FusionHead(VPSHead):
     @property
     def fusion(self) -> FeatureFusion:
         if self._fusion is None:
-            from pvslam_core.weights import resolve_weights
+            from pvslam_core.weights import check_shipped, resolve_weights
 
             layer = FeatureFusion(self.model.cfg.fpn.out_channels)
             c = self.config
+            path = None
             if c.weights is not None:
-                load_fusion(layer, resolve_weights(c.weights))
+                path = resolve_weights(c.weights)
             elif c.preset == "reduced" and c.segmenter_weights is None and SHIPPED_FUSION.is_file():
-                load_fusion(layer, SHIPPED_FUSION)
+                path = SHIPPED_FUSION
+            if path is not None and path.resolve() == SHIPPED_FUSION.resolve():
+                check_shipped(SHIPPED_FUSION, SHIPPED_FUSION_SHA256, "vps fusion", "reinstall pvslam (the file is "
+                              "package data of pvslam_plugins.vps.fusion) or set vps.weights", error=ValueError)
+            if path is not None:
+                load_fusion(layer, path)
             self._fusion = layer.eval()
         return self._fusion
 

@@ -55,9 +55,19 @@ def fusion_state_dict(sd: Mapping[str, torch.Tensor], source: str = "state_dict"
 
 def load_fusion(layer: FeatureFusion, src: Union[str, Path, Mapping[str, torch.Tensor]]) -> FeatureFusion:
     """Load ``fusion_conv1`` strictly from a file or a state dict; shape mismatches name key, expected and got."""
-    source = str(src) if not isinstance(src, Mapping) else "state_dict"
-    sd = src if isinstance(src, Mapping) else torch.load(src, map_location="cpu", weights_only=True)
-    sd = fusion_state_dict(sd, source)
+    if isinstance(src, Mapping):
+        source, sd = "state_dict", fusion_state_dict(src)
+    else:
+        from pvslam_core.weights import load_torch_file
+
+        source = str(src)
+        sd = load_torch_file(src, "vps fusion weights", error=ValueError)
+        if not isinstance(sd, Mapping):
+            raise ValueError(f"vps fusion weights: {source}: holds a {type(sd).__name__}, not a state dict")
+        try:
+            sd = fusion_state_dict(sd, source)
+        except KeyError as exc:  # a file: say it in the one-line error form of the other load paths
+            raise ValueError(f"vps fusion weights: {exc.args[0]}") from None
     own = layer.state_dict()
     for k, v in sd.items():
         if tuple(v.shape) != tuple(own[k].shape):
