@@ -113,9 +113,10 @@ def observations(points: np.ndarray, src: np.ndarray, kf: dict, pairs: list[list
     depth = np.asarray(kf["depth"], np.float64)
     good = np.isfinite(depth) & (depth > 0)
     inv = np.where(good, 1.0 / np.where(good, depth, 1.0), 0.0)
+    by_src = np.argsort(src, kind="stable")  # each keyframe's points, in file order
     image, point, uv = [], [], []
     for n, f in enumerate(np.asarray(kf["frame_index"]).tolist()):  # vectorised per keyframe and pair
-        sel = np.nonzero(src == f)[0]
+        sel = by_src[np.searchsorted(src, f, sorter=by_src):np.searchsorted(src, f, "right", sorter=by_src)]
         if not len(sel):
             continue
         own, z = project(points[sel], kf["poses"][n], intr["fx"], intr["fy"], intr["cx"], intr["cy"])
