@@ -9,9 +9,10 @@ and the background behind it (bilinear would), and pixels without depth stay 0 i
 neighbours.
 
 nerfstudio reads the unit from its own option (``nerfstudio-data --depth-unit-scale-factor``, default 1e-3 for
-millimetre PNGs), not from ``transforms.json``.  The export uses that default whenever the farthest depth fits 16
-bits at that unit, else the finest power of ten at which it fits; the factor goes into ``transforms.json`` and the
-summary, with a warning when the option must be passed.
+millimetre PNGs), not from ``transforms.json``; :func:`depth_unit_scale` picks it from the median depth (the default
+for a monocular map, whose median depth pvslam's initialisation sets near 1), it goes into ``transforms.json`` and
+the summary, with a warning when the option must be passed.  Depths that 16 bits cannot hold at that unit (far
+beyond the median: sky at the disparity floor, divergent pixels) are written as 0 and counted in the summary.
 """
 from __future__ import annotations
 
@@ -34,15 +35,16 @@ UINT16_MAX = 65535
 NERFSTUDIO_DEFAULT_SCALE = 1e-3
 
 
-def depth_unit_scale(max_depth: float) -> float:
-    """The depth PNGs' unit for a largest depth ``max_depth``: nerfstudio's default when it fits 16 bits, else the
-    finest power of ten that holds it."""
-    if not np.isfinite(max_depth) or max_depth <= NERFSTUDIO_DEFAULT_SCALE * UINT16_MAX:
+def depth_unit_scale(median_depth: float) -> float:
+    """The depth PNGs' unit for a map of median depth ``m``: nerfstudio's default when its steps are at most a
+    hundredth of ``m`` and ten times ``m`` fits 16 bits, else the power of ten nearest to ``m / 1000`` (steps of
+    3e-4 to 3e-3 of ``m``, and 20 to 200 times ``m`` fits)."""
+    m = float(median_depth)
+    if not (np.isfinite(m) and m > 0):
         return NERFSTUDIO_DEFAULT_SCALE
-    k = int(np.ceil(np.log10(max_depth / UINT16_MAX)))
-    while max_depth / 10.0 ** k > UINT16_MAX:  # rounding of log10 at a power of ten
-        k += 1
-    return 10.0 ** k
+    if NERFSTUDIO_DEFAULT_SCALE <= m / 100 and UINT16_MAX * NERFSTUDIO_DEFAULT_SCALE >= 10 * m:
+        return NERFSTUDIO_DEFAULT_SCALE
+    return float(f"1e{int(np.round(np.log10(m / 1000)))}")
 
 
 def upsample_nearest(depth: np.ndarray, intr: dict, dintr: dict) -> np.ndarray:
@@ -58,15 +60,19 @@ def upsample_nearest(depth: np.ndarray, intr: dict, dintr: dict) -> np.ndarray:
     return out
 
 
-def _write_depth_png(path: Path, depth: np.ndarray, scale: float) -> None:
+def _write_depth_png(path: Path, depth: np.ndarray, scale: float) -> int:
+    """Write ``depth`` (0 = none) in units of ``scale``; returns how many depths were beyond 16 bits (written 0)."""
     import cv2
 
     valid = np.isfinite(depth) & (depth > 0)
-    counts = np.where(valid, np.clip(np.round(np.where(valid, depth, 0) / scale), 1, UINT16_MAX), 0)
+    counts = np.round(np.where(valid, depth, 0) / scale)
+    beyond = valid & (counts > UINT16_MAX)
+    counts = np.where(valid & ~beyond, np.maximum(counts, 1), 0)
     ok, buf = cv2.imencode(".png", counts.astype(np.uint16))
     if not ok:
         raise OSError(f"PNG encoding of {path.name} failed")
     atomic_write_bytes(path, buf.tobytes())
+    return int(beyond.sum())
 
 
 def export_nerfstudio(run_dir: Path, out_dir: Path, kf: dict) -> dict[str, Any]:
@@ -77,13 +83,13 @@ def export_nerfstudio(run_dir: Path, out_dir: Path, kf: dict) -> dict[str, Any]:
     c2w = nerfstudio_c2w(kf["poses"])
     depth = np.asarray(kf["depth"], np.float64)
     valid = np.isfinite(depth) & (depth > 0)
-    scale = depth_unit_scale(float(depth[valid].max()) if valid.any() else 0.0)
+    scale = depth_unit_scale(float(np.median(depth[valid])) if valid.any() else 0.0)
     (out_dir / "depth").mkdir(parents=True, exist_ok=True)
-    frames = []
+    frames, beyond = [], 0
     for n, f in enumerate(np.asarray(kf["frame_index"]).tolist()):
         name = f"{int(f):06d}.png"
-        _write_depth_png(out_dir / "depth" / name, upsample_nearest(np.where(valid[n], depth[n], 0.0), intr, dintr),
-                         scale)
+        beyond += _write_depth_png(out_dir / "depth" / name,
+                                   upsample_nearest(np.where(valid[n], depth[n], 0.0), intr, dintr), scale)
         frames.append({"file_path": f"images/{_image_name(f)}", "transform_matrix": c2w[n].tolist(),
                        "depth_file_path": f"depth/{name}", "colmap_im_id": n + 1})
     meta: dict[str, Any] = {
@@ -98,7 +104,11 @@ def export_nerfstudio(run_dir: Path, out_dir: Path, kf: dict) -> dict[str, Any]:
         meta["ply_file_path"] = "sparse_pc.ply"
     write_json_atomic(out_dir / "transforms.json", meta)
     if scale != NERFSTUDIO_DEFAULT_SCALE:
-        LOG.warning("depth PNGs are in units of %g map units (the farthest depth does not fit 16 bits in "
-                    "thousandths): train with nerfstudio-data --depth-unit-scale-factor %g", scale, scale)
+        LOG.warning("depth PNGs are in units of %g map units (the map's median depth is far from 1): train with "
+                    "nerfstudio-data --depth-unit-scale-factor %g", scale, scale)
+    total = len(depth) * intr["width"] * intr["height"]
+    if beyond:
+        LOG.info("depth PNGs: %d of %d pixels are beyond %g map units (16 bits at the unit) and written as 0",
+                 beyond, total, UINT16_MAX * scale)
     return {"images": len(frames), "depth": f"{intr['width']}x{intr['height']} 16-bit PNG",
-            "depth_unit_scale_factor": scale}
+            "depth_unit_scale_factor": scale, "depth_pixels_beyond_range": beyond}

@@ -335,6 +335,22 @@ def test_colmap_tracks_follow_the_loops(plane_run):
     assert both(_tracks(plane_run)[2]) > 100
 
 
+def test_colmap_tracks_read_in_pycolmap(plane_run):
+    """COLMAP's own reader: multi-view tracks, each element's 2D point names the 3D point and is its projection."""
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap comes with the bench extra")
+    export_run(plane_run, "colmap", images=False)
+    rec = pycolmap.Reconstruction(str(plane_run / "export" / "colmap"))
+    cam = rec.cameras[1]
+    lengths = [p3.track.length() for p3 in rec.points3D.values()]
+    assert len(rec.images) == 6 and max(lengths) >= 4 and np.mean(np.array(lengths) >= 2) > 0.5
+    for pid, p3 in rec.points3D.items():
+        for el in p3.track.elements:
+            img = rec.images[el.image_id]
+            assert img.points2D[el.point2D_idx].point3D_id == pid
+            uv = np.asarray(cam.img_from_cam(img.cam_from_world() * p3.xyz)).ravel()[:2]
+            np.testing.assert_allclose(uv, img.points2D[el.point2D_idx].xy, atol=1e-3)
+
+
 def test_nerfstudio_depth_png_at_image_size(plane_run):
     import cv2
 
@@ -353,15 +369,27 @@ def test_nerfstudio_depth_png_at_image_size(plane_run):
     assert (png[40:48, 56:64] == 0).all() and (png[40:48, 48:56] > 0).all()  # no depth stays no depth
 
 
-def test_nerfstudio_depth_unit_when_millimetres_overflow(plane_run):
+def test_nerfstudio_depth_unit_follows_the_median_depth(plane_run):
     import cv2
 
     kf = read_keyframes(plane_run)
-    scaled = kf["depth"][0] * 20.0  # depth ~100 map units: over 65535 thousandths
-    np.save(plane_run / "keyframes" / "000000_depth.npy", scaled)
+    for n, f in enumerate(kf["frame_index"]):  # a map 20x larger: median depth ~100, millimetres overflow 16 bits
+        np.save(plane_run / "keyframes" / f"{f:06d}_depth.npy", kf["depth"][n] * 20.0)
     s = export_run(plane_run, "nerfstudio", images=False)
     out = plane_run / "export" / "nerfstudio"
-    assert s["depth_unit_scale_factor"] == 1e-2 == json.loads((out / "transforms.json").read_text())[
+    assert s["depth_unit_scale_factor"] == 0.1 == json.loads((out / "transforms.json").read_text())[
         "depth_unit_scale_factor"]
     png = cv2.imread(str(out / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
-    np.testing.assert_allclose(png[3::8, 3::8] * 1e-2, scaled, atol=5e-3)
+    np.testing.assert_allclose(png[3::8, 3::8] * 0.1, kf["depth"][0] * 20.0, atol=0.05)
+
+
+def test_nerfstudio_depth_beyond_16_bits_is_no_depth(plane_run):
+    import cv2
+
+    depth = read_keyframes(plane_run)["depth"][1]
+    depth[0, 0] = 1000.0  # a pixel at the disparity floor: 1e6 thousandths
+    np.save(plane_run / "keyframes" / "000004_depth.npy", depth)
+    s = export_run(plane_run, "nerfstudio", images=False)
+    png = cv2.imread(str(plane_run / "export" / "nerfstudio" / "depth" / "000004.png"), cv2.IMREAD_UNCHANGED)
+    assert s["depth_unit_scale_factor"] == 1e-3 and s["depth_pixels_beyond_range"] == 64
+    assert (png[:8, :8] == 0).all() and (png[:8, 8:16] > 0).all()
