@@ -2,8 +2,8 @@
 are listed in :mod:`.formats`; the COLMAP and nerfstudio writers are :mod:`.colmap` and :mod:`.nerfstudio`).
 
 Inputs (all in the run directory): ``keyframes/`` (poses, depth, intrinsics; :mod:`.keyframes_io`),
-``cloud_rgb.ply`` (points with the ``frame_index`` of the keyframe that saw them), ``trajectory.txt`` and
-``groundtruth.txt``.  Images are those the pipeline saw (after the reader's resize/crop/undistort, so that they
+``cloud_rgb.ply`` (points with the ``frame_index`` of the keyframe that saw them), ``loops.json`` (keyframe pairs
+of the COLMAP tracks), ``trajectory.txt`` and ``groundtruth.txt``.  Images are those the pipeline saw (after the reader's resize/crop/undistort, so that they
 match the exported intrinsics), re-read from the run's dataset and written as ``images/NNNNNN.png``
 (input-frame index); without the dataset the models still reference those names.
 
