@@ -13,6 +13,7 @@ Where each file of a run directory comes from:
 * ``cloud_rgb.ply``, ``cloud_panoptic.ply`` (cleaned: :mod:`.cloud`) -- :mod:`.ply`;
 * ``keyframes/NNNNNN_depth.npy`` + ``keyframes/keyframes.json`` (poses, intrinsics) -- :mod:`.keyframes_io`;
 * ``metrics.json`` -- :mod:`.metrics`; ``plots/`` -- :mod:`.plots`;
-* ``export/colmap|nerfstudio|tum-aligned/`` (``pvslam export``) -- :mod:`.export`; the formats are the table of
-  :mod:`.formats` (a new format: its writer module plus one line there).
+* ``export/colmap|nerfstudio|tum-aligned/`` (``pvslam export``) -- :mod:`.export`, :mod:`.colmap`,
+  :mod:`.nerfstudio`; the formats are the table of :mod:`.formats` (a new format: its writer module plus one line
+  there).
 """

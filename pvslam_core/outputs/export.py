@@ -1,9 +1,9 @@
 """``pvslam export RUN_DIR --format colmap|nerfstudio|tum-aligned``: a run for 3D reconstruction tools (the formats
-are listed in :mod:`.formats`).
+are listed in :mod:`.formats`; the COLMAP and nerfstudio writers are :mod:`.colmap` and :mod:`.nerfstudio`).
 
 Inputs (all in the run directory): ``keyframes/`` (poses, depth, intrinsics; :mod:`.keyframes_io`),
-``cloud_rgb.ply`` (points with the ``frame_index`` of the keyframe that saw them), ``trajectory.txt`` and
-``groundtruth.txt``.  Images are those the pipeline saw (after the reader's resize/crop/undistort, so that they
+``cloud_rgb.ply`` (points with the ``frame_index`` of the keyframe that saw them), ``loops.json`` (keyframe pairs
+of the COLMAP tracks), ``trajectory.txt`` and ``groundtruth.txt``.  Images are those the pipeline saw (after the reader's resize/crop/undistort, so that they
 match the exported intrinsics), re-read from the run's dataset and written as ``images/NNNNNN.png``
 (input-frame index); without the dataset the models still reference those names.
 
@@ -24,15 +24,13 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
 from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
 
-from ._atomic import atomic_write_bytes, atomic_write_text
+from ._atomic import atomic_write_bytes
 from .formats import EXPORT_FORMATS
-from .metrics import write_json_atomic
 from .trajectory_io import pose_to_matrix
 
 LOG = logging.getLogger("pvslam")
@@ -129,103 +127,6 @@ def write_images(run_dir: Path, out_dir: Path, frame_indices: np.ndarray, regist
         if not want:
             break
     return f"frames {sorted(want)[:10]} not found in the dataset" if want else None
-
-
-# ----------------------------------------------------------------------------------------------- COLMAP --
-def _colmap_camera(intr: dict) -> tuple[str, list[float]]:
-    fx, fy = intr["fx"], intr["fy"]
-    cx, cy = to_corner_pixels([intr["cx"], intr["cy"]])
-    dist = list(intr.get("dist", []))
-    if not any(dist):
-        return "PINHOLE", [fx, fy, cx, cy]
-    if len(dist) == 4:
-        return "OPENCV", [fx, fy, cx, cy, *dist]
-    if len(dist) in (5, 8):  # OpenCV (k1, k2, p1, p2, k3[, k4, k5, k6]) = COLMAP FULL_OPENCV's order
-        return "FULL_OPENCV", [fx, fy, cx, cy, *(dist + [0.0] * (8 - len(dist)))]
-    raise ValueError(f"{len(dist)} distortion coefficients have no COLMAP camera model")
-
-
-def export_colmap(run_dir: Path, out_dir: Path, kf: dict) -> dict[str, Any]:
-    """COLMAP text model ``cameras.txt``, ``images.txt``, ``points3D.txt`` (one PINHOLE/OPENCV camera; one image
-    per keyframe; each point observed by the keyframe it came from, at its exact projection)."""
-    intr = kf["intrinsics"]["image"]
-    model, params = _colmap_camera(intr)
-    qvec, tvec = colmap_pose(kf["poses"])
-    pts, cols, src = _cloud(run_dir)
-    image_id = {int(f): n + 1 for n, f in enumerate(kf["frame_index"])}
-    obs: dict[int, list[tuple[float, float, int]]] = {i: [] for i in image_id.values()}
-    track: list[tuple[int, int]] = []  # per point: (image id, index in that image's POINTS2D)
-    keep = np.zeros(len(pts), bool)
-    if src is not None and len(pts):
-        for n, f in enumerate(kf["frame_index"]):  # vectorised per keyframe
-            sel = np.nonzero(src == f)[0]
-            if not len(sel):
-                continue
-            uv, z = project(pts[sel], kf["poses"][n], intr["fx"], intr["fy"], intr["cx"], intr["cy"])
-            uv = to_corner_pixels(uv)
-            ok = z > 0
-            keep[sel[ok]] = True
-            for k, (u, v) in zip(sel[ok].tolist(), uv[ok].tolist()):
-                obs[n + 1].append((u, v, k + 1))
-    elif len(pts):
-        keep[:] = True
-        LOG.warning("cloud_rgb.ply has no frame_index: points3D.txt gets points without tracks")
-    where = {k: (img, j) for img, lst in obs.items() for j, (_, _, k) in enumerate(lst)}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out_dir / "cameras.txt",
-                      "# Camera list with one line of data per camera:\n"
-                      "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n# Number of cameras: 1\n"
-                      f"1 {model} {intr['width']} {intr['height']} " + " ".join(f"{v:.17g}" for v in params) + "\n")
-    lines = ["# Image list with two lines of data per image:",
-             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-             "#   POINTS2D[] as (X, Y, POINT3D_ID)",
-             f"# Number of images: {len(image_id)} (pvslam keyframes; world-to-camera poses)"]
-    for n, f in enumerate(kf["frame_index"]):
-        q, t = qvec[n], tvec[n]
-        lines.append(f"{n + 1} " + " ".join(f"{v:.17g}" for v in (*q, *t)) + f" 1 {_image_name(f)}")
-        lines.append(" ".join(f"{u:.6f} {v:.6f} {k}" for u, v, k in obs[n + 1]))
-    atomic_write_text(out_dir / "images.txt", "\n".join(lines) + "\n")
-    plines = ["# 3D point list with one line of data per point:",
-              "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
-              f"# Number of points: {int(keep.sum())}"]
-    for k in np.nonzero(keep)[0].tolist():
-        x, y, z = pts[k]
-        r, g, b = cols[k]
-        tr = f" {where[k + 1][0]} {where[k + 1][1]}" if (k + 1) in where else ""
-        plines.append(f"{k + 1} {x:.9g} {y:.9g} {z:.9g} {r} {g} {b} 0{tr}")
-    atomic_write_text(out_dir / "points3D.txt", "\n".join(plines) + "\n")
-    return {"images": len(image_id), "points": int(keep.sum()), "camera_model": model}
-
-
-# ------------------------------------------------------------------------------------------- nerfstudio --
-def export_nerfstudio(run_dir: Path, out_dir: Path, kf: dict) -> dict[str, Any]:
-    """``transforms.json`` (OpenGL camera-to-world matrices), per-keyframe depth (``depth/NNNNNN.npy``) and the
-    point cloud as ``sparse_pc.ply`` (nerfstudio's seed points)."""
-    intr = kf["intrinsics"]["image"]
-    cx, cy = to_corner_pixels([intr["cx"], intr["cy"]])
-    dist = list(intr.get("dist", [])) + [0.0] * 4
-    c2w = nerfstudio_c2w(kf["poses"])
-    (out_dir / "depth").mkdir(parents=True, exist_ok=True)
-    frames = []
-    for n, f in enumerate(kf["frame_index"]):
-        name = f"{int(f):06d}.npy"
-        # nerfstudio multiplies depth files by depth_unit_scale_factor (default 1e-3, for millimetre PNGs):
-        # store map units x 1000 so the default gives back the map's units
-        np.save(out_dir / "depth" / name, (kf["depth"][n] * 1000.0).astype(np.float32))
-        frames.append({"file_path": f"images/{_image_name(f)}", "transform_matrix": c2w[n].tolist(),
-                       "depth_file_path": f"depth/{name}", "colmap_im_id": n + 1})
-    meta: dict[str, Any] = {
-        "camera_model": "OPENCV", "fl_x": intr["fx"], "fl_y": intr["fy"], "cx": float(cx), "cy": float(cy),
-        "w": intr["width"], "h": intr["height"], "k1": dist[0], "k2": dist[1], "p1": dist[2], "p2": dist[3],
-        "frames": frames,
-    }
-    if len(intr.get("dist", [])) > 4 and any(intr["dist"][4:]):
-        meta["k3"] = intr["dist"][4]
-    if (run_dir / "cloud_rgb.ply").is_file():
-        shutil.copyfile(run_dir / "cloud_rgb.ply", out_dir / "sparse_pc.ply")
-        meta["ply_file_path"] = "sparse_pc.ply"
-    write_json_atomic(out_dir / "transforms.json", meta)
-    return {"images": len(frames), "depth_scale": "map units x 1000 (depth_unit_scale_factor 1e-3)"}
 
 
 # -------------------------------------------------------------------------------------------- TUM aligned --

@@ -34,8 +34,8 @@ class ExportFormat:
 
 
 EXPORT_FORMATS: dict[str, ExportFormat] = {f.name: f for f in (
-    ExportFormat("colmap", ".export:export_colmap", True, "cameras/images/points3D.txt"),
-    ExportFormat("nerfstudio", ".export:export_nerfstudio", True, "transforms.json + depth"),
+    ExportFormat("colmap", ".colmap:export_colmap", True, "cameras/images/points3D.txt, multi-view tracks"),
+    ExportFormat("nerfstudio", ".nerfstudio:export_nerfstudio", True, "transforms.json + depth PNGs at image size"),
     ExportFormat("tum-aligned", ".export:export_tum_aligned", False, "trajectory.txt Sim(3)-aligned to groundtruth.txt"),
 )}
 

@@ -125,16 +125,17 @@ def test_colmap_export_projects_points_onto_their_observations(run_dir):
     assert len(pts) == 200 and s["points"] == 200
     kf = read_keyframes(run_dir)
     for pid, p in pts.items():
-        (img, idx), = p["track"]
-        im = images[img]
-        R = Rotation.from_quat([*im["q"][1:], im["q"][0]]).as_matrix()
-        Xc = R @ p["X"] + im["t"]
-        uv = np.array([fx * Xc[0] / Xc[2] + cx, fy * Xc[1] / Xc[2] + cy])
-        x, y, back = im["p2d"][idx]
-        assert int(back) == pid
-        np.testing.assert_allclose(uv, [x, y], atol=1e-4)  # 6 decimals in the file
-        # and that is pvslam's pixel of the point, in COLMAP's pixel-corner convention
-        np.testing.assert_allclose(uv, _pvslam_pixel(p["X"], kf["poses"][img - 1])[0] + 0.5, atol=1e-4)
+        assert len(p["track"]) >= 1
+        for img, idx in p["track"]:
+            im = images[img]
+            R = Rotation.from_quat([*im["q"][1:], im["q"][0]]).as_matrix()
+            Xc = R @ p["X"] + im["t"]
+            uv = np.array([fx * Xc[0] / Xc[2] + cx, fy * Xc[1] / Xc[2] + cy])
+            x, y, back = im["p2d"][idx]
+            assert int(back) == pid
+            np.testing.assert_allclose(uv, [x, y], atol=1e-4)  # 6 decimals in the file
+            # and that is pvslam's pixel of the point, in COLMAP's pixel-corner convention
+            np.testing.assert_allclose(uv, _pvslam_pixel(p["X"], kf["poses"][img - 1])[0] + 0.5, atol=1e-4)
 
 
 def test_colmap_camera_with_distortion(run_dir):
@@ -160,8 +161,7 @@ def test_nerfstudio_export(run_dir):
         x, y, z = (np.linalg.inv(m) @ np.append(X, 1))[:3]
         u = [meta["fl_x"] * x / -z + meta["cx"], -meta["fl_y"] * y / -z + meta["cy"]]
         np.testing.assert_allclose(u, _pvslam_pixel(X, kf["poses"][n])[0] + 0.5, atol=1e-9)
-        depth = np.load(out / fr["depth_file_path"])
-        np.testing.assert_allclose(depth * 1e-3, kf["depth"][n], rtol=1e-6)  # nerfstudio's default 1e-3 factor
+        assert fr["depth_file_path"] == f"depth/{kf['frame_index'][n]:06d}.png"
 
 
 def test_tum_aligned_recovers_the_ground_truth(run_dir):
@@ -210,11 +210,11 @@ def test_colmap_model_reads_in_pycolmap(run_dir):
     cam = rec.cameras[1]
     kf = read_keyframes(run_dir)
     for p3 in rec.points3D.values():
-        (el,) = p3.track.elements
-        img = rec.images[el.image_id]
-        uv = np.asarray(cam.img_from_cam(img.cam_from_world() * p3.xyz)).ravel()[:2]
-        np.testing.assert_allclose(uv, img.points2D[el.point2D_idx].xy, atol=1e-4)
-        np.testing.assert_allclose(uv, _pvslam_pixel(p3.xyz, kf["poses"][el.image_id - 1])[0] + 0.5, atol=1e-6)
+        for el in p3.track.elements:
+            img = rec.images[el.image_id]
+            uv = np.asarray(cam.img_from_cam(img.cam_from_world() * p3.xyz)).ravel()[:2]
+            np.testing.assert_allclose(uv, img.points2D[el.point2D_idx].xy, atol=1e-4)
+            np.testing.assert_allclose(uv, _pvslam_pixel(p3.xyz, kf["poses"][el.image_id - 1])[0] + 0.5, atol=1e-6)
 
 
 def toy_writer(run_dir, out_dir, kf):
@@ -289,3 +289,165 @@ def test_a_symlinked_depth_file_leading_out_is_refused(run_dir):
     link.unlink()  # a link that stays inside the run directory is fine
     os.symlink(run_dir / "keyframes" / "000000_depth.npy", link)
     assert read_keyframes(run_dir)["depth"].shape == (4, 15, 20)
+
+
+# ------------------------------------------------------------------ a plane seen by keyframes that agree on it --
+PLANE_N, PLANE_C = np.array([-0.2, -0.3, 1.0]), 5.0  # the world plane z = 5 + 0.2 x + 0.3 y
+PLANE_FI = np.array([0, 4, 8, 12, 16, 40])  # keyframe 5 (frame 40) comes back to keyframe 0's place
+BAD = 4  # keyframe 4's depth is 1.3x too far: it disagrees with every other keyframe
+
+
+def _plane_poses():
+    x = [0.0, 0.25, 0.5, 0.75, 1.0, 0.05]
+    yaw = [0.0, 0.02, -0.02, 0.03, 0.0, 0.01]
+    return np.array([[xi, 0, 0, *Rotation.from_euler("y", a).as_quat()] for xi, a in zip(x, yaw)])
+
+
+def _plane_depth(pose, fx, fy, cx, cy, u, v):
+    """z-depth of the plane along the rays of pixels ``(u, v)`` of the camera ``pose``."""
+    rays = Rotation.from_quat(pose[3:]).apply(np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1))
+    return (PLANE_C - PLANE_N @ pose[:3]) / (rays @ PLANE_N)
+
+
+@pytest.fixture
+def plane_run(tmp_path):
+    """A run directory (pvslam's own writers) of 6 keyframes over a tilted plane: depth rendered at the depth
+    resolution, one pixel without depth, the cloud is every depth pixel moved into the world (as a run writes it)."""
+    d = tmp_path / "plane"
+    d.mkdir()
+    poses = _plane_poses()
+    fx, fy, cx, cy = K_DEPTH
+    v, u = np.mgrid[0:15, 0:20].astype(np.float64)
+    depth = np.stack([_plane_depth(p, fx, fy, cx, cy, u, v) for p in poses])
+    depth[BAD] *= 1.3
+    depth[2, 5, 7] = 0.0
+    disps = np.where(depth > 0, 1.0 / np.where(depth > 0, depth, 1.0), 0.0).astype(np.float32)
+    write_keyframes(d, PLANE_FI, 0.1 * PLANE_FI, poses, disps, K_DEPTH, K_IMG)
+    pts, src = [], []
+    for n, p in enumerate(poses):
+        ok = depth[n] > 0
+        local = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)[ok] * depth[n][ok][:, None]
+        pts.append(Rotation.from_quat(p[3:]).apply(local) + p[:3])
+        src.append(np.full(len(local), PLANE_FI[n]))
+    pts = np.concatenate(pts).astype(np.float32)
+    write_ply(d / "cloud_rgb.ply", pts, np.full((len(pts), 3), 200, np.uint8),
+              extra={"frame_index": np.concatenate(src).astype(np.int32)})
+    write_tum(d / "trajectory.txt", 0.1 * np.arange(41), np.tile([0, 0, 0, 0, 0, 0, 1.0], (41, 1)))
+    return d
+
+
+def _tracks(run_dir):
+    export_run(run_dir, "colmap", images=False)
+    return _read_colmap(run_dir / "export" / "colmap")
+
+
+def test_colmap_tracks_are_multi_view_and_point_both_ways(plane_run):
+    cams, images, pts = _tracks(plane_run)
+    fx, fy, cx, cy = (float(v) for v in cams[0][4:])
+    poses = _plane_poses()
+    lengths = np.array([len(p["track"]) for p in pts.values()])
+    assert (lengths >= 2).mean() > 0.5 and lengths.max() >= 4
+    listed = set()
+    for pid, p in pts.items():
+        imgs = p["track"][:, 0].tolist()
+        assert len(set(imgs)) == len(imgs)  # one observation per image
+        for img, idx in p["track"]:
+            im = images[img]
+            x, y, back = im["p2d"][idx]
+            assert int(back) == pid  # POINT2D_IDX names the point back
+            listed.add((img, idx))
+            R = Rotation.from_quat([*im["q"][1:], im["q"][0]]).as_matrix()
+            Xc = R @ p["X"] + im["t"]
+            uv = np.array([fx * Xc[0] / Xc[2] + cx, fy * Xc[1] / Xc[2] + cy])
+            np.testing.assert_allclose(uv, [x, y], atol=1e-3)  # reprojection error
+            assert 0 <= x <= 160 and 0 <= y <= 120  # inside the image
+            if img - 1 != BAD:  # the point lies on the plane this keyframe sees there
+                z = _plane_depth(poses[img - 1], K_IMG.fx, K_IMG.fy, K_IMG.cx, K_IMG.cy, x - 0.5, y - 0.5)
+                assert Xc[2] == pytest.approx(z, rel=1e-3)
+    # and every 2D point with a 3D point is in that point's track
+    assert listed == {(img, j) for img, im in images.items() for j, row in enumerate(im["p2d"]) if row[2] != -1}
+
+
+def test_colmap_tracks_need_the_depth_to_agree_and_a_pair(plane_run):
+    _, _, pts = _tracks(plane_run)
+    pairs = {(i, j) for i in range(6) for j in range(6) if 0 < abs(i - j) <= 2}
+    around = 0
+    for p in pts.values():
+        imgs = sorted(p["track"][:, 0] - 1)
+        if BAD in imgs:  # its depth disagrees with everyone's
+            assert imgs == [BAD]
+        # no loop file: the point's own keyframe and keyframes at most two before or after it
+        assert any(all((s, j) in pairs for j in imgs if j != s) for s in imgs)
+        around += {BAD - 1, BAD + 1} <= set(imgs)
+    assert around > 100  # the keyframes on both sides of the bad one do share points
+
+
+def test_colmap_tracks_follow_the_loops(plane_run):
+    from pvslam_core.outputs.loops_io import write_loops
+
+    def both(pts):
+        return sum({1, 6} <= set(p["track"][:, 0].tolist()) for p in pts.values())
+
+    assert both(_tracks(plane_run)[2]) == 0
+    write_loops(plane_run / "loops.json", [{"frame_i": 40, "frame_j": 0, "score": 0.9}])
+    assert both(_tracks(plane_run)[2]) > 100
+
+
+def test_colmap_tracks_read_in_pycolmap(plane_run):
+    """COLMAP's own reader: multi-view tracks, each element's 2D point names the 3D point and is its projection."""
+    pycolmap = pytest.importorskip("pycolmap", reason="pycolmap comes with the bench extra")
+    export_run(plane_run, "colmap", images=False)
+    rec = pycolmap.Reconstruction(str(plane_run / "export" / "colmap"))
+    cam = rec.cameras[1]
+    lengths = [p3.track.length() for p3 in rec.points3D.values()]
+    assert len(rec.images) == 6 and max(lengths) >= 4 and np.mean(np.array(lengths) >= 2) > 0.5
+    for pid, p3 in rec.points3D.items():
+        for el in p3.track.elements:
+            img = rec.images[el.image_id]
+            assert img.points2D[el.point2D_idx].point3D_id == pid
+            uv = np.asarray(cam.img_from_cam(img.cam_from_world() * p3.xyz)).ravel()[:2]
+            np.testing.assert_allclose(uv, img.points2D[el.point2D_idx].xy, atol=1e-3)
+
+
+def test_nerfstudio_depth_png_at_image_size(plane_run):
+    import cv2
+
+    export_run(plane_run, "nerfstudio", images=False)
+    out = plane_run / "export" / "nerfstudio"
+    meta = json.loads((out / "transforms.json").read_text())
+    assert meta["depth_unit_scale_factor"] == 1e-3  # nerfstudio's default: millimetres
+    kf = read_keyframes(plane_run)
+    for n, fr in enumerate(meta["frames"]):
+        png = cv2.imread(str(out / fr["depth_file_path"]), cv2.IMREAD_UNCHANGED)
+        assert png.dtype == np.uint16 and png.shape == (meta["h"], meta["w"]) == (120, 160)
+        # nearest: image pixel (y, x) lies in depth pixel (y // 8, x // 8) of the 1/8 map
+        expect = kf["depth"][n][np.arange(120)[:, None] // 8, np.arange(160)[None] // 8]
+        np.testing.assert_allclose(png * 1e-3, expect, atol=5e-4)
+    png = cv2.imread(str(out / "depth" / "000008.png"), cv2.IMREAD_UNCHANGED)
+    assert (png[40:48, 56:64] == 0).all() and (png[40:48, 48:56] > 0).all()  # no depth stays no depth
+
+
+def test_nerfstudio_depth_unit_follows_the_median_depth(plane_run):
+    import cv2
+
+    kf = read_keyframes(plane_run)
+    for n, f in enumerate(kf["frame_index"]):  # a map 20x larger: median depth ~100, millimetres overflow 16 bits
+        np.save(plane_run / "keyframes" / f"{f:06d}_depth.npy", kf["depth"][n] * 20.0)
+    s = export_run(plane_run, "nerfstudio", images=False)
+    out = plane_run / "export" / "nerfstudio"
+    assert s["depth_unit_scale_factor"] == 0.1 == json.loads((out / "transforms.json").read_text())[
+        "depth_unit_scale_factor"]
+    png = cv2.imread(str(out / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_allclose(png[3::8, 3::8] * 0.1, kf["depth"][0] * 20.0, atol=0.05)
+
+
+def test_nerfstudio_depth_beyond_16_bits_is_no_depth(plane_run):
+    import cv2
+
+    depth = read_keyframes(plane_run)["depth"][1]
+    depth[0, 0] = 1000.0  # a pixel at the disparity floor: 1e6 thousandths
+    np.save(plane_run / "keyframes" / "000004_depth.npy", depth)
+    s = export_run(plane_run, "nerfstudio", images=False)
+    png = cv2.imread(str(plane_run / "export" / "nerfstudio" / "depth" / "000004.png"), cv2.IMREAD_UNCHANGED)
+    assert s["depth_unit_scale_factor"] == 1e-3 and s["depth_pixels_beyond_range"] == 64
+    assert (png[:8, :8] == 0).all() and (png[:8, 8:16] > 0).all()
