@@ -67,7 +67,7 @@ def _loop_line(lp: dict, num_loops: int) -> str:
         return f"loops: n/a ({lp['error']})"
     n = lp.get("num_detected", num_loops)
     precision = _value(lp.get("precision"), ".2f", "no loop detected" if n == 0 else "not computed")
-    recall = _value(lp.get("recall"), ".2f", "no true loop in the ground truth" if lp.get("num_gt_events") == 0
+    recall = _value(lp.get("recall"), ".2f", "no true loop among the frames run" if lp.get("num_gt_events") == 0
                     else "not computed")
     return f"loops: {n} detected  precision {precision}  recall {recall}"
 

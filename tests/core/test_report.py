@@ -20,7 +20,7 @@ def test_loops_without_detections_or_true_loops_say_why():
     lp = {"precision": math.nan, "recall": math.nan, "num_detected": 0, "num_gt_events": 0}
     (line,) = [ln for ln in summary_lines(_result({"loops": lp})) if ln.startswith("loops:")]
     assert line == ("loops: 0 detected  precision n/a (no loop detected)  "
-                    "recall n/a (no true loop in the ground truth)"), line
+                    "recall n/a (no true loop among the frames run)"), line
     lp = {"precision": 0.5, "recall": 1.0, "num_detected": 2, "num_gt_events": 1}
     assert "precision 0.50  recall 1.00" in "\n".join(summary_lines(_result({"loops": lp})))
 
@@ -47,3 +47,24 @@ def test_pq_of_the_same_categories_is_printed(tmp_path):
 def test_the_comparison_table_shows_no_nan():
     table = comparison_table([("a", _result({"panoptic": {"pq": math.nan, "vpq": 0.25}}, "/runs/x/a"))])
     assert "nan" not in table and "n/a" in table and "0.250" in table
+
+
+def test_revisits_beyond_the_frames_run_are_no_true_loops(tmp_path):
+    """A run of 10 frames of a sequence whose revisits start at frame 440 has no true loop: recall is undefined
+    (n/a), not 0."""
+    import numpy as np
+
+    from pvslam_core.config import PipelineConfig
+    from pvslam_core.outputs.loops_io import write_loops
+    from pvslam_core.outputs.trajectory_io import write_tum
+    from pvslam_core.run_outputs import evaluate_saved_run
+
+    poses = np.tile([0.0, 0, 0, 0, 0, 0, 1], (10, 1))
+    write_tum(tmp_path / "trajectory.txt", np.arange(10) * 0.1, poses)
+    write_loops(tmp_path / "loops.json", [])
+    (tmp_path / "groundtruth_loops.json").write_text(json.dumps({"pairs": [[440, 0], [441, 1]]}))
+    pcfg = PipelineConfig()
+    pcfg.outputs.plots = False
+    m = evaluate_saved_run(tmp_path, None, {}, pcfg=pcfg)
+    assert m["loops"]["num_gt_events"] == 0 and math.isnan(m["loops"]["recall"])
+    assert "recall n/a (no true loop among the frames run)" in "\n".join(summary_lines(_result(m)))
