@@ -75,7 +75,28 @@ def main(argv: Optional[list[str]] = None) -> int:
         return _fail("interrupted; outputs written so far are kept", 130)
     except (FileNotFoundError, ValueError, RuntimeError, OSError) as exc:
         return _fail(f"{type(exc).__name__}: {exc}", EXIT_RUNTIME)
+    except Exception as exc:
+        if not _is_opencv_error(exc):
+            raise
+        return _fail(_opencv_message(exc), EXIT_RUNTIME)
     return 0
+
+
+def _is_opencv_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is OpenCV's ``cv2.error`` (without importing OpenCV where no command did)."""
+    cv2 = sys.modules.get("cv2")
+    return cv2 is not None and isinstance(exc, getattr(cv2, "error", ()))
+
+
+def _opencv_message(exc: BaseException) -> str:
+    """One line: where the run stopped (the stage and the frame, see pipeline.failed_at) and OpenCV's assertion."""
+    from .pipeline import failed_at
+
+    what = (getattr(exc, "err", "") or next((ln for ln in str(exc).splitlines() if ln.strip()), "")).strip()
+    func = getattr(exc, "func", "")
+    where = failed_at(exc)
+    msg = f"OpenCV error{f' in {where}' if where else ''}: {what}{f' (in {func})' if func else ''}"
+    return msg + ("; the run directory keeps what was written" if where else "")
 
 
 def _plain_plugin_warnings(category: type) -> None:
@@ -97,12 +118,15 @@ def _plain_plugin_warnings(category: type) -> None:
 # ------------------------------------------------------------------------------------------------ run --
 def _run_overrides(args) -> list[str]:
     ov = list(args.overrides)
+    # as (key, value) pairs, not as TOML text: a name or path holds any character (an emoji, a backslash)
     if args.output_dir:
-        ov.append(f"run.output_dir={json.dumps(args.output_dir)}")
+        ov.append(("run.output_dir", args.output_dir))
     if args.name:
-        ov.append(f"run.name={json.dumps(args.name)}")
+        ov.append(("run.name", args.name))
     if args.quiet:
         ov.append("run.progress=false")
+    if args.panoptic_vis:
+        ov.append(("outputs.panoptic_vis", True))
     return ov
 
 
@@ -127,7 +151,8 @@ def _cmd_run(args) -> int:
     if args.path:
         overrides, det = path_overrides(args.path, args.calib, overrides, config=args.config)
         print(f"pvslam: input: {det.description} ({det.plugin} reader)", file=sys.stderr)
-    viewer = _viewer(spawn=args.viz, save=args.viz_save) if (args.viz or args.viz_save) else None
+    viewer = (_viewer(spawn=args.viz, save=args.viz_save, hint="pvslam run ... --viz-save FILE.rrd")
+              if (args.viz or args.viz_save) else None)
     try:
         result = run_config(args.config, overrides=overrides, observer=viewer)
     finally:
@@ -144,20 +169,28 @@ def _cmd_run(args) -> int:
     return 0
 
 
-def _viewer(spawn: bool, save: Optional[str]):
-    """The rerun viewer (a RunObserver); a missing rerun is a clear error, not a traceback."""
+def _viewer(spawn: bool, save: Optional[str], hint: str):
+    """The rerun viewer (a RunObserver); a missing rerun or no display is a clear error, not a traceback or a
+    wait; ``hint``: the command that records the view to a file instead."""
+    from .config import ConfigError
+    from .viz import ViewerUnavailable
+
     try:
         from .viz.rerun_viewer import RerunViewer
 
         return RerunViewer(spawn=spawn, save=save)
     except ImportError as exc:
         raise RuntimeError(str(exc)) from None
+    except ViewerUnavailable as exc:
+        raise ConfigError(f"{exc}; record the view to a file instead: {hint}, then open it where there is a "
+                          "display with: rerun FILE.rrd") from None
 
 
 def _cmd_view(args) -> int:
     from .viz.replay import replay_run
 
-    viewer = _viewer(spawn=args.spawn or not args.save, save=args.save)
+    viewer = _viewer(spawn=args.spawn or not args.save, save=args.save,
+                     hint=f"pvslam view {args.run_dir} --save FILE.rrd")
     try:
         summary = replay_run(args.run_dir, viewer)
     finally:
@@ -304,6 +337,10 @@ def _cmd_eval(args) -> int:
     for kind, src in metrics.get("evaluation_sources", {}).items():  # stderr: stdout stays pure JSON
         print(f"pvslam eval: {kind} ground truth: {src}" if kind != "dataset" else f"pvslam eval: dataset: {src}",
               file=sys.stderr)
+    from .report import metric_lines
+
+    for line in metric_lines({k: v for k, v in metrics.items() if k != "timing"}, args.run_dir):
+        print(f"pvslam eval: {line}", file=sys.stderr)
     print(json.dumps(metrics, indent=2, default=float))
     return 0
 

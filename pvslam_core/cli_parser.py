@@ -34,6 +34,9 @@ def _add_run(sub) -> None:
     p.add_argument("--output-dir", help="folder for run directories (overrides run.output_dir)")
     p.add_argument("--name", help="run name (overrides run.name)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar, only the summary")
+    p.add_argument("--panoptic-vis", action="store_true",
+                   help="also write a colour preview of each panoptic PNG to panoptic_vis/ (the PNGs in panoptic/ "
+                        "hold ids; sets outputs.panoptic_vis)")
     p.add_argument("path", nargs="?", metavar="PATH",
                    help="input: a video file, a folder of images, a KITTI / EuRoC / TUM sequence folder or a camera "
                         "index; the reader is detected from it (replaces the config's [dataset])")

@@ -410,7 +410,8 @@ def _normalise_overrides(overrides) -> dict[str, Any]:
         return {}
     if isinstance(overrides, dict):
         return dict(overrides)
-    return dict(parse_override(o) for o in overrides)
+    # a (key, value) pair is taken as it is: a value from the command line (a path, a name) is never TOML text
+    return dict(o if isinstance(o, tuple) else parse_override(o) for o in overrides)
 
 
 # ---------------------------------------------------------------------------------------------- ablation ----
@@ -443,9 +444,9 @@ def load_ablation(path: str | Path, overrides=None, registry=None) -> list[Varia
             raise ConfigError(f"{path}: variant {n} must be a table")
         name = str(var.get("name", f"variant{n}"))
         try:
-            from .rundir import check_name
+            from .rundir import check_variant_name
 
-            check_name(name, what="variant name")  # each variant writes into <ablation dir>/<name>/
+            check_variant_name(name)  # each variant writes into <ablation dir>/<name>/
         except ValueError as exc:
             raise ConfigError(f"{path}: [[variant]] {n}: {exc}") from None
         if name in names:

@@ -49,6 +49,24 @@ class PipelineError(RuntimeError):
     """The pipeline cannot go on; the message says why (outputs written so far are kept)."""
 
 
+def failed_at(exc: BaseException) -> Optional[str]:
+    """Where a run stopped on ``exc`` ("the map stage at frame 12"), as :meth:`Pipeline.run` recorded it."""
+    return getattr(exc, "pvslam_where", None)
+
+
+def _record_where(exc: BaseException, stage: str, index: Optional[int], frames_done: int) -> None:
+    if failed_at(exc) is not None:
+        return
+    if stage == "read":
+        where = f"the read stage after {frames_done} frames"
+    else:
+        where = f"the {stage} stage" + (f" at frame {index}" if index is not None else "")
+    try:
+        exc.pvslam_where = where
+    except AttributeError:  # an exception type without attributes of its own
+        pass
+
+
 class RunTerminated(KeyboardInterrupt):
     """SIGTERM (``kill``, ``timeout``, a job scheduler): handled like Ctrl-C, outputs written so far are kept."""
 
@@ -171,6 +189,7 @@ class Pipeline:
         self.cpu_start = time.process_time()
         self.ever_initialized = False
         self._loops_seen = 0
+        self._at: tuple[str, Optional[int]] = ("read", None)  # the stage and frame index running (error reports)
         if self.observer is not None:
             self._notify("on_start", self.info, self.categories())
 
@@ -179,12 +198,15 @@ class Pipeline:
         from .slam.motion_cue import motion_cue
 
         t0, c0 = time.perf_counter(), time.thread_time()
+        self._at = ("segment", frame.index)
         seg = self.segmenter.segment(frame) if self.segmenter is not None else None
         t1, c1 = time.perf_counter(), time.thread_time()
+        self._at = ("map", frame.index)
         result = self.mapper.process(frame, seg)
         self.ever_initialized |= result.initialized
         t2, c2 = time.perf_counter(), time.thread_time()
         panoptic: Optional[PanopticSegmentation] = None  # this frame's temporally consistent segmentation
+        self._at = ("vps", frame.index)
         if self.vps is not None and seg is not None:
             # With nobody waiting for this frame's panoptic (no observer), the motion cue, the VPS and its PNG run
             # on the output thread, in frame order, while the next frame is mapped (FrameResults are not changed
@@ -197,6 +219,7 @@ class Pipeline:
                     self.outputs.panoptic(frame, panoptic)
         self.last = result
         t3, c3 = time.perf_counter(), time.thread_time()
+        self._at = ("outputs", frame.index)
         if self.outputs is not None:
             self.outputs.frame(frame, seg)
             if result.is_keyframe and self.mapper.graph.n % self.pcfg.run.checkpoint_every == 0:
@@ -204,6 +227,7 @@ class Pipeline:
         if self.observer is not None:
             self._observe(frame, result, panoptic)
         self.frames_done += 1
+        self._at = ("read", None)
         now, cnow = time.perf_counter(), time.thread_time()
         for name, dt in (("segment", t1 - t0), ("map", t2 - t1), ("vps", t3 - t2), ("outputs", now - t3)):
             self.stage[name] += dt
@@ -216,8 +240,12 @@ class Pipeline:
         """Motion cue, VPS update and panoptic PNG of one frame, on the output thread (see :meth:`step`)."""
         from .slam.motion_cue import motion_cue
 
-        self.vps_state = self.vps.update(self.vps_state, frame, seg, motion_cue(last, result))
-        self.outputs.panoptic_now(frame, self.vps_state.panoptic)
+        try:
+            self.vps_state = self.vps.update(self.vps_state, frame, seg, motion_cue(last, result))
+            self.outputs.panoptic_now(frame, self.vps_state.panoptic)
+        except BaseException as exc:  # re-raised in the pipeline thread, a frame or two later: say which frame
+            _record_where(exc, "vps", frame.index, self.frames_done)
+            raise
 
     def _observe(self, frame: Frame, result: FrameResult, panoptic: Optional[PanopticSegmentation]) -> None:
         self._notify("on_frame", frame, result, panoptic)
@@ -244,6 +272,7 @@ class Pipeline:
     def finish(self) -> RunResult:
         """Final optimisation, outputs and evaluation."""
         mapper = self.mapper
+        self._at = ("finalize", None)
         t_fin, c_fin = time.perf_counter(), time.thread_time()
         mapper.finalize()
         self.stage["finalize"] = time.perf_counter() - t_fin
@@ -347,6 +376,7 @@ class Pipeline:
                         bar.set_postfix(kf=self.mapper.graph.n, loops=len(self.mapper.loops))
                 return self.finish()
         except BaseException as exc:  # keep what was written, then re-raise (Ctrl-C and SIGTERM included)
+            _record_where(exc, *getattr(self, "_at", ("start", None)), self.frames_done)
             self.abort(exc)
             raise
 
@@ -355,21 +385,29 @@ def run(config: ResolvedConfig, run_dir: Optional[Path | str] = None, registry=N
         overrides: Optional[dict[str, Any]] = None, make_dir: bool = True, observer=None) -> RunResult:
     """Run a resolved config. With ``make_dir`` a new run directory is created under ``run.output_dir``;
     ``observer`` (a :class:`~pvslam_core.observer.RunObserver`) watches the run."""
-    from .rundir import RunLog, init_run_dir, make_run_dir
+    from .rundir import RunLog, init_run_dir, make_run_dir, remove_unused_run_dir
 
     registry = registry or get_registry()
     rcfg = config.pipeline.run
-    if run_dir is None and make_dir:
+    created = run_dir is None and make_dir
+    if created:
         run_dir = make_run_dir(rcfg.output_dir, rcfg.name)
-    if run_dir is not None:
-        run_dir = Path(run_dir)
-        init_run_dir(run_dir, config, registry, overrides or {})
-    with RunLog(run_dir, rcfg.log_level):
-        try:
-            pipe = Pipeline(config, run_dir, registry, observer=observer)
-        except BaseException as exc:  # e.g. the dataset cannot be opened: say so in log.txt too
-            LOG.error("could not start the run: %s: %s", type(exc).__name__, exc)
-            raise
-        if pipe.notes and run_dir is not None:  # config.json records what runs, after fitting it to the data
-            init_run_dir(run_dir, pipe.cfg, registry, overrides or {})
-        return pipe.run()
+    pipe = None
+    try:
+        if run_dir is not None:
+            run_dir = Path(run_dir)
+            init_run_dir(run_dir, config, registry, overrides or {})
+        with RunLog(run_dir, rcfg.log_level):
+            try:
+                pipe = Pipeline(config, run_dir, registry, observer=observer)
+            except BaseException as exc:  # e.g. the dataset cannot be opened: say so in log.txt too
+                LOG.error("could not start the run: %s: %s", type(exc).__name__, exc)
+                raise
+            if pipe.notes and run_dir is not None:  # config.json records what runs, after fitting it to the data
+                init_run_dir(run_dir, pipe.cfg, registry, overrides or {})
+            return pipe.run()
+    except BaseException:
+        # a run directory of this run that holds no result (it stopped before its first frame) is not left behind
+        if created and getattr(pipe, "frames_done", 0) == 0:
+            remove_unused_run_dir(run_dir)
+        raise

@@ -1,7 +1,9 @@
 """Human-readable summaries of runs and ablation comparison tables."""
 from __future__ import annotations
 
-from typing import Any
+import math
+from pathlib import Path
+from typing import Any, Optional
 
 from .types import RunResult
 
@@ -18,31 +20,90 @@ def _fmt(v: Any, spec: str = ".4f") -> str:
     if v is None:
         return "-"
     try:
-        return format(float(v), spec)
+        f = float(v)
     except (TypeError, ValueError):
         return str(v)
+    return "n/a" if math.isnan(f) else format(f, spec)
+
+
+def _value(v: Any, spec: str, why: str) -> str:
+    """``v`` formatted, or ``n/a (why)`` where it is undefined (None or NaN: e.g. a precision without detections)."""
+    try:
+        defined = v is not None and not math.isnan(float(v))
+    except (TypeError, ValueError):
+        return str(v)
+    return format(float(v), spec) if defined else f"n/a ({why})"
 
 
 def summary_lines(result: RunResult) -> list[str]:
-    m = result.metrics
-    lines = [f"run directory: {result.run_dir}"]
-    t = m.get("timing", {})
-    lines.append(f"frames: {t.get('frames')}  keyframes: {t.get('keyframes')}  "
-                 f"time: {_fmt(t.get('seconds'), '.1f')} s  ({_fmt(t.get('fps'), '.1f')} frames/s)")
-    if "ate" in m:
+    return [f"run directory: {result.run_dir}"] + metric_lines(result.metrics, result.run_dir,
+                                                                 len(result.loops))
+
+
+def metric_lines(m: dict, run_dir: Optional[str] = None, num_loops: int = 0) -> list[str]:
+    """The console lines of a run's metrics (timing, ATE, RPE, loops, PQ); what is undefined says why."""
+    lines = []
+    t = m.get("timing") or {}
+    if t:
+        lines.append(f"frames: {t.get('frames')}  keyframes: {t.get('keyframes')}  "
+                     f"time: {_fmt(t.get('seconds'), '.1f')} s  ({_fmt(t.get('fps'), '.1f')} frames/s)")
+    if "ate" in m and m["ate"].get("error"):
+        lines.append(f"ATE: n/a ({m['ate']['error']})")
+    elif "ate" in m:
         a = m["ate"]
         lines.append(f"ATE RMSE ({a.get('align', 'sim3')}): {_fmt(a.get('rmse'))}  "
                      f"= {_fmt(a.get('rmse_percent_of_path'), '.3f')} % of the {_fmt(a.get('path_length'), '.1f')} path")
     if "rpe" in m:
         lines.append(f"RPE trans RMSE: {_fmt(_get(m, 'rpe', 'trans_rmse'))}  rot RMSE: {_fmt(_get(m, 'rpe', 'rot_rmse'), '.3f')} deg")
     if "loops" in m:
-        lp = m["loops"]
-        lines.append(f"loops: {lp.get('num_detected', len(result.loops))} detected  precision {_fmt(lp.get('precision'), '.2f')}  "
-                     f"recall {_fmt(lp.get('recall'), '.2f')}")
+        lines.append(_loop_line(m["loops"], num_loops))
     if "panoptic" in m:
-        p = m["panoptic"]
-        lines.append(f"PQ: {_fmt(p.get('pq'), '.3f')}  VPQ: {_fmt(p.get('vpq'), '.3f')}")
+        lines.append(_panoptic_line(m["panoptic"], run_dir))
     return lines
+
+
+def _loop_line(lp: dict, num_loops: int) -> str:
+    if lp.get("error"):
+        return f"loops: n/a ({lp['error']})"
+    n = lp.get("num_detected", num_loops)
+    precision = _value(lp.get("precision"), ".2f", "no loop detected" if n == 0 else "not computed")
+    recall = _value(lp.get("recall"), ".2f", "no true loop among the frames run" if lp.get("num_gt_events") == 0
+                    else "not computed")
+    return f"loops: {n} detected  precision {precision}  recall {recall}"
+
+
+def _panoptic_line(p: dict, run_dir: Optional[str]) -> str:
+    if p.get("error"):
+        return f"PQ: n/a ({p['error']})"
+    other = _other_categories(p, run_dir)
+    if other is not None:
+        return f"PQ: n/a ({other})  VPQ: n/a"
+    return (f"PQ: {_value(p.get('pq'), '.3f', 'no labelled category occurs')}  "
+            f"VPQ: {_value(p.get('vpq'), '.3f', 'too few frames with labels')}")
+
+
+def _other_categories(p: dict, run_dir: Optional[str]) -> Optional[str]:
+    """Why PQ means nothing here: the panoptic output's categories (``panoptic/segments.json``: the segmenter's)
+    are not the labels' it was compared with (the same id names other classes, or no id is shared); else None."""
+    per = (p.get("pq_detail") or {}).get("per_category") or {}
+    labels = {int(k): str(v.get("name")) for k, v in per.items() if isinstance(v, dict) and "name" in v}
+    if run_dir is None or not labels:
+        return None
+    try:
+        from .outputs.panoptic_png import read_segments_json
+
+        ours = {int(c["id"]): str(c.get("name")) for c in read_segments_json(Path(run_dir) / "panoptic")["categories"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    shared = sorted(set(ours) & set(labels))
+    differ = [i for i in shared if ours[i] != labels[i]]
+    if ours and not shared:
+        return "the segmenter's categories are not the labels': no category id in common"
+    if differ:
+        i = differ[0]
+        return (f"the segmenter's categories are not the labels': {len(differ)} of {len(shared)} shared ids name "
+                f"other classes, e.g. id {i} is {ours[i]!r} vs {labels[i]!r}")
+    return None
 
 
 def comparison_rows(results: list[tuple[str, RunResult]]) -> list[dict[str, Any]]:

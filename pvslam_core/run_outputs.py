@@ -230,6 +230,8 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     if loop_gt is None and info is not None and info.loop_pairs is not None:
         loop_gt, sources["loops"] = info.loop_pairs, "dataset"
     sources.setdefault("loops", "none (no groundtruth_loops.json, no revisits from the dataset)")
+    if loop_gt is not None:
+        loop_gt = _revisits_run(loop_gt, run_dir)
     sources["trajectory"] = ("groundtruth.txt (run directory)" if (run_dir / "groundtruth.txt").is_file()
                              else "none (no groundtruth.txt in the run directory)")
     panoptic_gt = None
@@ -254,6 +256,18 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     )
     MetricsFile(run_dir / "metrics.json").update({"evaluation_sources": sources})
     return {"timing": timing, **out, "evaluation_sources": sources}
+
+
+def _revisits_run(pairs, run_dir: Path) -> list:
+    """The ground-truth revisit pairs among the frames the run processed (``trajectory.txt``'s rows): a run stopped
+    early (``run.max_frames``, an error) has no true loop at the frames it never reached, so its recall is not 0."""
+    from .outputs.trajectory_io import read_tum
+
+    try:
+        n = len(read_tum(run_dir / "trajectory.txt")[0])
+    except (OSError, ValueError):
+        return list(pairs)
+    return [p for p in pairs if max(int(p[0]), int(p[1])) < n]
 
 
 def _open_dataset(resolved: ResolvedConfig, registry=None):

@@ -6,10 +6,12 @@ directory of the process is never changed; paths are resolved against it once.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import platform
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -81,9 +83,20 @@ def make_run_dir(output_dir: str | Path, name: str) -> Path:
     raise RuntimeError(f"cannot create a run directory under {base}")
 
 
+ABLATION_FILES = ("comparison.json",)  # what an ablation writes beside its variants' folders
+
+
+def check_variant_name(name: str) -> str:
+    """:func:`check_name` for an ablation variant, which also must not be the name of a file the ablation writes."""
+    check_name(name, what="variant name")
+    if name in ABLATION_FILES:
+        raise ValueError(f"variant name {name!r} is the ablation's own {name}; rename the variant")
+    return name
+
+
 def make_variant_dir(base: Path, name: str) -> Path:
     """``<base>/<name>`` for an ablation variant; the name must stay inside ``base``."""
-    check_name(name, what="variant name")
+    check_variant_name(name)
     d = base / name
     if not inside_dir(base, d):
         raise ValueError(f"variant name {name!r}: {d} resolves outside {base}")
@@ -147,6 +160,57 @@ def init_run_dir(run_dir: Path, resolved: ResolvedConfig, registry, overrides: d
     write_json(run_dir / "versions.json", versions(resolved, registry))
 
 
+def remove_unused_run_dir(run_dir: Path) -> bool:
+    """Remove a run directory this process created when the run stopped before it wrote a result (no frame: only
+    the config, versions and log files, an empty panoptic journal or a partial metrics.json); True if removed."""
+    if (run_dir / "trajectory.txt").exists() or any((run_dir / "panoptic").glob("*.png")):
+        return False
+    import shutil
+
+    shutil.rmtree(run_dir, ignore_errors=True)
+    return not run_dir.exists()
+
+
+class _LogFile(logging.FileHandler):
+    """``log.txt``; a write that fails (a full disk) is said once on the console and the file is given up, so a
+    log line can never replace the error that stopped the run (e.g. the files :class:`OutputWriteError` names)."""
+
+    failed: Optional[str] = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.failed is None:
+            super().emit(record)
+
+    def flush(self) -> None:
+        try:
+            super().flush()
+        except OSError as exc:
+            self._give_up(exc)
+
+    def close(self) -> None:
+        try:
+            super().close()
+        except OSError as exc:
+            self._give_up(exc)
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        exc = sys.exc_info()[1]
+        if isinstance(exc, OSError):
+            self._give_up(exc)
+        else:
+            super().handleError(record)
+
+    def _give_up(self, exc: OSError) -> None:
+        if self.failed is None:
+            self.failed = exc.strerror or str(exc)
+            print(f"pvslam: warning: cannot write {self.baseFilename} ({self.failed}); the rest of the log goes "
+                  "unsaved", file=sys.stderr)
+        stream, self.stream = self.stream, None
+        if stream is not None:
+            with contextlib.suppress(OSError):
+                stream.close()
+
+
 class RunLog:
     """Attach a file handler for ``log.txt`` to the ``pvslam`` logger for the duration of a run."""
 
@@ -154,7 +218,7 @@ class RunLog:
         self.handler: Optional[logging.Handler] = None
         self.level = getattr(logging, level)
         if run_dir is not None:
-            self.handler = logging.FileHandler(run_dir / "log.txt")
+            self.handler = _LogFile(run_dir / "log.txt")
             self.handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
             self.handler.setLevel(self.level)
 

@@ -240,8 +240,9 @@ def colorize(seg, categories: Any, void_color=(0, 0, 0)) -> np.ndarray:
 class PanopticWriter:
     """Writes ``run_dir/panoptic/{frame:06d}.png`` per frame and ``panoptic/segments.json`` in the COCO panoptic
     format (rewritten atomically on :meth:`flush` / :meth:`close`, and every ``flush_every`` frames). With
-    ``categories`` and ``vis=True`` it also writes ``run_dir/panoptic_vis/{frame:06d}.png`` colour images.
-    Without ``categories``, the categories are declared from the segments seen (``category_<id>``).
+    ``vis=True`` it also writes ``run_dir/panoptic_vis/{frame:06d}.png`` colour images (the categories' colours).
+    Without ``categories``, the categories are declared from the segments seen (``category_<id>``, a stable
+    colour per id).
 
     ``journal=True`` (what a run uses, with ``flush_every=0``): instead of rewriting ``segments.json`` during the
     run -- a file that holds every frame so far, so rewriting it every 50 frames costs O(frames^2) over a run --
@@ -263,7 +264,7 @@ class PanopticWriter:
         self.vis_dir = os.path.join(self.run_dir, "panoptic_vis")
         os.makedirs(self.dir, exist_ok=True)
         self.categories = categories
-        self.vis = bool(vis) and categories is not None
+        self.vis = bool(vis)
         if self.vis:
             os.makedirs(self.vis_dir, exist_ok=True)
         self.flush_every = int(flush_every)
@@ -284,8 +285,6 @@ class PanopticWriter:
         name = f"{i:06d}.png"
         path = os.path.join(self.dir, name)
         info = save_panoptic(path, seg)
-        if self.vis:
-            atomic_write_bytes(os.path.join(self.vis_dir, name), _png_bytes(colorize(seg, self.categories)))
         h, w = _np(seg.ids).shape[-2:]
         self.images[i] = {"id": i, "file_name": image_name or name, "width": int(w), "height": int(h)}
         self.annotations[i] = {"image_id": i, "file_name": name, "segments_info": info}
@@ -295,6 +294,9 @@ class PanopticWriter:
         for s in seg.segments:
             if int(s.category_id) not in self._seen_cats:
                 self._seen_cats[int(s.category_id)] = new_cats[str(int(s.category_id))] = bool(s.isthing)
+        if self.vis:  # (after the new categories are declared: without `categories` they are the colours)
+            cats = self.categories if self.categories is not None else self._categories_json()
+            atomic_write_bytes(os.path.join(self.vis_dir, name), _png_bytes(colorize(seg, cats)))
         if self._journal is not None:
             self._journal_line({"image": self.images[i], "annotation": self.annotations[i], "scores": self.scores[i],
                                 **({"seen_categories": new_cats} if new_cats else {})})

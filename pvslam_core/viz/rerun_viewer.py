@@ -33,6 +33,7 @@ from ..observer import KeyframeSnapshot, RunObserver
 from ..types import Category, Frame, FrameResult, Intrinsics, LoopClosure, PanopticSegmentation, RunResult, SequenceInfo
 
 LOG = logging.getLogger("pvslam")
+FLUSH_TIMEOUT = 30.0  # seconds close() waits for a spawned viewer to take the data
 INSTALL_HINT = "the viewer needs rerun: pip install 'pvslam[viz]' (or pip install rerun-sdk)"
 
 
@@ -84,10 +85,17 @@ class RerunViewer(RunObserver):
     def __init__(self, spawn: bool = True, save: Optional[str | Path] = None, application_id: str = "pvslam",
                  image_every: int = 1, window: int = 10, depth_factor: Optional[float] = 3.0,
                  edge_ratio: Optional[float] = 1.5, jpeg_quality: int = 85):
+        if spawn:
+            from . import ViewerUnavailable, display_problem
+
+            why = display_problem()
+            if why is not None:
+                raise ViewerUnavailable(f"the rerun viewer cannot open: {why}")
         rr = import_rerun()
         self.rr = rr
         self.rec = rr.RecordingStream(application_id)
         self.save_path = Path(save) if save is not None else None
+        self.spawned = bool(spawn)
         self._memory = None
         if self.save_path is not None:
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
@@ -245,10 +253,11 @@ class RerunViewer(RunObserver):
             return
         self._closed = True
         try:
-            self.rec.flush()
+            # a spawned viewer that never connected (its window could not open) must not hold the process forever
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT) if self.spawned else self.rec.flush()
             if self.save_path is not None:
                 self.rec.disconnect()
-        except RuntimeError as exc:  # e.g. the spawned viewer could not start (no display) or was closed
+        except Exception as exc:  # noqa: BLE001 - e.g. the spawned viewer did not start, was closed or timed out
             from ..adapt import NOTICE
 
             NOTICE.warning("viewer: %s (the run's files are written; --viz-save FILE.rrd records the view "

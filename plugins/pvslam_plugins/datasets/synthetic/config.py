@@ -8,6 +8,7 @@ from pydantic import Field, field_validator
 from pvslam_core.datasets.base import ReaderOptions
 
 from .render import HFOV_RANGE
+from .scenario_base import MAX_FRAMES
 from .scenarios import DEFAULT_SCENARIO, check_name
 
 
@@ -17,7 +18,8 @@ class SyntheticConfig(ReaderOptions):
     scenario: str = Field(DEFAULT_SCENARIO, description="driving_loop | moving_vehicles | indoor_handheld | "
                           "handheld_fast | indoor_textureless | busy_street | forward_low_parallax | driving_city")
     path: Optional[str] = Field(None, description="read this existing synthetic folder instead of generating")
-    num_frames: Optional[int] = Field(None, ge=1, description="frames to generate; None = the scenario's default")
+    num_frames: Optional[int] = Field(None, ge=1, le=MAX_FRAMES,
+                                      description="frames to generate; None = the scenario's default")
     laps: Optional[float] = Field(None, gt=0, description="loop scenarios: laps to drive when num_frames is None")
     width: int = Field(320, ge=16, description="image width to generate")
     height: int = Field(240, ge=16, description="image height to generate")

@@ -33,11 +33,20 @@ class Scenario:
         return int(self.poses.shape[0])
 
 
+MAX_FRAMES = 1_000_000  # the longest sequence generated: a scenario holds a pose per frame in memory
+
+
 def count_frames(num_frames: Optional[int], laps: Optional[float], per_lap: float, default_laps: float) -> int:
-    """``num_frames`` if given, else ``laps`` (or ``default_laps``) times the frames of one lap."""
+    """``num_frames`` if given, else ``laps`` (or ``default_laps``) times the frames of one lap (at most
+    ``MAX_FRAMES``: ValueError naming the key otherwise)."""
     if num_frames is not None:
-        return int(num_frames)
-    return max(1, int(round((default_laps if laps is None else laps) * per_lap)))
+        n, what = float(num_frames), f"num_frames = {num_frames}"
+    else:
+        laps = default_laps if laps is None else laps
+        n, what = laps * per_lap, f"laps = {laps} ({laps * per_lap:.0f} frames)"
+    if not n <= MAX_FRAMES:  # (NaN too)
+        raise ValueError(f"{what}: at most {MAX_FRAMES} frames can be generated")
+    return int(num_frames) if num_frames is not None else max(1, int(round(n)))
 
 
 def smootherstep(x: np.ndarray) -> np.ndarray:

@@ -29,6 +29,8 @@ import numpy as np
 from . import flow_ops as F
 
 _N = np.array([0.0, 1.0, 0.0])  # ground normal in the camera frame (x right, y down, z forward)
+_REMAP_MAX = 32766  # cv2.remap asserts that each side of its maps is below SHRT_MAX
+_COST_BLOCK = 1 << 24  # candidates x pixels scored at once: bounds the search's memory on very large frames
 _OFFS = np.concatenate([np.eye(3), -np.eye(3)])  # the pattern search's neighbours
 
 
@@ -41,6 +43,17 @@ def _warp(g1: np.ndarray, flow: np.ndarray) -> np.ndarray:
     """``g1`` seen from the first view through ``flow`` (``g1(x + f(x))``, uint8; flow_ops' cached pixel grid)."""
     pos = cv2.add(F._grids(*g1.shape)[2], flow)
     return cv2.remap(g1, pos, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _remap(src: np.ndarray, mx: np.ndarray, my: np.ndarray, border: int) -> np.ndarray:
+    """``cv2.remap`` (bilinear; outside: 0 for BORDER_CONSTANT) of maps of any width: maps wider than OpenCV takes
+    (a very large frame's search) go in column blocks; each output pixel depends on its own map entry only."""
+    if mx.shape[1] <= _REMAP_MAX:
+        return cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=border, borderValue=0.0)
+    return np.concatenate([cv2.remap(src, np.ascontiguousarray(mx[:, i:i + _REMAP_MAX]),
+                                     np.ascontiguousarray(my[:, i:i + _REMAP_MAX]), cv2.INTER_LINEAR,
+                                     borderMode=border, borderValue=0.0)
+                           for i in range(0, mx.shape[1], _REMAP_MAX)], 1)
 
 
 def homography(K: np.ndarray, R: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -75,7 +88,14 @@ class RoadPlane:
         return (K @ R @ P).astype(np.float32), P[1].astype(np.float32), g0[ys, xs].astype(np.float32), (ys, xs)
 
     def _costs(self, g1f: np.ndarray, K: np.ndarray, V: np.ndarray, level) -> np.ndarray:
-        """Mean |g1(H_v x) - g0(x)| over a level's pixels for each candidate ``V [M, 3]`` (inf: too little in view)."""
+        """Mean |g1(H_v x) - g0(x)| over a level's pixels for each candidate ``V [M, 3]`` (inf: too little in view);
+        on a very large frame in blocks of candidates (each candidate's cost is its own row: the same values)."""
+        per = max(1, _COST_BLOCK // max(level[1].size, 1))
+        if len(V) <= per:
+            return self._block_costs(g1f, K, V, level)
+        return np.concatenate([self._block_costs(g1f, K, V[i:i + per], level) for i in range(0, len(V), per)])
+
+    def _block_costs(self, g1f: np.ndarray, K: np.ndarray, V: np.ndarray, level) -> np.ndarray:
         A, B, ref, _ = level
         H, W = g1f.shape
         KV = (V @ K.T).astype(np.float32)  # [M, 3]
@@ -84,7 +104,7 @@ class RoadPlane:
         mx = (A[0][None] + KV[:, 0:1] * B[None]) * inv
         my = (A[1][None] + KV[:, 1:2] * B[None]) * inv
         inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)  # NaN (behind the camera) compares False
-        s = cv2.remap(g1f, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        s = _remap(g1f, mx, my, cv2.BORDER_CONSTANT)
         n_in = inside.sum(1)
         c = np.where(inside, np.abs(s - ref[None]), 0.0).sum(1) / np.maximum(n_in, 1)
         return np.where(n_in >= self.min_inside * B.size, c, np.inf)
@@ -183,7 +203,7 @@ class RoadPlane:
         f = dis[ys, xs]
         mx, my = (xs + f[..., 0]).astype(np.float32), (ys + f[..., 1]).astype(np.float32)
         inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
-        s = cv2.remap(g1.astype(np.float32), mx, my, cv2.INTER_LINEAR)
+        s = _remap(g1.astype(np.float32), mx, my, cv2.BORDER_CONSTANT)
         d = np.abs(s - g0[ys, xs].astype(np.float32))
         return (float(d[inside].mean()) if inside.any() else np.inf), inside
 
