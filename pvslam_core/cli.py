@@ -96,7 +96,8 @@ def _opencv_message(exc: BaseException) -> str:
     func = getattr(exc, "func", "")
     where = failed_at(exc)
     msg = f"OpenCV error{f' in {where}' if where else ''}: {what}{f' (in {func})' if func else ''}"
-    return msg + ("; the run directory keeps what was written" if where else "")
+    kept = where and not getattr(exc, "pvslam_run_dir_removed", False)
+    return msg + ("; the run directory keeps what was written" if kept else "")
 
 
 def _plain_plugin_warnings(category: type) -> None:

@@ -406,8 +406,11 @@ def run(config: ResolvedConfig, run_dir: Optional[Path | str] = None, registry=N
             if pipe.notes and run_dir is not None:  # config.json records what runs, after fitting it to the data
                 init_run_dir(run_dir, pipe.cfg, registry, overrides or {})
             return pipe.run()
-    except BaseException:
+    except BaseException as exc:
         # a run directory of this run that holds no result (it stopped before its first frame) is not left behind
-        if created and getattr(pipe, "frames_done", 0) == 0:
-            remove_unused_run_dir(run_dir)
+        if created and getattr(pipe, "frames_done", 0) == 0 and remove_unused_run_dir(run_dir):
+            try:
+                exc.pvslam_run_dir_removed = True  # error messages then do not point at it
+            except AttributeError:
+                pass
         raise

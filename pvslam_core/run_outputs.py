@@ -201,7 +201,7 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     says where each kind of ground truth came from.
     """
     from .evaluation.run_eval import evaluate_run
-    from .outputs.metrics import MetricsFile, read_json
+    from .outputs.metrics import MetricsFile
 
     run_dir = Path(run_dir)
     pcfg = pcfg or resolved.pipeline
@@ -213,7 +213,7 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     loop_gt = None
     loops_file = run_dir / "groundtruth_loops.json"
     if loops_file.is_file():
-        loop_gt = [tuple(p) for p in read_json(loops_file)["pairs"]]
+        loop_gt = _read_loop_pairs(loops_file)
         sources["loops"] = "groundtruth_loops.json (run directory)"
     from .outputs.panoptic_png import has_segments
 
@@ -280,3 +280,17 @@ def _open_dataset(resolved: ResolvedConfig, registry=None):
         return spec.factory(resolved.models["dataset"], BuildContext(device=torch.device("cpu"))), None
     except Exception as exc:  # noqa: BLE001 - any failure to open it means: evaluate from the run directory
         return None, f"{type(exc).__name__}: {exc}"
+
+
+def _read_loop_pairs(path: Path) -> list[tuple[int, int]]:
+    """The revisit pairs of ``groundtruth_loops.json`` (``{"pairs": [[i, j], ...]}``); :class:`ValueError` naming
+    the file when it holds anything else."""
+    from .evaluation.run_eval import read_json_object
+
+    pairs = read_json_object(path).get("pairs")
+    ok = isinstance(pairs, list) and all(
+        isinstance(p, list) and len(p) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in p)
+        for p in pairs)
+    if not ok:
+        raise ValueError(f"{path}: expected {{\"pairs\": [[i, j], ...]}} with integer frame indices")
+    return [tuple(p) for p in pairs]

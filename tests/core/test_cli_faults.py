@@ -87,6 +87,21 @@ def test_an_opencv_assertion_names_the_stage_and_the_frame(fake_cli, fake_config
     assert len(read_tum(run_dir / "trajectory.txt")[0]) == 5  # frames 0-4 are kept
 
 
+def test_an_opencv_assertion_before_any_frame_does_not_point_at_a_removed_directory(fake_cli, fake_config_file,
+                                                                                   tmp_path, monkeypatch, capsys):
+    import cv2
+
+    def add_keyframe(self, kf_id, frame, seg):  # the first frame becomes a keyframe: nothing is written yet
+        cv2.remap(np.zeros((4, 4), np.float32), np.zeros((1, 40000), np.float32),
+                  np.zeros((1, 40000), np.float32), cv2.INTER_LINEAR)
+
+    monkeypatch.setattr(fakes.ExactFrontend, "add_keyframe", add_keyframe)
+    assert main(["run", "-c", str(fake_config_file), "-q"]) == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert "the map stage at frame 0" in line and "keeps what was written" not in line, line
+    assert not (tmp_path / "runs").exists() or not list((tmp_path / "runs").iterdir())
+
+
 # ----------------------------------------------------------------------------------- empty run directories --
 def test_a_run_that_fails_before_its_first_frame_leaves_no_directory(fake_registry, fake_config_file, tmp_path,
                                                                       monkeypatch):

@@ -106,6 +106,22 @@ def test_eval_of_a_run_file_that_is_no_json_object_is_one_error_line(archived_ru
     assert (copy / name).read_text() == text  # left as it was
 
 
+@pytest.mark.parametrize("text,why", [("[[0, 5]]", "expected a JSON object, found a JSON list"),
+                                      ('{"pairs": [[0, "5"]]}', "integer frame indices"),
+                                      ('{"pairs": 3}', "integer frame indices")])
+def test_eval_with_loop_ground_truth_of_another_shape_is_one_error_line(archived_run, fake_registry, monkeypatch,
+                                                                         capsys, text, why):
+    from pvslam_core import registry as r
+
+    copy, _ = archived_run
+    monkeypatch.setattr(r, "_REGISTRY", fake_registry)
+    (copy / "groundtruth_loops.json").write_text(text)
+    assert main(["eval", str(copy)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pvslam: error: ") and "groundtruth_loops.json" in err[0], err
+    assert why in err[0]
+
+
 def test_eval_without_trajectory_fails_and_reports_no_old_ate(archived_run, fake_registry, monkeypatch, capsys):
     from pvslam_core import registry as r
 
