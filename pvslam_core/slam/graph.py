@@ -332,20 +332,23 @@ class FrameGraph:
         ii = torch.as_tensor(ii, dtype=torch.int64, device=self.device).reshape(-1)
         jj = torch.as_tensor(jj, dtype=torch.int64, device=self.device).reshape(-1)
         h, w = self.ba_shape
+        target = torch.empty(len(ii), 2, h, w, dtype=torch.float32, device=self.device)
+        weight = torch.empty_like(target)
+        self.retired_observations_into(ii, jj, target, weight, torch.arange(len(ii)))
+        return EdgeObservations(ii, jj, target, weight)
+
+    def retired_observations_into(self, ii, jj, target: torch.Tensor, weight: torch.Tensor, rows) -> None:
+        """Write the stored observation of retired edge ``ii[n] -> jj[n]`` into row ``rows[n]`` of ``target`` and
+        ``weight`` (``[E, 2, h, w]``, float32 or wider) one edge at a time: no stack of them all is made."""
         ids = self._ids_cpu
-        rows = []
-        for i, j in zip(ii.tolist(), jj.tolist()):
+        grid = _grid(*self.ba_shape, self.device)
+        for i, j, r in zip(torch.as_tensor(ii).tolist(), torch.as_tensor(jj).tolist(), torch.as_tensor(rows).tolist()):
             entry = self._retired.get((ids[i], ids[j]))
             if entry is None:
                 raise KeyError(f"edge {i} -> {j} (ids {ids[i]} -> {ids[j]}) has no retired observation")
-            rows.append(self.spill.get(entry[0]))
-        if not rows:
-            z = torch.zeros(0, 2, h, w, dtype=torch.float32, device=self.device)
-            return EdgeObservations(ii, jj, z, z.clone())
-        grid = _grid(h, w, self.device)
-        target = torch.stack([r[0] for r in rows]).float() + grid
-        weight = torch.stack([r[1] for r in rows]).float()
-        return EdgeObservations(ii, jj, target, weight)
+            offset, wt = self.spill.get(entry[0])
+            target[r] = offset.float() + grid
+            weight[r] = wt.float()
 
     def all_edges(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(ii, jj)`` of the active edges followed by the retired ones (for the final global BA)."""

@@ -104,3 +104,43 @@ def test_frame_correspondences_live_on_disk_and_refine_to_the_same_bits(tmp_path
         results.append(fp.poses()[1])
         fp.close()
     assert torch.equal(results[0], results[1])
+
+
+class _Frontend:
+    """Observations of any edge: a pattern of its ends (no priors)."""
+
+    def observe(self, graph, ii, jj):
+        n = len(ii)
+        base = (ii * 7 + jj).float().reshape(n, 1, 1, 1)
+        target = base + torch.linspace(0, 1, 2 * H * W).reshape(1, 2, H, W)
+        return EdgeObservations(ii, jj, target, torch.sigmoid(target), dynamic=torch.full((n, H, W), 0.5))
+
+    def depth_prior(self, graph, idx):
+        return None
+
+    def distance_prior(self, graph, idx):
+        return None
+
+
+def test_the_final_observations_of_active_and_retired_edges_are_the_joined_ones(tmp_path):
+    from pvslam_core.slam.observe import EdgeObserver, concat
+
+    g = _graph(SpillStore(tmp_path))
+    fe = _Frontend()
+    ob = EdgeObserver(g, fe)
+    ii, jj = torch.arange(0, 20), torch.arange(1, 21)
+    g.add_edges(ii, jj)
+    ob.observe_edges(ii, jj)
+    g.retire_edges(ii % 3 != 0)
+    aii, ajj = g.all_edges()
+    perm = torch.randperm(len(aii), generator=torch.Generator().manual_seed(2))
+    aii, ajj = aii[perm], ajj[perm]
+    got = ob.observe_any(aii, ajj)
+    retired = g.is_retired(aii, ajj) & ~g.has_edges(aii, ajj)
+    live, dead = torch.nonzero(~retired).squeeze(1), torch.nonzero(retired).squeeze(1)
+    assert len(live) and len(dead)
+    ref = concat([fe.observe(g, aii[live], ajj[live]), g.retired_observations(aii[dead], ajj[dead])],
+                 torch.argsort(torch.cat([live, dead])))
+    for name in ("ii", "jj", "target", "weight", "dynamic"):
+        a, b = getattr(got, name), getattr(ref, name)
+        assert a.dtype == b.dtype and torch.equal(a, b), name
