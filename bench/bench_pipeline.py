@@ -1,6 +1,6 @@
 """End-to-end benchmark of the default pipeline, with its targets and two peers.
 
-    python bench/bench_pipeline.py                 # everything (about 15-25 minutes on 2 cores)
+    python bench/bench_pipeline.py                 # everything (about 40-50 minutes on 2 cores: the 10 000-frame run alone ~20)
     python bench/bench_pipeline.py --only accuracy throughput
     python bench/bench_pipeline.py --quick         # shorter sequences, a smoke run of the script
     python bench/bench_pipeline.py --only throughput long --set optimizer.iters=5   # a variant, measured the same way
@@ -11,7 +11,8 @@ Sections (each prints its figures and a target line ``[PASS]``/``[MISS]`` with t
   peers       the same driving loop through a textbook OpenCV VO and COLMAP (pycolmap), side by side
   long        3000-frame run: last-500 vs first-500 mean per-frame time, peak memory, ATE, loops and map
               fragments (separate process); and a forced tracking loss (driving_block with 30 frames cut out):
-              the new map fragment must be merged back by the revisit's loop
+              the new map fragment must be merged back by the revisit's loop; then the same loop driven for
+              10 000 frames (``--flat-frames``, separate process): its peak memory against the 3000-frame run's
   kitti       ATE on the KITTI 06 and 01 excerpts in ../shared/data (skipped if absent)
 Results are also written as JSON, with the commit of the measured code (:mod:`bench.provenance`; refused without
 one), to ``--json PATH`` or runs/bench/results_pipeline_<sections>.json (with ``--set``: ``..._overrides.json``, the
@@ -248,35 +249,45 @@ def _long_child(frames: int, out: str) -> None:
                                 "retired_edges": g.num_retired,
                                 "frontend_edge_states": len(fe.cached_edges()) if hasattr(fe, "cached_edges") else None,
                                 "frontend_mb": fe.memory_bytes() / 2**20 if hasattr(fe, "memory_bytes") else None})
+        peak_run_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # before the final BA
         r = pipe.finish()
     k = min(500, len(fs) // 4)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     ate = r.metrics.get("ate", {})
     print(json.dumps({"frames": len(fs), "first": sum(fs[:k]) / k, "last": sum(fs[-k:]) / k, "window": k,
                       "first_cpu": sum(cs[:k]) / k, "last_cpu": sum(cs[-k:]) / k,
-                      "peak_mb": peak_mb, "keyframes": r.metrics["timing"]["keyframes"], "samples": samples,
+                      "peak_mb": peak_mb, "peak_run_mb": peak_run_mb, "keyframes": r.metrics["timing"]["keyframes"], "samples": samples,
                       "ate_pct": ate.get("rmse_percent_of_path"), "ate_m": ate.get("rmse"),
                       "path_m": ate.get("path_length"), "reinitialisations": r.metrics["timing"]["reinitialisations"],
                       "loops": len(r.loops), "loop_bas": sum(1 for c in r.loops if c.loop_ba),
                       "fragments": len(pipe.mapper.fragments.starts), "unmerged": pipe.mapper.fragments.unmerged}))
 
 
-def section_long(out: Path, quick: bool, frames: int = 3000) -> None:
-    print("\n== long sequence (separate process) ==")
-    frames = 600 if quick else frames
+def _long_run(out: Path, frames: int) -> dict | None:
+    """The driving loop for ``frames`` frames in a child process (:func:`_long_child`): its figures, or None when
+    it crashed (said as a target line)."""
     generate("driving_loop", frames)  # generation is not part of the measured run
     cmd = [sys.executable, __file__, "--long-child", str(frames), "--out", str(out),
            *(a for kv in EXTRA for a in ("--set", kv))]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         print(res.stderr[-3000:])
-        target("long run completes", False, "crashed", "completes")
-        return
-    d = json.loads(res.stdout.strip().splitlines()[-1])
+        target(f"long run of {frames} frames completes", False, "crashed", "completes")
+        return None
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def section_long(out: Path, quick: bool, frames: int = 3000) -> dict | None:
+    print("\n== long sequence (separate process) ==")
+    frames = 600 if quick else frames
+    d = _long_run(out, frames)
+    if d is None:
+        return None
     ratio = d["last"] / d["first"]
     RESULTS["long"] = d
     print(f"  {d['frames']} frames, {d['keyframes']} keyframes: mean per-frame time first {d['window']}: "
-          f"{1000 * d['first']:.1f} ms, last {d['window']}: {1000 * d['last']:.1f} ms; peak RSS {d['peak_mb']:.0f} MB")
+          f"{1000 * d['first']:.1f} ms, last {d['window']}: {1000 * d['last']:.1f} ms; peak RSS {d['peak_mb']:.0f} MB "
+          f"({d['peak_run_mb']:.0f} MB before the final BA)")
     cpu_ratio = d["last_cpu"] / d["first_cpu"]
     print(f"  CPU per frame (process): first {1000 * d['first_cpu']:.1f} ms, last {1000 * d['last_cpu']:.1f} ms, "
           f"ratio {cpu_ratio:.2f} (wall ratio {ratio:.2f}; on a shared machine the CPU ratio is the reliable one)")
@@ -307,6 +318,28 @@ def section_long(out: Path, quick: bool, frames: int = 3000) -> None:
                "<= 0.5 % of path")
     target("one trajectory in one frame", d["unmerged"] == 1,
            f"{d['unmerged']} separate map(s) from {d['fragments']} fragment(s)", "every fragment merged")
+    return d
+
+
+def section_flat(out: Path, base: dict | None, frames: int) -> None:
+    """The same loop driven for ``frames`` frames (more laps), in its own process: peak RSS against ``base`` (the
+    long section's run)."""
+    if base is None or frames <= base["frames"]:
+        return
+    print(f"\n== endless input: the driving loop for {frames} frames (separate process) ==")
+    d = _long_run(out, frames)
+    if d is None:
+        return
+    RESULTS["flat"] = d
+    n0, n1 = base["frames"], d["frames"]
+    ratio, ratio_run = d["peak_mb"] / base["peak_mb"], d["peak_run_mb"] / base["peak_run_mb"]
+    print(f"  peak RSS {base['peak_mb']:.0f} MB at {n0} frames ({base['keyframes']} keyframes), {d['peak_mb']:.0f} MB at "
+          f"{n1} frames ({d['keyframes']} keyframes): ratio {ratio:.2f}; before the final BA {base['peak_run_mb']:.0f} "
+          f"/ {d['peak_run_mb']:.0f} MB, ratio {ratio_run:.2f}")
+    print(f"  ATE {d['ate_pct']} % of {d['path_m']} m, {d['loops']} loops, {d['unmerged']} separate map(s); "
+          f"CPU per frame first {1000 * d['first_cpu']:.1f} ms, last {1000 * d['last_cpu']:.1f} ms")
+    target(f"peak RSS {n1} / {n0} frames", ratio <= 1.10, f"{ratio:.2f} ({d['peak_mb']:.0f} / {base['peak_mb']:.0f} MB)",
+           "<= 1.10")
 
 
 def _cut_sequence(src: Path, dst: Path, a: int, b: int) -> int:
@@ -388,6 +421,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--no-colmap", action="store_true", help="skip COLMAP in the peers section (it takes ~20 min)")
     ap.add_argument("--long-frames", type=int, default=3000, help="frames of the long run (the target is 3000)")
+    ap.add_argument("--flat-frames", type=int, default=10000,
+                    help="frames of the second long run whose peak memory is compared (0: skip it; not with --quick)")
     ap.add_argument("--long-child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--out", help="folder for the run directories (default: a temporary folder)")
     ap.add_argument("--json", help="result file (default: runs/bench/results_pipeline_<sections>.json; not into bench/)")
@@ -420,7 +455,9 @@ def main() -> None:
         section_peers(out, args.quick, acc, colmap=not args.no_colmap)
     if "long" in sections:
         section_fragments(out)
-        section_long(out, args.quick, args.long_frames)
+        base = section_long(out, args.quick, args.long_frames)
+        if not args.quick:
+            section_flat(out, base, args.flat_frames)
     if "kitti" in sections:
         section_kitti(out, args.quick)
     print(f"\nbenchmark wall time {time.time() - t0:.0f} s; run directories in {out}")

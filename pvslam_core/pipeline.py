@@ -175,7 +175,9 @@ class Pipeline:
             raise PipelineError(
                 f"image size {info.intrinsics.width}x{info.intrinsics.height} is not a multiple of "
                 f"graph.ba_downsample={ds}; set dataset.crop_multiple={ds} (or resize)")
-        self.mapper = Mapper(self.pcfg, info, self.frontend, self.optimizer, self.loop_detector, self.device)
+        # with a run directory, what the map reads again only at the end is kept in an unlinked file there
+        self.mapper = Mapper(self.pcfg, info, self.frontend, self.optimizer, self.loop_detector, self.device,
+                             spill_dir=self.run_dir)
         self.outputs = RunOutputs(self.run_dir, self.pcfg, info, self.categories()) if self.run_dir else None
         self.vps_state: Optional[VPSState] = None
         self.last: Optional[FrameResult] = None
@@ -318,6 +320,7 @@ class Pipeline:
         )
         if self.observer is not None:
             self._notify("on_finish", result, mapper.keyframes_snapshot())
+        mapper.state.spill.close()  # its disk space
         return result
 
     def abort(self, exc: BaseException) -> None:

@@ -29,6 +29,7 @@ from ..geometry.lie import se3_interpolate, se3_inv, se3_mul
 
 if TYPE_CHECKING:  # pragma: no cover
     from .graph import FrameGraph
+    from .spill import SpillStore
 
 
 @dataclass
@@ -37,8 +38,8 @@ class FrameEntry:
     timestamp: float
     anchor: int  # stable id of the anchor keyframe
     rel: torch.Tensor  # float64 [7] T_anchor^-1 T_frame
-    target: Optional[torch.Tensor] = None  # [2, h, w] anchor pixels -> this frame (for refill)
-    weight: Optional[torch.Tensor] = None
+    # handle (FramePoses.spill) of target [2, h, w] (anchor pixels -> this frame) and its weight, for refill
+    obs: Optional[int] = None
     is_keyframe: bool = False
     failed: bool = False
     upto: Optional[int] = None  # stable id of the keyframe after it: rel is then from the interpolation of the two
@@ -50,8 +51,12 @@ IDENTITY = torch.tensor([0, 0, 0, 0, 0, 0, 1], dtype=torch.float64)
 class FramePoses:
     """Every input frame's pose relative to an anchor keyframe of ``graph`` (a GraphListener of it)."""
 
-    def __init__(self, graph: "FrameGraph", robust: Optional[str] = None, robust_scale: float = 1.0) -> None:
+    def __init__(self, graph: "FrameGraph", robust: Optional[str] = None, robust_scale: float = 1.0,
+                 spill: Optional["SpillStore"] = None) -> None:
+        from .spill import SpillStore
+
         self.graph = graph
+        self.spill = spill if spill is not None else SpillStore()  # the frames' correspondences
         self._entries: list[FrameEntry] = []
         self.robust, self.robust_scale = robust, robust_scale  # IRLS kernel of the motion-only BA
         # refine_many_later: motion-only BAs on a worker thread, from inputs copied when they were queued. Entries
@@ -89,7 +94,8 @@ class FramePoses:
     def add_frame(self, index: int, timestamp: float, anchor: int, rel: torch.Tensor,
                   target: Optional[torch.Tensor] = None, weight: Optional[torch.Tensor] = None,
                   failed: bool = False) -> FrameEntry:
-        e = FrameEntry(index, timestamp, anchor, rel.detach().to("cpu", torch.float64), target, weight, failed=failed)
+        obs = None if target is None else self.spill.put(target, weight)
+        e = FrameEntry(index, timestamp, anchor, rel.detach().to("cpu", torch.float64), obs, failed=failed)
         self._entries.append(e)
         return e
 
@@ -106,7 +112,8 @@ class FramePoses:
     def hold_between(self, e: FrameEntry, anchor: int, upto: Optional[int], pose_wc: torch.Tensor) -> None:
         """Hold entry ``e`` at ``pose_wc`` (float64 [7] T_wc, under the current keyframe poses) between keyframe ids
         ``anchor`` and ``upto`` (None: rigidly to ``anchor``); its correspondences are dropped."""
-        e.anchor, e.upto, e.target, e.weight = anchor, upto, None, None
+        self.spill.drop(e.obs)
+        e.anchor, e.upto, e.obs = anchor, upto, None
         e.is_keyframe = False
         e.rel = se3_mul(se3_inv(self._bases([e])[0]), pose_wc.double().cpu())
 
@@ -116,7 +123,7 @@ class FramePoses:
         how many."""
         g = self.graph
         ts_a, ts_b = float(g.timestamps[g.index_of(anchor)]), float(g.timestamps[g.index_of(upto)])
-        todo = [e for e in self.entries if e.anchor == anchor and e.upto is None and e.target is None
+        todo = [e for e in self.entries if e.anchor == anchor and e.upto is None and e.obs is None
                 and not e.is_keyframe and not e.failed and ts_a < e.timestamp < ts_b]
         for e in todo:
             self.hold_between(e, anchor, upto, self.pose_of(e))
@@ -199,7 +206,7 @@ class FramePoses:
         """Queue one batched motion-only BA (:meth:`refine_many_later`) for the non-keyframes anchored at keyframe id
         ``anchor`` that have correspondences, once its depth is refined: each starts from the time interpolation
         between the anchor and the keyframe after it.  Returns whether there were any."""
-        pend = [e for e in self.pending(anchor) if e.target is not None]
+        pend = [e for e in self.pending(anchor) if e.obs is not None]
         if not pend:
             return False
         g = self.graph
@@ -250,8 +257,10 @@ class FramePoses:
             t_a = g.poses[a].double()  # views of the graph's storage, which the BA updates in place: copied
             t_a, disp, intr = (t_a.clone(), g.disps[a].clone(), g.intrinsics.clone()) if copy else \
                 (t_a, g.disps[a], g.intrinsics)
-            target = torch.stack([entries[n].target for n in rows])
-            weight = torch.stack([entries[n].weight for n in rows])
+            obs = [self.spill.get(entries[n].obs) for n in rows]
+            target = torch.stack([o[0] for o in obs])
+            weight = torch.stack([o[1] for o in obs])
+            del obs
             plan.append((rows, t_a, disp, intr, inits_wc[rows].to(t_a.device, torch.float64), target, weight))
         return plan
 
@@ -273,7 +282,7 @@ class FramePoses:
 
     def refill(self, iters: int = 4) -> int:
         """Re-estimate the relative pose of every non-keyframe that still has correspondences. Returns the count."""
-        todo = [e for e in self.entries if not e.is_keyframe and e.target is not None]
+        todo = [e for e in self.entries if not e.is_keyframe and e.obs is not None]
         if not todo:
             return 0
         _, poses = self.poses()

@@ -26,6 +26,7 @@ import torch
 
 from ..geometry.projective import frame_distance as _frame_distance
 from ..types import EdgeObservations
+from .spill import SpillStore
 
 EDGE_ODOMETRY = 0  # odometry / neighbourhood edge
 EDGE_PROXIMITY = 1
@@ -34,7 +35,8 @@ EDGE_KIND_NAMES = {EDGE_ODOMETRY: "odometry", EDGE_PROXIMITY: "proximity", EDGE_
 
 
 class FrameGraph:
-    def __init__(self, ba_height: int, ba_width: int, intrinsics: torch.Tensor, device="cpu", capacity: int = 64):
+    def __init__(self, ba_height: int, ba_width: int, intrinsics: torch.Tensor, device="cpu", capacity: int = 64,
+                 spill: Optional[SpillStore] = None):
         self.device = torch.device(device)
         self.ba_shape = (int(ba_height), int(ba_width))
         self.intrinsics = torch.as_tensor(intrinsics, dtype=torch.float32).to(self.device).reshape(4).clone()
@@ -54,7 +56,9 @@ class FrameGraph:
         self.edge_kind = torch.zeros(0, dtype=torch.int8, device=self.device)
         self.edge_born = torch.zeros(0, dtype=torch.int64, device=self.device)  # next_id when the edge was added
         self._last_obs: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}  # (src id, dst id) -> target, weight
-        self._retired: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor, int]] = {}  # -> offset f16, weight f16, kind
+        # (src id, dst id) -> (handle of [offset f16, weight f16] in the spill store, kind)
+        self._retired: dict[tuple[int, int], tuple[int, int]] = {}
+        self.spill = spill if spill is not None else SpillStore()
         self.retired_total = 0  # edges ever retired (statistics)
         self.listeners: list[Any] = []
 
@@ -196,6 +200,8 @@ class FrameGraph:
         self.jj = self.jj - (self.jj > k).long()
         for store in (self._last_obs, self._retired):
             for key in [key for key in store if kf_id in key]:
+                if store is self._retired:
+                    self.spill.drop(store[key][0])
                 del store[key]
 
     # ------------------------------------------------------------------------------------------- edges
@@ -240,7 +246,7 @@ class FrameGraph:
         if len(sel):
             if self._retired:
                 for i, j in zip(ii[sel].tolist(), jj[sel].tolist()):
-                    self._retired.pop((self._ids_cpu[i], self._ids_cpu[j]), None)
+                    self.spill.drop(self._retired.pop((self._ids_cpu[i], self._ids_cpu[j]), (None,))[0])
             self.ii = torch.cat([self.ii, ii[sel]])
             self.jj = torch.cat([self.jj, jj[sel]])
             self.edge_age = torch.cat([self.edge_age, torch.zeros(len(sel), dtype=torch.int64, device=self.device)])
@@ -293,7 +299,7 @@ class FrameGraph:
             if last is not None:
                 target, weight = last
                 offset = (target.to(self.device, torch.float32) - grid).to(torch.float16)
-                self._retired[(s, d)] = (offset, weight.to(self.device, torch.float16), int(kind))
+                self._retired[(s, d)] = (self.spill.put(offset, weight.to(self.device, torch.float16)), int(kind))
         self.retired_total += len(sel)
         self._keep_edges(~mask)
         for listener in list(self.listeners):
@@ -326,20 +332,23 @@ class FrameGraph:
         ii = torch.as_tensor(ii, dtype=torch.int64, device=self.device).reshape(-1)
         jj = torch.as_tensor(jj, dtype=torch.int64, device=self.device).reshape(-1)
         h, w = self.ba_shape
+        target = torch.empty(len(ii), 2, h, w, dtype=torch.float32, device=self.device)
+        weight = torch.empty_like(target)
+        self.retired_observations_into(ii, jj, target, weight, torch.arange(len(ii)))
+        return EdgeObservations(ii, jj, target, weight)
+
+    def retired_observations_into(self, ii, jj, target: torch.Tensor, weight: torch.Tensor, rows) -> None:
+        """Write the stored observation of retired edge ``ii[n] -> jj[n]`` into row ``rows[n]`` of ``target`` and
+        ``weight`` (``[E, 2, h, w]``, float32 or wider) one edge at a time: no stack of them all is made."""
         ids = self._ids_cpu
-        rows = []
-        for i, j in zip(ii.tolist(), jj.tolist()):
+        grid = _grid(*self.ba_shape, self.device)
+        for i, j, r in zip(torch.as_tensor(ii).tolist(), torch.as_tensor(jj).tolist(), torch.as_tensor(rows).tolist()):
             entry = self._retired.get((ids[i], ids[j]))
             if entry is None:
                 raise KeyError(f"edge {i} -> {j} (ids {ids[i]} -> {ids[j]}) has no retired observation")
-            rows.append(entry)
-        if not rows:
-            z = torch.zeros(0, 2, h, w, dtype=torch.float32, device=self.device)
-            return EdgeObservations(ii, jj, z, z.clone())
-        grid = _grid(h, w, self.device)
-        target = torch.stack([r[0] for r in rows]).float() + grid
-        weight = torch.stack([r[1] for r in rows]).float()
-        return EdgeObservations(ii, jj, target, weight)
+            offset, wt = self.spill.get(entry[0])
+            target[r] = offset.float() + grid
+            weight[r] = wt.float()
 
     def all_edges(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(ii, jj)`` of the active edges followed by the retired ones (for the final global BA)."""
@@ -347,7 +356,9 @@ class FrameGraph:
         return torch.cat([self.ii, rii]), torch.cat([self.jj, rjj])
 
     def retired_bytes(self) -> int:
-        return sum(o.numel() * o.element_size() + w_.numel() * w_.element_size() for o, w_, _ in self._retired.values())
+        """Bytes of the retired edges' stored observations (in memory, or in the spill store's file)."""
+        h, w = self.ba_shape
+        return len(self._retired) * 2 * (2 * h * w) * 2  # offset and weight, [2, h, w] float16 each
 
     # ------------------------------------------------------------------------------------------- state
     def set_poses(self, idx, poses_wc: torch.Tensor) -> None:
@@ -410,6 +421,8 @@ class FrameGraph:
         self.edge_kind = state["edge_kind"].to(self.device, torch.int8).clone()
         self.edge_born = state.get("edge_born", torch.zeros_like(state["ii"])).to(self.device, torch.int64).clone()
         self._last_obs.clear()
+        for handle, _kind in self._retired.values():
+            self.spill.drop(handle)
         self._retired.clear()
 
     @classmethod

@@ -25,6 +25,7 @@ from .fragments import Fragments
 from .frame_poses import FramePoses
 from .graph import FrameGraph
 from . import observed as _observed
+from .spill import SpillStore
 
 # robust kernel ('none': least squares) and its scale (BA px) of the motion-only BA that places non-keyframes and
 # guesses new keyframe poses
@@ -62,13 +63,18 @@ class MapState(GraphListener):
     """The shared SLAM state (see the module docstring); a GraphListener for the thumbnails and masks it keys by
     keyframe id."""
 
-    def __init__(self, info: SequenceInfo, ba_downsample: int, device) -> None:
+    def __init__(self, info: SequenceInfo, ba_downsample: int, device, spill_dir=None) -> None:
         ds = int(ba_downsample)
+        # what only the end of the run reads again (retired edge observations, frame correspondences): on disk
+        # under spill_dir (None: in memory)
+        self.spill = SpillStore(spill_dir)
         self.ba_downsample = ds
         self.ba_shape = (info.intrinsics.height // ds, info.intrinsics.width // ds)  # (h, w) of the BA
         intr = info.intrinsics.scaled(1.0 / ds)
-        self.graph = FrameGraph(self.ba_shape[0], self.ba_shape[1], intr.vector(torch.float32, device), device=device)
-        self.frames = FramePoses(self.graph, MOTION_ROBUST, MOTION_ROBUST_SCALE)  # a GraphListener of the graph
+        self.graph = FrameGraph(self.ba_shape[0], self.ba_shape[1], intr.vector(torch.float32, device), device=device,
+                                spill=self.spill)
+        # a GraphListener of the graph
+        self.frames = FramePoses(self.graph, MOTION_ROBUST, MOTION_ROBUST_SCALE, spill=self.spill)
         self.observed = _observed.ObservedMasks(_observed.UNOBSERVED_WEIGHT, _observed.OBSERVED_PARALLAX,
                                                 _observed.GUESS_MIN_MEASURED)
         self.fragments = Fragments()  # map fragments after re-initialisations, merged by loops

@@ -53,11 +53,13 @@ BLANK_STD = 2.0  # grey-level standard deviation under which a failed frame is b
 class Mapper:
     """Algorithm 1's per-frame driver (see the module docstring)."""
 
-    def __init__(self, pcfg: PipelineConfig, info: SequenceInfo, frontend, optimizer, loop_detector, device):
+    def __init__(self, pcfg: PipelineConfig, info: SequenceInfo, frontend, optimizer, loop_detector, device,
+                 spill_dir=None):
         self.cfg = pcfg.graph
         self.frontend = frontend
         self.loop_detector = loop_detector
-        self.state = st = MapState(info, self.cfg.ba_downsample, device)
+        # spill_dir: where the map keeps what only the end of the run reads (.spill; None: in memory)
+        self.state = st = MapState(info, self.cfg.ba_downsample, device, spill_dir)
         for listener in (frontend, loop_detector, st):
             st.graph.add_listener(listener)
         observer = EdgeObserver(st.graph, frontend)

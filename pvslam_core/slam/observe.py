@@ -7,6 +7,7 @@ of the keyframes they touch; it also tells the frontend when pairs observed outs
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Optional
 
 import torch
 
@@ -73,13 +74,29 @@ class EdgeObserver:
         live = torch.nonzero(~retired).squeeze(1)
         dead = torch.nonzero(retired).squeeze(1)
         parts = [self.observe_edges(ii[live], jj[live])] if len(live) else []
-        parts.append(g.retired_observations(ii[dead], jj[dead]))
+        # the retired observations go straight into their rows of the joined target and weight (no copy of them all
+        # in between: at the final BA they are most of the edges); the part stands in for them with a view
+        h, w = g.ba_shape
+        first = parts[0] if parts else None
+        dev = first.target.device if first is not None else g.device
+        joined = {}
+        for name in ("target", "weight"):
+            dtype = torch.promote_types(getattr(first, name).dtype, torch.float32) if first is not None else \
+                torch.float32
+            joined[name] = torch.empty(len(ii), 2, h, w, dtype=dtype, device=dev)
+            if first is not None:
+                joined[name][live.to(dev)] = getattr(first, name).to(dev)
+        g.retired_observations_into(ii[dead], jj[dead], joined["target"], joined["weight"], dead)
+        view = torch.zeros((), dtype=torch.float32, device=g.device).expand(len(dead), 2, h, w)
+        parts.append(EdgeObservations(ii[dead], jj[dead], view, view))
         order = torch.argsort(torch.cat([live, dead]))
-        return self.with_prior(concat(parts, order))
+        return self.with_prior(concat(parts, order, **joined))
 
 
-def concat(parts: list[EdgeObservations], order: torch.Tensor) -> EdgeObservations:
-    """Concatenate observations and reorder the edges by ``order`` (a permutation of the concatenated rows)."""
+def concat(parts: list[EdgeObservations], order: torch.Tensor, target: Optional[torch.Tensor] = None,
+           weight: Optional[torch.Tensor] = None) -> EdgeObservations:
+    """Concatenate observations and reorder the edges by ``order`` (a permutation of the concatenated rows).
+    ``target`` / ``weight``: the joined ones, already in order (the parts' are then not read)."""
     def cat(name):
         vals = [getattr(p, name) for p in parts]
         if any(v is None for v in vals):
@@ -91,5 +108,6 @@ def concat(parts: list[EdgeObservations], order: torch.Tensor) -> EdgeObservatio
 
     damping = next((p.depth_damping for p in parts if p.depth_damping is not None), None)
     # (no depth prior: it is per depth source, and the caller asks for the joined edges' sources, with_prior)
-    return EdgeObservations(cat("ii"), cat("jj"), cat("target"), cat("weight"), dynamic=cat("dynamic"),
+    return EdgeObservations(cat("ii"), cat("jj"), cat("target") if target is None else target,
+                            cat("weight") if weight is None else weight, dynamic=cat("dynamic"),
                             depth_damping=damping)

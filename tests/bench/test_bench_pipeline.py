@@ -52,3 +52,28 @@ def test_long_child_gets_the_overrides(monkeypatch, tmp_path, extra):
     assert cmd[cmd.index("--long-child") + 1] == "600"
     sets = [cmd[i + 1] for i, a in enumerate(cmd) if a == "--set"]
     assert sets == ["optimizer.iters=5", "loop.plugin=none"]
+
+
+def test_the_endless_input_run_compares_its_peak_memory_with_the_long_run(monkeypatch, tmp_path, capsys):
+    def child(frames, peak, peak_run):
+        return {"frames": frames, "keyframes": frames // 2, "peak_mb": peak, "peak_run_mb": peak_run,
+                "first_cpu": 0.1, "last_cpu": 0.1, "ate_pct": 0.01, "path_m": 1.0, "loops": 3, "unmerged": 1}
+
+    class Done:
+        returncode, stderr = 0, ""
+        stdout = "log line\n" + __import__("json").dumps(child(10000, 1300.0, 700.0))
+
+    calls = []
+    monkeypatch.setattr(bench_pipeline, "generate", lambda *a, **k: tmp_path)
+    monkeypatch.setattr(bench_pipeline.subprocess, "run", lambda cmd, **k: calls.append(cmd) or Done())
+    monkeypatch.setattr(bench_pipeline, "RESULTS", {})
+    bench_pipeline.section_flat(tmp_path, child(3000, 1000.0, 650.0), 10000)
+    assert calls[0][calls[0].index("--long-child") + 1] == "10000"  # its own process
+    out = capsys.readouterr().out
+    assert "1000 MB at 3000 frames" in out and "1300 MB at 10000 frames" in out and "ratio 1.30" in out
+    assert "[MISS] peak RSS 10000 / 3000 frames: 1.30" in out and "<= 1.10" in out
+    assert bench_pipeline.RESULTS["flat"]["peak_mb"] == 1300.0
+    calls.clear()
+    bench_pipeline.section_flat(tmp_path, child(3000, 1000.0, 650.0), 0)  # --flat-frames 0: skipped
+    bench_pipeline.section_flat(tmp_path, None, 10000)  # the long run crashed: nothing to compare with
+    assert calls == []

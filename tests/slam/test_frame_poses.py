@@ -159,7 +159,7 @@ def test_a_frame_whose_anchor_was_removed_follows_the_map_between_its_keyframes(
             fp.add_frame(15, 0.15, g.id_of(1), se3_mul(se3_inv(pr.poses[1]), on_line))
     g.remove_keyframe(1)
     e = fp.entries[2]
-    assert (e.anchor, e.upto, e.target) == (g.id_of(0), g.id_of(1), None)
+    assert (e.anchor, e.upto, e.obs) == (g.id_of(0), g.id_of(1), None)
     before = fp.poses()[1]
     assert _same_pose(before[2], on_line, 1e-9)  # the removal moves nothing
     q, t, s = _rescale_map(g, 1.7)
