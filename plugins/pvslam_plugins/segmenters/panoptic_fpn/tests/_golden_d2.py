@@ -47,14 +47,17 @@ def crop(t: torch.Tensor, stride: int) -> torch.Tensor:
 
 
 def decode_rle(g: dict) -> torch.Tensor:
-    """Pasted masks ``[N, H, W]`` from the stored row-major run lengths (0-run first)."""
+    """Pasted masks ``[N, H, W]`` from the stored row-major run lengths (0-run first, runs alternate)."""
     h, w = int(g["height"]), int(g["width"])
-    counts, out, start = g["inst_masks_rle_counts"], [], 0
-    for n in g["inst_masks_rle_len"].tolist():
-        runs = counts[start:start + n].long()
-        start += n
-        out.append(torch.repeat_interleave(torch.arange(n) % 2, runs).bool().view(h, w))
-    return torch.stack(out) if out else torch.zeros((0, h, w), dtype=torch.bool)
+    runs, lens = g["inst_masks_rle_counts"].long(), g["inst_masks_rle_len"].long()
+    ends = torch.cumsum(runs, 0)  # every mask's runs cover h * w pixels, so masks follow each other
+    rank = torch.arange(int(lens.sum())) - torch.repeat_interleave(torch.cumsum(lens, 0) - lens, lens)
+    ones = rank % 2 == 1  # a mask's runs 1, 3, 5, ... are its pixels
+    edges = torch.zeros(len(lens) * h * w + 1, dtype=torch.int32)
+    n = int(ones.sum())
+    edges.index_add_(0, (ends - runs)[ones], torch.ones(n, dtype=torch.int32))
+    edges.index_add_(0, ends[ones], torch.full((n,), -1, dtype=torch.int32))
+    return torch.cumsum(edges[:-1], 0).view(len(lens), h, w) > 0
 
 
 class Recorder:
