@@ -119,6 +119,8 @@ def run_image(model: PanopticFPN, g: dict) -> dict[str, Any]:
 
 def _stages(model: PanopticFPN, g: dict, feats: list[torch.Tensor], size: tuple[int, int],
             frame: tuple[int, int]) -> dict[str, Any]:
+    """Box head on the stored proposals, detections from the stored box outputs, masks of the stored detections,
+    pasting of the stored mask probabilities, panoptic combine of the stored instances and semantic labels."""
     rh, box = model.roi_heads, g["box"]
     props = g["rpn"]["proposal_boxes"]
     cls_logits, deltas = rh.box_outputs(feats, [props])
@@ -145,7 +147,8 @@ def assert_close(name: str, got: torch.Tensor, want: torch.Tensor, atol: float, 
     assert tuple(got.shape) == tuple(want.shape), f"{name}: shape {tuple(got.shape)} vs {tuple(want.shape)}"
     err = (got.double() - want.double()).abs()
     bad = err > atol + rtol * want.double().abs()
-    assert not bool(bad.any()), f"{name}: {int(bad.sum())} values out of tolerance, max abs diff {max_diff(got, want):.3g}"
+    assert not bool(bad.any()), \
+        f"{name}: {int(bad.sum())} values out of tolerance, max abs diff {max_diff(got, want):.3g}"
     return max_diff(got, want)
 
 

@@ -35,6 +35,16 @@ RPN_LEVELS = ("p2", "p3", "p4", "p5", "p6")
 
 
 @pytest.fixture(scope="module")
+def one_thread():
+    """One intra-op torch thread for the module's runs (restored after): CI runs two test workers on two cores,
+    and a second thread per worker then only waits for a core."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
 def golden(fixtures_dir):
     return torch.load(fixtures_dir / "panoptic_fpn_golden.pt", map_location="cpu", weights_only=True)
 
@@ -45,7 +55,7 @@ def pkl_path(golden, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def model(pkl_path):
+def model(pkl_path, one_thread):
     return build_model(PanopticFPNSegmenterConfig(preset="coco_r50", weights=str(pkl_path), **CFG_CHANGES))
 
 
@@ -64,9 +74,13 @@ def test_pickle_loads_every_tensor_exactly(golden, pkl_path, model):
     assert list(got) == list(want) == golden["meta"]["state_dict_keys"]  # upstream names, upstream order
     assert all(torch.equal(got[k], want[k]) for k in want)
     assert sum(v.numel() for v in got.values()) == golden["meta"]["num_params"]
-    rpn = model.proposal_generator
-    for i, level in enumerate(RPN_LEVELS):
-        assert torch.equal(rpn._cells[i], golden["cell_anchors"][level]), level
+    # anchors of a 2 x 3 grid per level: the stored cell anchors shifted by (x s, y s), in (y, x, anchor) order
+    grids = model.proposal_generator.anchors([torch.zeros(1, 1, 2, 3)] * len(RPN_LEVELS))
+    for level, got in zip(RPN_LEVELS, grids):
+        s = golden["meta"]["strides"][level]
+        shifts = torch.tensor([[x * s, y * s, x * s, y * s] for y in range(2) for x in range(3)], dtype=torch.float32)
+        want = (shifts[:, None, :] + golden["cell_anchors"][level][None]).reshape(-1, 4)
+        assert torch.equal(got, want), level
     assert torch.equal(model.pixel_mean.flatten(), golden["pixel_mean"].flatten().float())
     assert torch.equal(model.pixel_std.flatten(), golden["pixel_std"].flatten().float())
     cfg = model.cfg
@@ -83,6 +97,23 @@ def test_input_tensor(case):
     assert list(batch.shape) == g["input_tensor_shape"].tolist()
     assert torch.equal(batch[0, :, -64:, -64:], g["input_tensor_crop"])
     assert float(batch.double().sum()) == pytest.approx(float(g["input_tensor_sum"]), abs=1e-3)
+
+
+def test_test_time_resize_of_the_stored_frames(golden, model):
+    """From the frames themselves: the resize policy gives detectron2's sizes, and the bilinear resize agrees with
+    PIL's (which made the stored input) to one grey level."""
+    for name in IMAGES:
+        g = golden[name]
+        if name == "kitti":
+            frame, want = g["image_gray_uint8"][None].repeat(3, 1, 1), g["model_input_gray_uint8"][None].float()
+        else:
+            frame, want = g["image_bgr_uint8"].permute(2, 0, 1).flip(0), g["model_input_uint8"].float()
+        batch, (size,), (out_size,) = model.preprocess([frame])
+        assert list(size) == g["resized_hw"] and list(batch.shape[-2:]) == g["padded_hw"]
+        assert out_size == (g["height"], g["width"])
+        h, w = size
+        got = batch[0, :, :h, :w] + model.pixel_mean  # back to 0..255 (pixel_std is 1)
+        assert float((got - want).abs().max()) <= 1.0 + 1e-4, name
 
 
 def test_backbone_and_fpn(case, golden):
