@@ -13,7 +13,7 @@ from typing import Any, Callable
 import torch
 
 from pvslam_plugins.segmenters.panoptic_fpn.model import ROI_LEVELS, PanopticFPN
-from pvslam_plugins.segmenters.panoptic_fpn.panoptic import combine, semantic_postprocess
+from pvslam_plugins.segmenters.panoptic_fpn.panoptic import combine, detector_postprocess, semantic_postprocess
 from pvslam_plugins.segmenters.panoptic_fpn.roi_heads import Detections, paste_masks
 
 ATOL_DENSE = 1e-4  # backbone, FPN, RPN and semantic tensors
@@ -120,7 +120,8 @@ def run_image(model: PanopticFPN, g: dict) -> dict[str, Any]:
 def _stages(model: PanopticFPN, g: dict, feats: list[torch.Tensor], size: tuple[int, int],
             frame: tuple[int, int]) -> dict[str, Any]:
     """Box head on the stored proposals, detections from the stored box outputs, masks of the stored detections,
-    pasting of the stored mask probabilities, panoptic combine of the stored instances and semantic labels."""
+    pasting of the stored mask probabilities (into the stored final boxes, and through the rescaling of the stored
+    detections), panoptic combine of the stored instances and semantic labels."""
     rh, box = model.roi_heads, g["box"]
     props = g["rpn"]["proposal_boxes"]
     cls_logits, deltas = rh.box_outputs(feats, [props])
@@ -132,9 +133,12 @@ def _stages(model: PanopticFPN, g: dict, feats: list[torch.Tensor], size: tuple[
     seg = combine(masks, g["inst_scores"], g["inst_classes"].long(), g["sem_seg_argmax"].long(),
                   comb.overlap_thresh, comb.stuff_area_limit, comb.instances_confidence_thresh,
                   boxes=g["inst_boxes"])
-    pasted = paste_masks(g["mask_probs"][:, 0], g["inst_boxes"], frame, model.cfg.mask_head.mask_threshold)
+    threshold = model.cfg.mask_head.mask_threshold
+    pasted = paste_masks(g["mask_probs"][:, 0], g["inst_boxes"], frame, threshold)
+    stored.mask_probs = g["mask_probs"][:, 0]
+    post = detector_postprocess(stored, size, frame, threshold)
     return {"cls_logits": cls_logits, "deltas": deltas, "dets": dets, "mask_probs": with_masks.mask_probs,
-            "pasted": pasted, "stored_masks": masks, "panoptic": seg}
+            "pasted": pasted, "postprocessed": post, "stored_masks": masks, "panoptic": seg}
 
 
 # ------------------------------------------------------------------------------------------------ comparisons

@@ -17,6 +17,7 @@ from pvslam_plugins.segmenters.panoptic_fpn.segmenter import PanopticFPNSegmente
 from _golden_d2 import (
     ATOL_DENSE,
     ATOL_ROI,
+    BOX_PX,
     CFG_CHANGES,
     PIXEL_AGREEMENT,
     assert_close,
@@ -200,6 +201,10 @@ def test_pasted_masks_from_stored_probabilities(case):
     pasted, stored = run["stage"]["pasted"], run["stage"]["stored_masks"]
     assert torch.equal(stored.sum(dim=(1, 2)), g["inst_masks_area"].long())  # the RLE decodes as documented
     assert mask_disagreement(pasted, stored) <= 1.0 - PIXEL_AGREEMENT
+    post = run["stage"]["postprocessed"]  # the stored detections rescaled to the frame, then pasted
+    assert_close("inst_boxes", post.boxes, g["inst_boxes"], BOX_PX, 0.0)
+    assert torch.equal(post.scores, g["inst_scores"]) and torch.equal(post.classes, g["inst_classes"].long())
+    assert mask_disagreement(post.masks, stored) <= 1.0 - PIXEL_AGREEMENT
 
 
 def _check_segments(g, isthing, labels, areas, scores, instances=None) -> None:
