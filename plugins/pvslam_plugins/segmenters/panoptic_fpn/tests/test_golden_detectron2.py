@@ -2,7 +2,7 @@
 and a synthetic frame) reproduced, stage by stage and end to end, by the ``coco_r50`` model whose weights are
 loaded the way a user's ``model_final_*.pkl`` is: a detectron2-style pickle through the segmenter's ``build_model``.
 
-One model build per module and one recorded run per image (``run``): the heavy tensors are computed once.
+One model build per module and one recorded run per image (``case``): the heavy tensors are computed once.
 """
 from __future__ import annotations
 
@@ -77,11 +77,11 @@ def test_pickle_loads_every_tensor_exactly(golden, pkl_path, model):
     assert sum(v.numel() for v in got.values()) == golden["meta"]["num_params"]
     # anchors of a 2 x 3 grid per level: the stored cell anchors shifted by (x s, y s), in (y, x, anchor) order
     grids = model.proposal_generator.anchors([torch.zeros(1, 1, 2, 3)] * len(RPN_LEVELS))
-    for level, got in zip(RPN_LEVELS, grids):
+    for level, anchors in zip(RPN_LEVELS, grids):
         s = golden["meta"]["strides"][level]
         shifts = torch.tensor([[x * s, y * s, x * s, y * s] for y in range(2) for x in range(3)], dtype=torch.float32)
         want = (shifts[:, None, :] + golden["cell_anchors"][level][None]).reshape(-1, 4)
-        assert torch.equal(got, want), level
+        assert torch.equal(anchors, want), level
     assert torch.equal(model.pixel_mean.flatten(), golden["pixel_mean"].flatten().float())
     assert torch.equal(model.pixel_std.flatten(), golden["pixel_std"].flatten().float())
     cfg = model.cfg
