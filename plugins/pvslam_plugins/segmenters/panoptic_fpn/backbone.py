@@ -136,7 +136,6 @@ class FPN(nn.Module):
 
     def __init__(self, bottom_up: ResNet, cfg: FPNConfig) -> None:
         super().__init__()
-        self.bottom_up = bottom_up
         self.out_channels = cfg.out_channels
         use_bias = cfg.norm == ""
         for k, stage in enumerate(bottom_up.stage_names):
@@ -149,6 +148,8 @@ class FPN(nn.Module):
             c2_xavier_fill(output)
             self.add_module(f"fpn_lateral{level}", lateral)
             self.add_module(f"fpn_output{level}", output)
+        # registered after the lateral/output convs, as detectron2 does: the state_dict lists them first
+        self.bottom_up = bottom_up
         self.level_names = [f"p{k}" for k in range(2, 7)]
         self.strides = {f"p{k}": 2 ** k for k in range(2, 7)}
 

@@ -200,6 +200,10 @@ def _sample_bins(fm: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, bw: torch
     grid = torch.stack(torch.broadcast_tensors(nx.reshape(n, 1, pw * gx), ny.reshape(n, ph * gy, 1)), dim=-1)
     samples = F.grid_sample(fm, grid.reshape(1, n * ph * gy, pw * gx, 2), mode="bilinear",
                             padding_mode="border", align_corners=False)  # [1, C, n*ph*gy, pw*gx]
+    if bool((wx > 0).all()) and bool((wy > 0).all()):
+        # every sample inside (clipped boxes): each bin is the plain mean of its gy x gx block
+        pooled = F.avg_pool2d(samples, (gy, gx)).view(c, n, ph * pw)
+        return pooled.transpose(0, 1).contiguous().view(n, c, ph, pw)
     samples = samples.view(c, n, ph, gy, pw, gx)
     if gx > 1 or not bool((wx == 1).all()):
         samples = (samples * wx[None, :, None, None, :, :]).sum(-1)

@@ -168,15 +168,19 @@ class ROIHeads(nn.Module):
     def detect(self, features: list[torch.Tensor], proposals: list[torch.Tensor],
                image_sizes: list[tuple[int, int]]) -> list[Detections]:
         """Boxes, scores and classes per image (detectron2 fast_rcnn_inference), then their masks."""
-        cfg = self.box_cfg
         logits, deltas = self.box_outputs(features, proposals)
+        return self.predict_masks(features, self.inference(logits, deltas, proposals, image_sizes))
+
+    def inference(self, logits: torch.Tensor, deltas: torch.Tensor, proposals: list[torch.Tensor],
+                  image_sizes: list[tuple[int, int]]) -> list[Detections]:
+        """detectron2 fast_rcnn_inference: the box predictor's outputs for all images' proposals (concatenated,
+        as :meth:`box_outputs` gives them) -> per image softmax scores, class-specific decoded boxes, selection."""
         counts = [int(p.shape[0]) for p in proposals]
         dets = []
         for logit, delta, props, size in zip(logits.split(counts), deltas.split(counts), proposals, image_sizes):
-            boxes = apply_deltas(delta, props, cfg.bbox_reg_weights)  # [R, 4K]
-            scores = F.softmax(logit, dim=-1)
-            dets.append(self.select_boxes(boxes, scores, size))
-        return self.predict_masks(features, dets)
+            boxes = apply_deltas(delta, props, self.box_cfg.bbox_reg_weights)  # [R, 4K]
+            dets.append(self.select_boxes(boxes, F.softmax(logit, dim=-1), size))
+        return dets
 
     def select_boxes(self, boxes: torch.Tensor, scores: torch.Tensor, size: tuple[int, int]) -> Detections:
         """detectron2 fast_rcnn_inference_single_image: ``boxes [R, 4K]`` decoded per class, ``scores [R, K+1]``
