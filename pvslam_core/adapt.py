@@ -60,6 +60,13 @@ def fit_to_sequence(resolved: ResolvedConfig, info: SequenceInfo, registry) -> t
     return resolved, notes + more
 
 
+def say_processing_size(info: SequenceInfo) -> None:
+    """One console line when the reader processes the frames at another size than the input's."""
+    src, out = info.input_intrinsics, info.intrinsics
+    if src is not None and (src.width, src.height) != (out.width, out.height):
+        NOTICE.warning("processing %dx%d frames at %dx%d", src.width, src.height, out.width, out.height)
+
+
 def _fit_ba_resolution(resolved: ResolvedConfig, info: SequenceInfo, registry) -> tuple[ResolvedConfig, list[str]]:
     g = resolved.pipeline.graph
     if "ba_downsample" in g.model_fields_set:

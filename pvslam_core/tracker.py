@@ -127,7 +127,9 @@ class Tracker:
         pcfg = self.config.pipeline
         opts = ReaderOptions(resize=self.resize, crop_multiple=pcfg.graph.ba_downsample, undistort=self.undistort)
         self.geometry = compute_geometry(self._intrinsics(width, height), opts)
-        info = SequenceInfo(name=self.name, num_frames=None, intrinsics=self.geometry.out,
+        geo = self.geometry
+        info = SequenceInfo(name=self.name, num_frames=None, intrinsics=geo.out,
+                            input_intrinsics=geo.input if (geo.resize or geo.crop) else None,
                             source="frames fed through the streaming API (Tracker)")
         if self.run_dir is not None:
             init_run_dir(self.run_dir, self.config, self.registry, self.overrides)
