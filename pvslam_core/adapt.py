@@ -29,12 +29,22 @@ import logging
 from typing import Optional
 
 from .config import DISABLED, Component, ResolvedConfig
-from .types import SequenceInfo
+from .types import Intrinsics, SequenceInfo
 
 NOTICE = logging.getLogger("pvslam.notice")  # choices made for the user; the CLI shows them on the console
 # the BA resolution is halved while the focal length at it (BA px per radian) would be below this: about 34 / sqrt(2),
 # so that it lands nearest the 34 every BA-pixel threshold was chosen at (docs/decisions.md: BA_MIN_FOCAL)
 BA_MIN_FOCAL = 24.0
+# the focal length at the BA resolution (BA px per radian) of the camera every BA-pixel motion threshold was chosen
+# with: the 320x240 synthetic camera's 272 px at 1/8 (see ba_px_scale)
+REF_BA_FOCAL = 34.0
+
+
+def ba_px_scale(intr: Intrinsics, ba_downsample: int) -> float:
+    """This camera's BA pixels per reference BA pixel: a motion threshold (keyframe flow, redundancy, proximity,
+    observed parallax) is an angle of view, ``value / REF_BA_FOCAL`` radians, so it means the same at any
+    processing size; multiply the threshold by this to get it in this camera's BA pixels."""
+    return (min(float(intr.fx), float(intr.fy)) / int(ba_downsample)) / REF_BA_FOCAL
 
 
 def _ready_segmenters(registry, exclude: str) -> list[str]:
