@@ -71,7 +71,7 @@ class ReaderOptions(PluginConfig):
     def _sensible_area(cls, v: Optional[int]) -> Optional[int]:
         if v is not None and v < MIN_PIXELS:
             raise ValueError(f"max_pixels must be at least {MIN_PIXELS} (64x64 pixels), or null for the native "
-                             f"size; got {v}")
+                             "size")
         return v
 
     @model_validator(mode="after")
