@@ -41,8 +41,9 @@ class DatasetError(ValueError):
     """A dataset on disk is missing, malformed or inconsistent; the message names the file and the problem."""
 
 
-# the processing area of a larger input (pixels): KITTI's half size, chosen on KITTI 00 (docs/decisions.md: max_pixels)
-MAX_PIXELS = 116_000
+# the processing area of a larger input (pixels): DROID-SLAM's 384 x 512, chosen on KITTI 00 (docs/decisions.md:
+# dataset.max_pixels)
+MAX_PIXELS = 384 * 512
 MIN_PIXELS = 64 * 64  # a smaller max_pixels leaves too few BA pixels to track anything
 
 

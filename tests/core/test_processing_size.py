@@ -134,18 +134,23 @@ def test_every_reader_shrinks_to_max_pixels_with_intrinsics_that_follow(kind, tm
     np.testing.assert_allclose(centroid(frame.image[0].numpy()), expected, atol=0.35)
 
 
-def test_the_default_shrinks_a_kitti_size_input_to_about_half(tmp_path):
-    """The default area takes KITTI's 1241x376 frames to its half size, 616x184 (multiples of 8)."""
-    assert processing_size(1241, 376, ReaderOptions()) == (618, 187)  # then cropped to 616x184
+def test_the_default_shrinks_a_kitti_size_input(tmp_path):
+    """The default area takes KITTI's 1241x376 frames to 805x244 (DROID-SLAM's area), cropped to 800x240."""
+    assert processing_size(1241, 376, ReaderOptions()) == (805, 244)
     d = tmp_path / "big"
     d.mkdir()
     cv2.imwrite(str(d / "0.png"), blob_image(1241, 376, at=(900.0, 100.0)))
     from pvslam_plugins.datasets.images.config import ImagesConfig
     from pvslam_plugins.datasets.images.reader import ImagesReader
 
-    k = ImagesReader(ImagesConfig(path=str(d), calib=[718.856, 718.856, 607.1928, 185.2157])).info().intrinsics
-    assert (k.width, k.height) == (616, 184)
-    assert k.fx == pytest.approx(718.856 * 618 / 1241) and k.fy == pytest.approx(718.856 * 187 / 376)
+    reader = ImagesReader(ImagesConfig(path=str(d), calib=[718.856, 718.856, 607.1928, 185.2157]))
+    k = reader.info().intrinsics
+    assert (k.width, k.height) == (800, 240)
+    assert k.fx == pytest.approx(718.856 * 805 / 1241) and k.fy == pytest.approx(718.856 * 244 / 376)
+    # the blob's ray lands where the intrinsics put it
+    ray = ((900.0 - 607.1928) / 718.856, (100.0 - 185.2157) / 718.856)
+    expected = np.array([k.fx * ray[0] + k.cx, k.fy * ray[1] + k.cy])
+    np.testing.assert_allclose(centroid(reader[0].image[0].numpy()), expected, atol=0.35)
 
 
 @pytest.mark.parametrize("size", [(320, 240), (200, 100), (64, 48)])
