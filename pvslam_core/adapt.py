@@ -18,7 +18,9 @@ pixels is that focal length times an angle of motion.  Unless the user set ``gra
 registered a fixed one (the registration extra ``ba_downsample``: a network's feature stride), it is halved while
 ``min(fx, fy) / ba_downsample`` is below :data:`BA_MIN_FOCAL` (a power-of-two divisor of the old factor, so the
 reader's crop stays valid).  The focal length and not the image height: a wide image of few rows is not a coarse
-one (docs/decisions.md: BA_MIN_FOCAL).
+one (docs/decisions.md: BA_MIN_FOCAL).  The motion thresholds among them (keyframe flow, redundancy, proximity edges,
+observed parallax) are angles of view in reference BA pixels: :func:`ba_px_scale` turns them into this camera's BA
+pixels, so a larger or smaller processing size does not change what they mean (1.0 at the 320x240 default camera).
 
 Each change is one line on the ``pvslam.notice`` logger, which the command line prints on the console (and
 log.txt keeps).
