@@ -40,7 +40,8 @@ def to_input_pixels(seg: PanopticSegmentation, info: SequenceInfo) -> PanopticSe
     from .outputs.nerfstudio import upsample_nearest
 
     src, dst = info.intrinsics, info.input_intrinsics
-    ids = upsample_nearest(seg.ids.cpu().numpy(), intrinsics_dict(dst.fx, dst.fy, dst.cx, dst.cy, dst.width, dst.height),
+    ids = upsample_nearest(seg.ids.cpu().numpy(),
+                           intrinsics_dict(dst.fx, dst.fy, dst.cx, dst.cy, dst.width, dst.height),
                            intrinsics_dict(src.fx, src.fy, src.cx, src.cy, src.width, src.height))
     return replace(seg, ids=torch.from_numpy(ids), features=None)
 

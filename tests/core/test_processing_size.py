@@ -225,3 +225,13 @@ def test_the_area_keeps_the_aspect_within_a_pixel():
         assert sw * sh <= MAX_PIXELS and abs(sw / w - sh / h) <= 1.0 / min(sw, sh)
         assert sw * sh >= MAX_PIXELS * (1 - 2 / min(sw, sh))  # as large as the area allows
         assert math.isclose(sw / sh, w / h, rel_tol=2 / min(sw, sh))
+
+
+def test_the_streaming_tracker_chooses_the_size_too():
+    from pvslam_core.api import Tracker
+
+    with Tracker(intrinsics=[K.fx, K.fy, K.cx, K.cy], max_pixels=AREA) as tracker:
+        tracker.track(np.repeat(blob_image()[..., None], 3, axis=2), 0.0)
+        out, info = tracker.geometry.out, tracker.pipeline.info
+        assert (out.width, out.height) == (72, 48)
+        assert (info.input_intrinsics.width, info.input_intrinsics.height) == (W, H)
