@@ -18,7 +18,9 @@ pixels is that focal length times an angle of motion.  Unless the user set ``gra
 registered a fixed one (the registration extra ``ba_downsample``: a network's feature stride), it is halved while
 ``min(fx, fy) / ba_downsample`` is below :data:`BA_MIN_FOCAL` (a power-of-two divisor of the old factor, so the
 reader's crop stays valid).  The focal length and not the image height: a wide image of few rows is not a coarse
-one (docs/decisions.md: BA_MIN_FOCAL).
+one (docs/decisions.md: BA_MIN_FOCAL).  The motion thresholds among them (keyframe flow, redundancy, proximity edges,
+observed parallax) are angles of view in reference BA pixels: :func:`ba_px_scale` turns them into this camera's BA
+pixels, so a larger or smaller processing size does not change what they mean (1.0 at the 320x240 default camera).
 
 Each change is one line on the ``pvslam.notice`` logger, which the command line prints on the console (and
 log.txt keeps).
@@ -29,12 +31,22 @@ import logging
 from typing import Optional
 
 from .config import DISABLED, Component, ResolvedConfig
-from .types import SequenceInfo
+from .types import Intrinsics, SequenceInfo
 
 NOTICE = logging.getLogger("pvslam.notice")  # choices made for the user; the CLI shows them on the console
 # the BA resolution is halved while the focal length at it (BA px per radian) would be below this: about 34 / sqrt(2),
 # so that it lands nearest the 34 every BA-pixel threshold was chosen at (docs/decisions.md: BA_MIN_FOCAL)
 BA_MIN_FOCAL = 24.0
+# the focal length at the BA resolution (BA px per radian) of the camera every BA-pixel motion threshold was chosen
+# with: the 320x240 synthetic camera's 272 px at 1/8 (see ba_px_scale)
+REF_BA_FOCAL = 34.0
+
+
+def ba_px_scale(intr: Intrinsics, ba_downsample: int) -> float:
+    """This camera's BA pixels per reference BA pixel: a motion threshold (keyframe flow, redundancy, proximity,
+    observed parallax) is an angle of view, ``value / REF_BA_FOCAL`` radians, so it means the same at any
+    processing size; multiply the threshold by this to get it in this camera's BA pixels."""
+    return (min(float(intr.fx), float(intr.fy)) / int(ba_downsample)) / REF_BA_FOCAL
 
 
 def _ready_segmenters(registry, exclude: str) -> list[str]:
@@ -58,6 +70,13 @@ def fit_to_sequence(resolved: ResolvedConfig, info: SequenceInfo, registry) -> t
     resolved, notes = _fit_segmenter(resolved, info, registry)
     resolved, more = _fit_ba_resolution(resolved, info, registry)
     return resolved, notes + more
+
+
+def say_processing_size(info: SequenceInfo) -> None:
+    """One console line when the reader processes the frames at another size than the input's."""
+    src, out = info.input_intrinsics, info.intrinsics
+    if src is not None and (src.width, src.height) != (out.width, out.height):
+        NOTICE.warning("processing %dx%d frames at %dx%d", src.width, src.height, out.width, out.height)
 
 
 def _fit_ba_resolution(resolved: ResolvedConfig, info: SequenceInfo, registry) -> tuple[ResolvedConfig, list[str]]:

@@ -127,7 +127,9 @@ class Pipeline:
         self.dataset = dataset if dataset is not None else self._build("dataset", ctx)
         self.info: SequenceInfo = self.dataset.info()
         ctx.info = self.info  # the other plugins may size themselves to the sequence
-        from .adapt import fit_to_sequence
+        from .adapt import fit_to_sequence, say_processing_size
+
+        say_processing_size(self.info)
 
         # e.g. no labels segmenter on data without labels; self.cfg is what runs (and what config.json records)
         self.cfg, self.notes = fit_to_sequence(self.cfg, self.info, self.registry)

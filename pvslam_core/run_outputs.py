@@ -11,6 +11,7 @@ make the run directory self-contained: ``pvslam eval`` re-evaluates it without t
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional
 
@@ -29,6 +30,20 @@ LOG = logging.getLogger("pvslam")
 
 class OutputWriteError(OSError):
     """One or more result files could not be written; the message names each file and why."""
+
+
+def to_input_pixels(seg: PanopticSegmentation, info: SequenceInfo) -> PanopticSegmentation:
+    """``seg`` (in the processed frames' pixels) in the input's own pixels when the reader resized or cropped."""
+    if info.input_intrinsics is None:
+        return seg
+    from .outputs.keyframes_io import intrinsics_dict
+    from .outputs.nerfstudio import upsample_nearest
+
+    src, dst = info.intrinsics, info.input_intrinsics
+    ids = upsample_nearest(seg.ids.cpu().numpy(),
+                           intrinsics_dict(dst.fx, dst.fy, dst.cx, dst.cy, dst.width, dst.height),
+                           intrinsics_dict(src.fx, src.fy, src.cx, src.cy, src.width, src.height))
+    return replace(seg, ids=torch.from_numpy(ids), features=None)
 
 
 class RunOutputs:
@@ -77,8 +92,10 @@ class RunOutputs:
             self._raise_write_errors()  # also the errors of writes finished in the background
 
     def panoptic_now(self, frame: Frame, seg: PanopticSegmentation) -> None:
-        """Write this frame's panoptic PNG in the calling thread (a write error is recorded, see :meth:`_write`)."""
+        """Write this frame's panoptic PNG in the calling thread (a write error is recorded, see :meth:`_write`), in
+        the input's own pixels (nearest id; 0 = void where the reader cropped the input)."""
         if self.pan_writer is not None:
+            seg = to_input_pixels(seg, self.info)
             self._write(f"panoptic/{frame.index:06d}.png", self.pan_writer.write, frame.index, seg,
                         frame.name or None)
 
@@ -137,7 +154,9 @@ class RunOutputs:
         if len(kf.ids) and kf.initialized:  # the final map's files (outputs/formats.py: MAP_WRITERS)
             from .outputs.formats import MAP_WRITERS, MapOutput
 
-            run = MapOutput(self.dir, kf, self.categories, self.cfg.outputs, self.info.intrinsics, self.names)
+            # keyframes.json records the input's own camera: the exports write the input's frames at its size
+            run = MapOutput(self.dir, kf, self.categories, self.cfg.outputs, self.info.input_intrinsics
+                            or self.info.intrinsics, self.names)
             for w in MAP_WRITERS:
                 if getattr(self.cfg.outputs, w.enabled):
                     self._write(w.file, w.load(), run)
@@ -238,9 +257,9 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     if info is not None and info.has_gt_panoptic and has_pred_panoptic:
         panoptic_gt = {}
         for frame in dataset:  # int32 ids bound the memory; at most max_panoptic_frames frames
-            if frame.gt_panoptic is not None:
-                panoptic_gt[frame.index] = (frame.gt_panoptic.ids.numpy().astype(np.int32),
-                                            frame.gt_panoptic.segments)
+            if frame.gt_panoptic is not None:  # in the input's pixels, as the predicted PNGs are
+                gt = to_input_pixels(frame.gt_panoptic, info)
+                panoptic_gt[frame.index] = (gt.ids.numpy().astype(np.int32), gt.segments)
             if len(panoptic_gt) >= ecfg.max_panoptic_frames:
                 break
     sources["panoptic"] = ("dataset" if panoptic_gt else

@@ -11,9 +11,10 @@ It is the same pipeline as ``pvslam run`` (:class:`~pvslam_core.pipeline.Pipelin
 ``finish``) with a dataset that only describes the fed frames.  The pose returned for a frame is the estimate at
 the time it was processed (placeholders until the map initialises: ``result.initialized``); later optimisation
 (window BA, loop closure, the final BA) refines it, and :meth:`Tracker.close` returns every final pose.  Frames go
-through the readers' transform (undistortion, optional resize, a centre crop to a multiple of the BA downsampling),
-so the intrinsics are those of the images as given.  The config's ``[dataset]`` table is not used; the run
-directory's config.json records ``dataset.plugin = "none"`` (frames fed by the caller).
+through the readers' transform (undistortion, the processing size: ``resize`` or at most ``max_pixels`` of area, a
+centre crop to a multiple of the BA downsampling), so the intrinsics are those of the images as given.  The
+config's ``[dataset]`` table is not used; the run directory's config.json records ``dataset.plugin = "none"``
+(frames fed by the caller).
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ import numpy as np
 import torch
 
 from .config import DISABLED, Component, ResolvedConfig, load_config
+from .datasets.base import MAX_PIXELS
 from .interfaces import DatasetReader
 from .types import Frame, FrameResult, Intrinsics, RunResult, SequenceInfo
 
@@ -80,7 +82,8 @@ class Tracker:
 
     def __init__(self, intrinsics: IntrinsicsLike, config: Any = None, overrides=None,
                  run_dir: Union[None, bool, str, Path] = None, registry=None, observer=None, bgr: bool = False,
-                 resize: Optional[tuple[int, int]] = None, undistort: bool = True, name: str = "tracker"):
+                 resize: Optional[tuple[int, int]] = None, undistort: bool = True, name: str = "tracker",
+                 max_pixels: Optional[int] = MAX_PIXELS):
         from .registry import get_registry
 
         self.registry = registry or get_registry()
@@ -90,6 +93,7 @@ class Tracker:
         self.config = ResolvedConfig(pcfg, {**resolved.models, "dataset": None}, resolved.source)
         self.intrinsics_spec = intrinsics
         self.bgr, self.resize, self.undistort, self.name = bgr, resize, undistort, name
+        self.max_pixels = max_pixels
         self.observer = observer
         from .config import _normalise_overrides
 
@@ -125,9 +129,12 @@ class Tracker:
         from .rundir import RunLog, init_run_dir
 
         pcfg = self.config.pipeline
-        opts = ReaderOptions(resize=self.resize, crop_multiple=pcfg.graph.ba_downsample, undistort=self.undistort)
+        opts = ReaderOptions(resize=self.resize, max_pixels=self.max_pixels, crop_multiple=pcfg.graph.ba_downsample,
+                             undistort=self.undistort)
         self.geometry = compute_geometry(self._intrinsics(width, height), opts)
-        info = SequenceInfo(name=self.name, num_frames=None, intrinsics=self.geometry.out,
+        geo = self.geometry
+        info = SequenceInfo(name=self.name, num_frames=None, intrinsics=geo.out,
+                            input_intrinsics=geo.input if (geo.resize or geo.crop) else None,
                             source="frames fed through the streaming API (Tracker)")
         if self.run_dir is not None:
             init_run_dir(self.run_dir, self.config, self.registry, self.overrides)

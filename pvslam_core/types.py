@@ -215,6 +215,8 @@ class SequenceInfo:
     name: str
     num_frames: Optional[int]  # None: not known until the source ends (a camera, a folder still being written)
     intrinsics: Intrinsics  # of the frames as yielded (after resize/crop/undistort)
+    # the input's own camera (native size; undistorted when the frames are) when the frames were resized or cropped
+    input_intrinsics: Optional[Intrinsics] = None
     categories: Sequence[Category] = ()
     has_gt_pose: bool = False
     has_gt_depth: bool = False

@@ -7,8 +7,10 @@ resolution; :class:`BaseReader` turns them into the :class:`~pvslam_core.interfa
 * optional undistortion with the calibration's distortion coefficients.  The undistorted image keeps the
   camera matrix ``K`` (the DROID-SLAM / ``cv2.undistort`` convention), so only the distortion is dropped from the
   intrinsics; the remap tables come from ``cv2.initUndistortRectifyMap`` and are computed once;
-* optional resize to ``(width, height)`` (images: area when shrinking, linear when enlarging; depth, panoptic ids
-  and dynamic masks: exact nearest neighbour) with ``Intrinsics.scaled`` (pixel centres at integers);
+* a resize to ``resize = (width, height)`` or, without one, to at most ``max_pixels`` of area, aspect kept (never
+  enlarged): the work and the keyframe rate follow the processing size, not the camera's pixel count (images: area
+  when shrinking, linear when enlarging; depth, panoptic ids and dynamic masks: exact nearest neighbour) with
+  ``Intrinsics.scaled`` (pixel centres at integers);
 * a centre crop to multiples of ``crop_multiple`` with ``Intrinsics.cropped``.
 
 Sources whose length is not known up front (a camera, a folder that is still being written) return None from
@@ -21,6 +23,7 @@ and to the intrinsics, so a 3D point projects onto the same image content before
 """
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from dataclasses import dataclass, replace
 from typing import Iterator, Optional
@@ -38,6 +41,12 @@ class DatasetError(ValueError):
     """A dataset on disk is missing, malformed or inconsistent; the message names the file and the problem."""
 
 
+# the processing area of a larger input (pixels): DROID-SLAM's 384 x 512, chosen on KITTI 00 (docs/decisions.md:
+# dataset.max_pixels)
+MAX_PIXELS = 384 * 512
+MIN_PIXELS = 64 * 64  # a smaller max_pixels leaves too few BA pixels to track anything
+
+
 class ReaderOptions(PluginConfig):
     """Options every reader config shares (subclass it and add the dataset's own fields)."""
 
@@ -45,6 +54,9 @@ class ReaderOptions(PluginConfig):
     start: int = Field(0, ge=0, description="first raw frame")
     end: Optional[int] = Field(None, description="exclusive raw end frame; None = to the end")
     resize: Optional[tuple[int, int]] = Field(None, description="(width, height) to resize to before cropping")
+    max_pixels: Optional[int] = Field(
+        MAX_PIXELS, description="without resize, a larger input is shrunk to this area (pixels, aspect kept) so the "
+        "work and keyframe rate do not grow with the camera's pixel count; null: the native size")
     crop_multiple: int = Field(8, ge=1, description="centre-crop so width and height are multiples of this (1 = off)")
     undistort: bool = Field(True, description="undistort with the calibration's distortion coefficients")
 
@@ -53,6 +65,14 @@ class ReaderOptions(PluginConfig):
     def _positive_size(cls, v: Optional[tuple[int, int]]) -> Optional[tuple[int, int]]:
         if v is not None and (v[0] <= 0 or v[1] <= 0):
             raise ValueError(f"resize must be a positive (width, height), got {v}")
+        return v
+
+    @field_validator("max_pixels")
+    @classmethod
+    def _sensible_area(cls, v: Optional[int]) -> Optional[int]:
+        if v is not None and v < MIN_PIXELS:
+            raise ValueError(f"max_pixels must be at least {MIN_PIXELS} (64x64 pixels), or null for the native "
+                             "size")
         return v
 
     @model_validator(mode="after")
@@ -72,6 +92,22 @@ class ReaderGeometry:
     crop: Optional[tuple[int, int, int, int]]  # left, top, width, height (in the resized image), or None
     out: Intrinsics  # of the yielded frames
 
+    @property
+    def input(self) -> Intrinsics:
+        """The input's own camera: native size, without the distortion when the frames are undistorted."""
+        return replace(self.raw, dist=()) if self.undist_maps is not None or not self.raw.has_distortion else self.raw
+
+
+def processing_size(width: int, height: int, options: ReaderOptions) -> tuple[int, int]:
+    """``(width, height)`` to resize a ``width x height`` image to, before the crop: ``resize`` when set, else the
+    largest size of the same aspect within ``max_pixels`` (never larger than the input)."""
+    if options.resize is not None:
+        return int(options.resize[0]), int(options.resize[1])
+    if options.max_pixels is None or width * height <= options.max_pixels:
+        return width, height
+    s = math.sqrt(options.max_pixels / (width * height))
+    return max(1, int(width * s)), max(1, int(height * s))
+
 
 def compute_geometry(raw: Intrinsics, options: ReaderOptions) -> ReaderGeometry:
     """Intrinsics after undistort -> resize -> crop, plus what is needed to apply the same to pixels."""
@@ -88,11 +124,10 @@ def compute_geometry(raw: Intrinsics, options: ReaderOptions) -> ReaderGeometry:
     elif not raw.has_distortion:
         k = replace(k, dist=())  # no coefficients, or all zero
     size = None
-    if options.resize is not None:
-        w, h = int(options.resize[0]), int(options.resize[1])
-        if (w, h) != (k.width, k.height):
-            size = (w, h)
-            k = replace(k.scaled(w / k.width, h / k.height), width=w, height=h)
+    w, h = processing_size(k.width, k.height, options)
+    if (w, h) != (k.width, k.height):
+        size = (w, h)
+        k = replace(k.scaled(w / k.width, h / k.height), width=w, height=h)
     crop = None
     m = options.crop_multiple
     if m > 1:
@@ -286,10 +321,12 @@ class BaseReader(DatasetReader):
                         continue
                     seen.add((a, b))
                     mapped.append((a, b))
+            geo = self.geometry()
             self._info = SequenceInfo(
                 name=self._sequence_name(),
                 num_frames=num,
-                intrinsics=self.geometry().out,
+                intrinsics=geo.out,
+                input_intrinsics=geo.input if (geo.resize or geo.crop) else None,
                 categories=tuple(self._categories()),
                 has_gt_pose=pose,
                 has_gt_depth=depth,

@@ -3,9 +3,10 @@ are listed in :mod:`.formats`; the COLMAP and nerfstudio writers are :mod:`.colm
 
 Inputs (all in the run directory): ``keyframes/`` (poses, depth, intrinsics; :mod:`.keyframes_io`),
 ``cloud_rgb.ply`` (points with the ``frame_index`` of the keyframe that saw them), ``loops.json`` (keyframe pairs
-of the COLMAP tracks), ``trajectory.txt`` and ``groundtruth.txt``.  Images are those the pipeline saw (after the reader's resize/crop/undistort, so that they
-match the exported intrinsics), re-read from the run's dataset and written as ``images/NNNNNN.png``
-(input-frame index); without the dataset the models still reference those names.
+of the COLMAP tracks), ``trajectory.txt`` and ``groundtruth.txt``.  The cameras are keyframes.json's image camera:
+the input's own pixels (native size, undistorted when the run undistorted), whatever size the pipeline processed;
+the images are re-read from the run's dataset at that size and written as ``images/NNNNNN.png`` (input-frame
+index); without the dataset the models still reference those names.
 
 Camera conventions -- every conversion happens in exactly one function below:
 
@@ -100,20 +101,46 @@ def _cloud(run_dir: Path) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]
     return pts, cols, extra.get("frame_index")
 
 
-def write_images(run_dir: Path, out_dir: Path, frame_indices: np.ndarray, registry=None) -> Optional[str]:
-    """Write the keyframes' images (as the pipeline saw them) from the run's dataset; returns why not, or None."""
-    import cv2
+def _open_dataset_at(run_dir: Path, size: tuple[int, int], registry=None):
+    """The run's dataset yielding frames of ``size``: the input's own pixels (no resize, no crop) or, for a run
+    whose keyframes.json records the processed frames' camera, the frames as the pipeline saw them."""
     import torch
 
     from ..config import load_config
+    from ..datasets.base import ReaderOptions
     from ..interfaces import BuildContext
     from ..registry import get_registry
 
+    resolved = load_config(run_dir / "config.json", registry=registry)
+    spec = (registry or get_registry()).get("dataset", resolved.pipeline.dataset.plugin)
+    options = resolved.models["dataset"]
+    tries = [options]
+    if isinstance(options, ReaderOptions):
+        tries.insert(0, options.model_copy(update={"resize": None, "max_pixels": None, "crop_multiple": 1}))
+    found = []
+    for opts in tries:
+        dataset = spec.factory(opts, BuildContext(device=torch.device("cpu")))
+        k = dataset.info().intrinsics
+        if (int(k.width), int(k.height)) == tuple(size):
+            return dataset
+        found.append(f"{k.width}x{k.height}")
+    raise ValueError(f"its frames are {' or '.join(found)}, not the {size[0]}x{size[1]} of keyframes.json")
+
+
+def write_images(run_dir: Path, out_dir: Path, frame_indices: np.ndarray, registry=None,
+                 size: Optional[tuple[int, int]] = None) -> Optional[str]:
+    """Write the keyframes' images from the run's dataset at ``size`` (keyframes.json's image camera: the input's
+    own pixels); returns why not, or None."""
+    import cv2
+
     want = {int(i) for i in frame_indices}
     try:
-        resolved = load_config(run_dir / "config.json", registry=registry)
-        spec = (registry or get_registry()).get("dataset", resolved.pipeline.dataset.plugin)
-        dataset = spec.factory(resolved.models["dataset"], BuildContext(device=torch.device("cpu")))
+        if size is None:
+            from .keyframes_io import read_keyframes
+
+            image = read_keyframes(run_dir)["intrinsics"]["image"]
+            size = (int(image["width"]), int(image["height"]))
+        dataset = _open_dataset_at(run_dir, size, registry)
     except Exception as exc:  # noqa: BLE001 - the export is still useful without images
         return f"the run's dataset cannot be opened ({type(exc).__name__}: {exc})"
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
@@ -176,7 +203,8 @@ def export_run(run_dir: str | os.PathLike, fmt: str, out_dir: Optional[str | os.
     kf = read_keyframes(run_dir)
     summary = {"format": fmt, "out": str(out), **spec.load()(run_dir, out, kf)}
     if images:
-        why = write_images(run_dir, out, kf["frame_index"], registry=registry)
+        size = (int(kf["intrinsics"]["image"]["width"]), int(kf["intrinsics"]["image"]["height"]))
+        why = write_images(run_dir, out, kf["frame_index"], registry=registry, size=size)
         if why:
             LOG.warning("images not written: %s; the model names them images/NNNNNN.png (input-frame index) at "
                         "%dx%d", why, kf["intrinsics"]["image"]["width"], kf["intrinsics"]["image"]["height"])

@@ -10,6 +10,9 @@ Layout::
                                     "keyframes": [{"frame_index", "timestamp", "name", "pose", "depth_file"}],
                                     "conventions": {...}}
 
+``image`` is the input's own camera (native size, undistorted when the run undistorted), also when the pipeline
+processed the frames at another size; ``depth`` is the depth maps' grid (the BA resolution of the processed frames).
+
 Conventions (as everywhere in pvslam, :mod:`pvslam_core.types`): ``pose`` is T_wc ``[tx, ty, tz, qx, qy, qz, qw]``,
 camera x right, y down, z forward (OpenCV), pixel centres at integer coordinates.  A monocular map's unit is
 arbitrary but the same for depth and poses.  :mod:`pvslam_core.outputs.export` turns this into COLMAP and

@@ -26,8 +26,8 @@ class KeyframesConfig(PluginConfig):
     """Which proposed keyframes the map keeps (:mod:`pvslam_core.slam.keyframes`)."""
 
     redundant_thresh: float = Field(
-        1.5, ge=0, description="frame distance (BA px) to the previous keyframe under which a keyframe is redundant "
-        "and removed (0: every keyframe stays)")
+        1.5, ge=0, description="frame distance (reference BA px: 1/34 rad, adapt.ba_px_scale) to the previous "
+        "keyframe under which a keyframe is redundant and removed (0: every keyframe stays)")
     max_gap_s: float = Field(
         0.5, gt=0, description="seconds: a keyframe whose removal would leave a longer gap between its neighbours is "
         "never redundant (docs/decisions.md: graph.keyframes.max_gap_s)")
@@ -40,7 +40,8 @@ class EdgesConfig(PluginConfig):
     active_window: int = Field(10, ge=2, description="keyframes: the window BA observes the edges touching the last "
                                "N keyframes; edges that no longer do retire")
     proximity_window: int = Field(25, ge=0, description="look back this many keyframes for proximity edges")
-    proximity_thresh: float = Field(16.0, gt=0, description="max frame distance (BA px) for a proximity edge")
+    proximity_thresh: float = Field(16.0, gt=0, description="max frame distance for a proximity edge (reference BA "
+                                    "px: 1/34 rad, adapt.ba_px_scale)")
     max_proximity: int = Field(2, ge=0, description="proximity edges added per new keyframe")
     max_active: int = Field(256, ge=8, description="cap on active edges: beyond it the oldest not touching the newest "
                             "keyframe retire (their last observations stay for the final BA)")

@@ -20,8 +20,9 @@ from .flow_distance import pair_flow_quantile
 from .graph import EDGE_ODOMETRY, EDGE_PROXIMITY, FrameGraph
 
 PROXIMITY_NMS = 1  # a proximity edge is not added within this many keyframes (index distance) of a chosen one
-# a proximity edge is kept only when the 90th percentile of its translation-only flow (BA px) is at most this: the
-# frontend's flow does not follow a near field that moves farther (docs/decisions.md: PROXIMITY_MAX_FLOW)
+# a proximity edge is kept only when the 90th percentile of its translation-only flow (reference BA px,
+# adapt.ba_px_scale) is at most this: the frontend's flow does not follow a near field that moves farther
+# (docs/decisions.md: PROXIMITY_MAX_FLOW)
 PROXIMITY_MAX_FLOW = 8.0
 
 
@@ -40,9 +41,10 @@ def neighbour_edges(k: int, cfg: EdgesConfig, first: int = 0,
 
 
 def proximity_edges(graph: FrameGraph, k: int, cfg: EdgesConfig, first: int = 0, nms: int = PROXIMITY_NMS,
-                    bidirectional: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+                    bidirectional: bool = True, px_scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Up to ``max_proximity`` edges from ``k`` to older keyframes that look at the same place, none within ``nms``
-    keyframes of another."""
+    keyframes of another (``px_scale``: this camera's BA px per reference BA px, :func:`~pvslam_core.adapt.
+    ba_px_scale`)."""
     lo = max(first, k - cfg.proximity_window)
     hi = k - cfg.neighbours  # exclusive: neighbours are connected already
     empty = torch.zeros(0, dtype=torch.int64)
@@ -54,7 +56,7 @@ def proximity_edges(graph: FrameGraph, k: int, cfg: EdgesConfig, first: int = 0,
     order = torch.argsort(d)
     chosen: list[int] = []
     for idx in order.tolist():
-        if float(d[idx]) > cfg.proximity_thresh or len(chosen) >= cfg.max_proximity:
+        if float(d[idx]) > cfg.proximity_thresh * px_scale or len(chosen) >= cfg.max_proximity:
             break
         j = int(cand[idx])
         if all(abs(j - c) > nms for c in chosen):
@@ -86,16 +88,18 @@ def reliable_proximity(graph: FrameGraph, ii: torch.Tensor, jj: torch.Tensor, fi
     return ii[mask], jj[mask]
 
 
-def connect_keyframe(graph: FrameGraph, k: int, cfg: EdgesConfig, first: int, initialized: bool) -> None:
+def connect_keyframe(graph: FrameGraph, k: int, cfg: EdgesConfig, first: int, initialized: bool,
+                     px_scale: float = 1.0) -> None:
     """Neighbour edges of keyframe ``k`` (the newest) and, once the map is initialised, its reliable proximity
-    edges; none for the first keyframe of a fragment (``first``)."""
+    edges; none for the first keyframe of a fragment (``first``).  ``px_scale``: this camera's BA px per reference
+    BA px (the distance thresholds are angles of view: :func:`~pvslam_core.adapt.ba_px_scale`)."""
     if k <= first:
         return
     ii, jj = neighbour_edges(k, cfg, first=first)
     graph.add_edges(ii, jj, EDGE_ODOMETRY)
     if initialized:
-        ii, jj = proximity_edges(graph, k, cfg, first=first)
-        ii, jj = reliable_proximity(graph, ii, jj, first, cfg.active_window, PROXIMITY_MAX_FLOW)
+        ii, jj = proximity_edges(graph, k, cfg, first=first, px_scale=px_scale)
+        ii, jj = reliable_proximity(graph, ii, jj, first, cfg.active_window, PROXIMITY_MAX_FLOW * px_scale)
         if ii.numel():
             graph.add_edges(ii, jj, EDGE_PROXIMITY)
 

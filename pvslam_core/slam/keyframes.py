@@ -37,8 +37,9 @@ from .map_state import MapState
 
 LOG = logging.getLogger("pvslam")
 
-# a keyframe is redundant only when the 90th percentile of its per-pixel distance is also under this (BA px): where
-# most of the view is far the mean stays small while the near field moves (docs/decisions.md: REDUNDANT_MAX_FLOW)
+# a keyframe is redundant only when the 90th percentile of its per-pixel distance is also under this (reference BA
+# px, adapt.ba_px_scale): where most of the view is far the mean stays small while the near field moves
+# (docs/decisions.md: REDUNDANT_MAX_FLOW)
 REDUNDANT_MAX_FLOW = 4.0
 
 
@@ -50,6 +51,9 @@ class KeyframePolicy:
     def __init__(self, cfg: KeyframesConfig, state: MapState, connect: Callable[[int], None]) -> None:
         self.cfg = cfg
         self.state = state
+        # the thresholds in this camera's BA px (they are angles of view: adapt.ba_px_scale)
+        self.thresh = cfg.redundant_thresh * state.px_scale
+        self.max_flow = REDUNDANT_MAX_FLOW * state.px_scale
         self.connect = connect
         self.provisional: Optional[int] = None  # id of the provisional keyframe (the newest), if any
         self.provisional_removed = 0  # provisional keyframes removed without ever being optimised
@@ -84,7 +88,7 @@ class KeyframePolicy:
         kf_id, self.provisional = self.provisional, None
         g = self.state.graph
         r = g.index_of(kf_id)
-        if not keep and r - 1 > self.state.fragment_start and self.redundancy(r, next_ts) < self.cfg.redundant_thresh:
+        if not keep and r - 1 > self.state.fragment_start and self.redundancy(r, next_ts) < self.thresh:
             self.state.place_frames(kf_id)
             g.remove_keyframe(r)  # frames anchored to it re-anchor to keyframe r - 1
             self.provisional_removed += 1
@@ -103,7 +107,7 @@ class KeyframePolicy:
         if bool(touches_loop):
             return
         d = self.redundancy(r)
-        if d >= self.cfg.redundant_thresh:
+        if d >= self.thresh:
             return
         self.state.place_frames(g.id_of(r))
         g.remove_keyframe(r)  # listeners (frame poses, frontend, loop detector, map state) hear of it
@@ -129,9 +133,8 @@ class KeyframePolicy:
             return False
         if timestamp - float(g.timestamps[-1]) > self.cfg.max_gap_s:
             return False
-        return self._distance(g.poses[-1], pose, g.disps[-1]) < self.cfg.redundant_thresh
+        return self._distance(g.poses[-1], pose, g.disps[-1]) < self.thresh
 
     def _distance(self, pose_i: torch.Tensor, pose_j: torch.Tensor, disp_i: torch.Tensor) -> float:
         poses = torch.stack([pose_i.double(), pose_j.to(pose_i.device).double()])
-        return keyframe_distance(poses, disp_i, self.state.graph.intrinsics, self.cfg.redundant_thresh,
-                                 REDUNDANT_MAX_FLOW)
+        return keyframe_distance(poses, disp_i, self.state.graph.intrinsics, self.thresh, self.max_flow)

@@ -19,6 +19,7 @@ from typing import Optional
 
 import torch
 
+from ..adapt import ba_px_scale
 from ..interfaces import GraphListener
 from ..types import Frame, LoopClosure, PanopticSegmentation, SequenceInfo
 from .fragments import Fragments
@@ -70,12 +71,15 @@ class MapState(GraphListener):
         self.spill = SpillStore(spill_dir)
         self.ba_downsample = ds
         self.ba_shape = (info.intrinsics.height // ds, info.intrinsics.width // ds)  # (h, w) of the BA
+        # this camera's BA px per reference BA px: the motion thresholds are angles (adapt.ba_px_scale)
+        self.px_scale = ba_px_scale(info.intrinsics, ds)
         intr = info.intrinsics.scaled(1.0 / ds)
         self.graph = FrameGraph(self.ba_shape[0], self.ba_shape[1], intr.vector(torch.float32, device), device=device,
                                 spill=self.spill)
         # a GraphListener of the graph
         self.frames = FramePoses(self.graph, MOTION_ROBUST, MOTION_ROBUST_SCALE, spill=self.spill)
-        self.observed = _observed.ObservedMasks(_observed.UNOBSERVED_WEIGHT, _observed.OBSERVED_PARALLAX,
+        self.observed = _observed.ObservedMasks(_observed.UNOBSERVED_WEIGHT,
+                                                _observed.OBSERVED_PARALLAX * self.px_scale,
                                                 _observed.GUESS_MIN_MEASURED)
         self.fragments = Fragments()  # map fragments after re-initialisations, merged by loops
         self.fragment_start = 0  # graph index of the current fragment's first keyframe

@@ -192,7 +192,7 @@ class Mapper:
     def _connect(self, k: int) -> None:
         """Keyframe ``k``'s edges (the edge policy, :func:`.edges.connect_keyframe`)."""
         st = self.state
-        connect_keyframe(st.graph, k, self.cfg.edges, st.fragment_start, st.initialized)
+        connect_keyframe(st.graph, k, self.cfg.edges, st.fragment_start, st.initialized, st.px_scale)
 
     def _try_initialise(self, k: int) -> None:
         """Two-view initialisation of the current fragment (:mod:`.bootstrap`), then a window BA and the poses of

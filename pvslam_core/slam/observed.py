@@ -31,7 +31,8 @@ UNOBSERVED_WEIGHT = 0.3
 # a new keyframe's pose guess uses only its reference's measured pixels when they are at least this share of the
 # tracked ones (docs/decisions.md: GUESS_MIN_MEASURED)
 GUESS_MIN_MEASURED = 0.5
-OBSERVED_PARALLAX = 1.0  # translation-only flow (BA px) an edge must give a pixel to count its depth as measured
+# translation-only flow (reference BA px, adapt.ba_px_scale) an edge must give a pixel to count its depth as measured
+OBSERVED_PARALLAX = 1.0
 
 
 class ObservedMasks:

@@ -29,6 +29,8 @@ def depth_map(h: int, w: int) -> torch.Tensor:
 class FakeDatasetConfig(PluginConfig):
     frames: int = Field(12, ge=2, description="number of frames")
     speed: float = Field(SPEED, gt=0, description="metres per frame along +x")
+    input_scale: int = Field(1, ge=1, description="say the input was this many times the frames' size (a reader "
+                             "that shrank it)")
 
 
 class FakeDataset(DatasetReader):
@@ -36,9 +38,12 @@ class FakeDataset(DatasetReader):
         self.n = cfg.frames
         self.speed = cfg.speed
         self.k = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+        s = cfg.input_scale  # the frames are the input shrunk by s: k == k_input.scaled(1 / s)
+        self.k_input = None if s == 1 else Intrinsics(F * s, F * s, (W * s - 1) / 2, (H * s - 1) / 2, W * s, H * s)
 
     def info(self) -> SequenceInfo:
-        return SequenceInfo("fake", self.n, self.k, has_gt_pose=True, has_gt_depth=True)
+        return SequenceInfo("fake", self.n, self.k, has_gt_pose=True, has_gt_depth=True,
+                            input_intrinsics=self.k_input)
 
     def __iter__(self):
         g = torch.Generator().manual_seed(0)

@@ -66,7 +66,7 @@ def test_the_image_folder_reader_takes_the_row_its_folder_names(tmp_path, caplog
         det = dataset_section(path, calib)
         assert det.plugin == "images", det
         spec = reg.get("dataset", "images")
-        return spec.factory(spec.config_model(**det.options, crop_multiple=1), None).info().intrinsics
+        return spec.factory(spec.config_model(**det.options, crop_multiple=1, max_pixels=None), None).info().intrinsics
 
     png(tmp_path / "frames" / "0.png")
     (tmp_path / "frames" / "calib.txt").write_text(ODOMETRY)

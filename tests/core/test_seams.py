@@ -9,6 +9,7 @@ import pytest
 
 import fakes
 import fakes_seams
+from pvslam_core.adapt import REF_BA_FOCAL
 from pvslam_core.api import run_config
 from pvslam_core.outputs.ply import read_ply
 from pvslam_core.registry import build_registry
@@ -26,7 +27,9 @@ def test_per_edge_state_follows_retirement_and_removal(seams_registry, fake_conf
     fakes_seams.StatefulFrontend.instances.clear()
     res = run_config(fake_config_file, registry=seams_registry, overrides=[
         'frontend.plugin="stateful"', "dataset.frames=60", "frontend.keyframe_every=1",
-        "graph.keyframes.redundant_thresh=0.2", "graph.edges.active_window=4", "graph.init.warmup=3"])
+        # 0.2 BA px of the fake camera (f = 10 BA px at 1/4), in the config's reference BA px
+        f"graph.keyframes.redundant_thresh={0.2 * REF_BA_FOCAL / (fakes.F / 4)}", "graph.edges.active_window=4",
+        "graph.init.warmup=3"])
     fe = fakes_seams.StatefulFrontend.instances[-1]
     assert fe.errors == []
     tracking = res.metrics["tracking"]

@@ -5,10 +5,12 @@ import numpy as np
 import torch
 
 import fakes
+from pvslam_core.adapt import REF_BA_FOCAL
 from pvslam_core.config import validate_pipeline
 from pvslam_core.geometry.projective import frame_distance
 from pvslam_core.interfaces import BuildContext
 from pvslam_core.registry import get_registry
+from pvslam_core.slam import keyframes
 from pvslam_core.slam.flow_distance import keyframe_distance
 from pvslam_core.slam.mapper import Mapper
 
@@ -62,7 +64,9 @@ def _kept_gaps(max_gap_s):
     return m, np.diff(ts)
 
 
-def test_a_keyframe_after_a_long_gap_is_never_redundant():
+def test_a_keyframe_after_a_long_gap_is_never_redundant(monkeypatch):
+    # the quantile gate at 4 BA px of the fake camera (f = 10 BA px at 1/4; the constant is in reference BA px)
+    monkeypatch.setattr(keyframes, "REDUNDANT_MAX_FLOW", 4.0 * REF_BA_FOCAL / (fakes.F / 4))
     m_cap, gaps_cap = _kept_gaps(max_gap_s=0.25)
     m_free, gaps_free = _kept_gaps(max_gap_s=100.0)
     assert gaps_free.max() > 0.6  # by distance alone, keyframes are far apart (until the views stop overlapping)

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 import fakes
+from pvslam_core.adapt import REF_BA_FOCAL
 from pvslam_core.config import validate_pipeline
 from pvslam_core.geometry.lie import se3_exp, se3_inv, se3_mul
 from pvslam_core.geometry.projective import edge_transforms, project_points
@@ -28,10 +29,21 @@ def _no_loop_suppression(monkeypatch):
     monkeypatch.setattr(loops, "NMS_KEYFRAMES", 0)  # every keyframe may close a loop
 
 
+FAKE_PER_REF = REF_BA_FOCAL / (fakes.F / 4)  # reference BA px per BA px of the fake camera (f = 10 BA px at 1/4)
+
+
+@pytest.fixture(autouse=True)
+def _redundancy_gate_in_fake_px(monkeypatch):
+    """The redundancy test's quantile gate at 4 BA px of the fake camera, as these tests were written (the constant
+    is in reference BA px: an angle of view)."""
+    monkeypatch.setattr(keyframes, "REDUNDANT_MAX_FLOW", 4.0 * FAKE_PER_REF)
+
+
 def build(frames=24, loop=None, optimizer="online_ba", redundant_thresh=0.0, edges=None):
-    """A mapper over the exact fakes; ``redundant_thresh`` 0: every keyframe stays."""
+    """A mapper over the exact fakes; ``redundant_thresh`` in the fake camera's BA px (0: every keyframe stays)."""
+    ref_px = redundant_thresh * FAKE_PER_REF  # the config's unit: reference BA px (an angle)
     pcfg = validate_pipeline({"graph": {"init": {"warmup": 3}, "ba_downsample": 4,
-                                        "keyframes": {"redundant_thresh": redundant_thresh}, "edges": edges or {}}})
+                                        "keyframes": {"redundant_thresh": ref_px}, "edges": edges or {}}})
     ds = fakes.FakeDataset(fakes.FakeDatasetConfig(frames=frames, speed=SPEED))
     fe = fakes.ExactFrontend(fakes.ExactFrontendConfig(keyframe_every=2), ds=4)
     spec = get_registry().get("optimizer", optimizer)

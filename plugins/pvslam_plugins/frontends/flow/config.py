@@ -41,8 +41,8 @@ class KeyframeConfig(PluginConfig):
     """The motion filter: when a tracked frame becomes a keyframe."""
 
     flow_thresh: float = Field(
-        2.0, gt=0.0, description="New keyframe when the mean flow to the last keyframe exceeds this (BA px); DROID "
-        "uses 2.4 with its learned flow.")
+        2.0, gt=0.0, description="New keyframe when the mean flow to the last keyframe exceeds this (reference BA "
+        "px: 1/34 rad of view at any size, adapt.ba_px_scale); DROID uses 2.4 BA px with its learned flow.")
     min_coverage: float = Field(
         0.7, ge=0.0, le=1.0, description="New keyframe when fewer than this fraction of the last keyframe's pixels "
         "are still tracked: on forward motion pixels leave the view before the mean flow grows.")

@@ -50,6 +50,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 import torch
 
+from pvslam_core.adapt import ba_px_scale
 from pvslam_core.geometry.projective import reproject as _reproject
 from pvslam_core.interfaces import Frontend
 from pvslam_core.slam.graph import median_disp_map
@@ -225,7 +226,9 @@ class FlowFrontend(Frontend):
         self.starts.tracked(last.frame_index, frame.index, fwd, bwd, fb_f <= self.pairs.fail_px)
         coverage = 1.0 - fail_frac
         kf = self.cfg.keyframes
-        is_kf = mean_flow > kf.flow_thresh or coverage < kf.min_coverage
+        # flow_thresh is an angle of view in reference BA px (adapt.ba_px_scale)
+        is_kf = mean_flow > kf.flow_thresh * ba_px_scale(frame.intrinsics, self.ba_downsample) \
+            or coverage < kf.min_coverage
         self._pending = _Tracked(frame.index, gray, last_sid, (tf, wf), (fwd, bwd), (h, w), road, plane[1])
         return TrackResult(is_keyframe=is_kf, mean_flow=mean_flow, target=target, weight=weight,
                            message=f"tracked {coverage:.0%} of the last keyframe's pixels")

@@ -29,7 +29,7 @@ def KITTI(shared_dir) -> Path:
 
 # ------------------------------------------------------------------------------------------- real excerpts ----
 def test_sequence_06_excerpt(KITTI):
-    r = KittiReader(KittiConfig(path=str(KITTI), sequence="06"))
+    r = KittiReader(KittiConfig(path=str(KITTI), sequence="06", max_pixels=None))  # the native size
     info = r.info()
     assert info.num_frames == 51 and info.has_gt_pose
     k = info.intrinsics  # P0 of sequence 06, 1226x370 centre-cropped to 1224x368

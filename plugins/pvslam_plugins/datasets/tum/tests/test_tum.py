@@ -69,20 +69,20 @@ def test_max_diff_is_configurable(tmp_path):
 
 def test_intrinsics_precedence_preset_then_calib_txt_then_config(tmp_path):
     seq = fake_tum(tmp_path)
-    k = TumReader(TumConfig(path=str(seq), undistort=False, crop_multiple=1)).info().intrinsics
+    k = TumReader(TumConfig(max_pixels=None, path=str(seq), undistort=False, crop_multiple=1)).info().intrinsics
     assert (k.fx, k.fy, k.cx, k.cy) + k.dist == PRESETS["freiburg1"] and (k.width, k.height) == (640, 480)
-    und = TumReader(TumConfig(path=str(seq))).info().intrinsics
+    und = TumReader(TumConfig(max_pixels=None, path=str(seq))).info().intrinsics
     assert und.dist == () and und.fx == 517.3
     (seq / "calib.txt").write_text("525.0 525.0 319.5 239.5\n")
-    k = TumReader(TumConfig(path=str(seq))).info().intrinsics
+    k = TumReader(TumConfig(max_pixels=None, path=str(seq))).info().intrinsics
     assert (k.fx, k.cx, k.dist) == (525.0, 319.5, ())
-    k = TumReader(TumConfig(path=str(seq), calib=[500, 501, 320, 240])).info().intrinsics
+    k = TumReader(TumConfig(max_pixels=None, path=str(seq), calib=[500, 501, 320, 240])).info().intrinsics
     assert (k.fx, k.fy, k.cx, k.cy) == (500, 501, 320, 240)
 
 
 def test_freiburg3_preset_has_no_distortion(tmp_path):
     seq = fake_tum(tmp_path, "rgbd_dataset_freiburg3_walking_xyz")
-    k = TumReader(TumConfig(path=str(seq), undistort=False)).info().intrinsics
+    k = TumReader(TumConfig(max_pixels=None, path=str(seq), undistort=False)).info().intrinsics
     assert (k.fx, k.fy, k.cx, k.cy) == (535.4, 539.2, 320.1, 247.6) and not k.has_distortion
 
 

@@ -105,7 +105,7 @@ def test_sudden_jump_fails():
 # -------------------------------------------------------------------------------------- observe --
 def test_observe_targets_and_track_reuse(monkeypatch):
     big = S.texture("astronaut")
-    shifts = [0.0, 20.0, 36.0]
+    shifts = [0.0, 24.0, 44.0]  # 3 and 2.5 BA px: over the threshold of this camera (2 x 288 / 272 BA px)
     g = _graph(shifts)
     fe = _frontend(dynamic={"enabled": False})  # default: the track flow is reused for (k-1, k)
     assert fe.rounds == 1
