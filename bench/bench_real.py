@@ -23,6 +23,7 @@ process time of its loop).  The result file (``--json``, default ``runs/bench/re
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import re
@@ -113,8 +114,6 @@ def run_pvslam(seq: str, out: Path, timeout: float) -> dict:
         return {"error": f"pvslam exited with {rc} and no trajectory (log: {out / 'logs'})", "cpu_s": cpu}
     run_dir = Path(m.group(1).strip())
     ts, poses = read_tum(run_dir / "trajectory.txt")
-    import json
-
     timing = json.loads((run_dir / "metrics.json").read_text()).get("timing", {})
     failures = int(timing.get("tracking_failures", 0))
     posed = 0 if rc != 0 else int(np.all(np.isfinite(poses), axis=1).sum()) - failures

@@ -43,7 +43,8 @@ SAME_PLACE_M = 10.0  # ground truth: two cameras within this distance ...
 SAME_PLACE_DEG = 30.0  # ... and this difference of orientation see one place (a verified pair there is true)
 REVISIT_M = 5.0  # a query whose place a stored keyframe this close shows is a revisit (recall counts it)
 REVISIT_GAP_S = 10.0  # seconds between the end of the first pass and the start of the second (the drive back)
-EXCERPT_STRIDE = {"00": 2, "06": 1, "01": 1}  # keyframe spacing on the excerpts (frames)
+# keyframe spacing on the excerpts in frames (the default run makes nearly every frame a keyframe)
+EXCERPT_STRIDE = {"00": 1, "06": 1, "01": 1}
 REVISIT = {"first_stride": 2, "second_start": 21, "second_stride": 4}
 
 
@@ -182,8 +183,8 @@ def revisit_report(plugin: str, first_stride: int = REVISIT["first_stride"],
 
 
 def _lines(excerpts: list[dict], revisits: list[dict]) -> list[str]:
-    out = ["| detector | excerpt | keyframes | retrieved | false loops | best wrong pair (frames) | score / threshold | "
-           "its verification |", "|---|---|---|---|---|---|---|---|"]
+    out = ["| detector | excerpt | keyframes | retrieved | false loops | best wrong pair (frames) | "
+           "score / threshold | its verification |", "|---|---|---|---|---|---|---|---|"]
     for e in excerpts:
         b = e.get("best_wrong")
         pair = f"{b['frame_i']} - {b['frame_j']} ({b['distance_m']:.0f} m apart)" if b else "none"
@@ -220,7 +221,8 @@ def main(argv=None) -> int:
     lines = _lines(excerpts, revisits)
     print("\n".join(lines))
     if args.json:
-        print(f"wrote {provenance.write_json(args.json, {'excerpts': excerpts, 'revisits': revisits, 'table': lines}, prov)}")
+        path = provenance.write_json(args.json, {"excerpts": excerpts, "revisits": revisits, "table": lines}, prov)
+        print(f"wrote {path}")
     return 0
 
 

@@ -44,7 +44,8 @@ def test_a_similar_copy_of_the_ground_truth_scores_zero_and_an_offset_scores_its
     assert s["path_m"] == pytest.approx(np.linalg.norm(np.diff(gt[:, :3], axis=0), axis=1).sum())
     # a lateral error of +-0.5 m on alternate frames: ATE 0.5 m (the alignment cannot absorb it), RPE 1 m per frame
     noisy = gt.copy()
-    normal = np.stack([np.sin(np.linspace(0, 1.2, len(ts))), np.zeros(len(ts)), -np.cos(np.linspace(0, 1.2, len(ts)))], 1)
+    a = np.linspace(0, 1.2, len(ts))
+    normal = np.stack([np.sin(a), np.zeros(len(ts)), -np.cos(a)], 1)
     noisy[:, :3] += 0.5 * normal * np.where(np.arange(len(ts)) % 2 == 0, 1.0, -1.0)[:, None]
     s = bench_real.score(ts, noisy, ts, gt, total=len(ts))
     assert s["ate_m"] == pytest.approx(0.5, rel=0.05)

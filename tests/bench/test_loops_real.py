@@ -17,7 +17,8 @@ if str(ROOT) not in sys.path:
 
 from bench import loops_real  # noqa: E402
 
-EXCERPTS = {"classical": {"00": (2, 20), "06": (1, 20), "01": (1, 20)},  # stride, exclude_recent (keyframes)
+# per excerpt: keyframe stride (frames), exclude_recent (keyframes)
+EXCERPTS = {"classical": {"00": (1, 20), "06": (1, 20), "01": (1, 20)},
             "deit": {"00": (4, 10), "06": (2, 10), "01": (2, 10)}}
 REVISITS = {"classical": (2, 21, 4, None), "deit": (3, 22, 6, 130)}  # first stride, second start/stride, end
 
