@@ -211,6 +211,17 @@ def table(rows: list[dict]) -> list[str]:
     return out
 
 
+def run_details(rows: list[dict]) -> list[str]:
+    """One line per method with several runs: each run's ATE and frames posed (ranges hide which run posed what)."""
+    out = []
+    for r in rows:
+        if len(r.get("runs") or []) > 1:
+            runs = ", ".join(f"{x['ate_m']:.3f} m = {x['ate_pct']:.2f} % ({x['posed']}/{x['total']} frames)"
+                             for x in r["runs"])
+            out.append(f"{r['sequence']} {r['method']}, each run: {runs}")
+    return out
+
+
 def evaluate(method: str, res: dict, gt_ts: np.ndarray, gt: np.ndarray, total: int) -> dict:
     """One run's scores (or its error) plus CPU per frame of the sequence's ``total`` frames."""
     keep = {k: v for k, v in res.items() if k not in ("ts", "poses")}
@@ -269,7 +280,13 @@ def main(argv=None) -> int:
                     "ORB-SLAM3 trajectories and logs (default runs/bench/real)")
     ap.add_argument("--json", default=str(ROOT / "runs" / "bench" / "real.json"),
                     help="result file with provenance (default runs/bench/real.json; not into bench/)")
+    ap.add_argument("--reprint", metavar="JSON", help="print the table of a saved result file and stop")
     args = ap.parse_args(argv)
+    if args.reprint:
+        saved = provenance.read_json(args.reprint)
+        print(f"commit {saved['provenance']['commit']} (dirty: {saved['provenance'].get('dirty')})")
+        print("\n".join(table(saved["rows"]) + run_details(saved["rows"])))
+        return 0
     if not (KITTI / "sequences").is_dir():
         print(f"pvslam: error: no KITTI excerpts at {KITTI} (../shared/data, or set PVSLAM_KITTI)", file=sys.stderr)
         return 2
@@ -285,7 +302,7 @@ def main(argv=None) -> int:
     rows = []
     for seq in args.sequences:
         rows += bench_sequence(seq, out, args, vocab_for(args.orb_vocab, seq))
-    lines = table(rows)
+    lines = table(rows) + run_details(rows)
     print("\n".join(lines))
     for r in rows:
         if r["method"] == "orbslam3" and r.get("note"):

@@ -87,6 +87,8 @@ def test_the_table_shows_ranges_over_runs_and_notes_for_skipped_peers():
     assert "| 00 | pvslam | 1 | 0.500 | 0.50 | 0.010 | 0.100 | 160 / 160 | 900 |" in lines
     assert "| 00 | orbslam3 | 2 of 3 | 0.390-0.540 | 0.39-0.54 | 0.010 | 0.100 | 119-159 / 160 | 60-70 |" in lines
     assert any("| 06 | orbslam3 | 0 | no --orb-vocab" in line for line in lines)
+    assert bench_real.run_details(rows) == ["00 orbslam3, each run: 0.390 m = 0.39 % (119/160 frames), "
+                                            "0.540 m = 0.54 % (159/160 frames)"]
 
 
 def test_vocabulary_options_per_sequence_and_the_note_when_orb_slam3_cannot_run(tmp_path):
