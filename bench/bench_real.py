@@ -1,0 +1,317 @@
+"""pvslam beside ORB-SLAM3 and the textbook VO on every real sequence, in one command.
+
+    python bench/bench_real.py --orb-python /work/venv-orb/bin/python --orb-vocab runs/orbvoc/voc.txt
+    python bench/bench_real.py --orb-vocab 00=runs/orbvoc/voc_06_01.txt --orb-vocab runs/orbvoc/voc_00.txt
+
+Per KITTI excerpt in ``../shared/data/kitti-odometry`` (00, 06, 01; ``--sequences``):
+
+* **pvslam** exactly as a user runs it: ``pvslam run SEQUENCE_FOLDER --calib SEQUENCE_FOLDER/calib.txt`` in a child
+  process (the default config; ``--output-dir``/``--name``/``--quiet`` only choose where the run goes);
+* **ORB-SLAM3** (``../shared/peers/orbslam3_traj.py`` with the python of its own venv, ``--realtime`` at 10 frames/s)
+  ``--orb-runs`` times (default 3; it is not reproducible): the range and the frames each run returned.  It needs
+  a vocabulary trained on images that are not evaluated (``--orb-vocab PATH`` for every sequence, ``SEQ=PATH`` for
+  one); without its python or a vocabulary the peer is skipped with a note;
+* the **textbook VO** (``bench/peers/textbook_vo.py``, in this process).
+
+Scores, all against ``poses/NN.txt``: ATE RMSE after Sim(3) alignment (metres and % of the path length), RPE
+between consecutive posed frames (translation in metres, rotation in degrees; evo's RPE with ``delta = 1`` frame
+through ``pvslam_core.evaluation``, after the same Sim(3) alignment), frames posed / total (pvslam: the trajectory's
+rows less its tracking failures; ORB-SLAM3: the frames of its largest map), and CPU milliseconds per frame (the
+child process's rusage, start-up included: python imports, ORB-SLAM3's vocabulary load; the textbook VO: the
+process time of its loop).  The result file (``--json``, default ``runs/bench/real.json``) records the provenance.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import resource
+import shutil
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench import provenance  # noqa: E402
+from bench.matrix_jobs import KITTI, kitti_as_tum, read_gt  # noqa: E402
+
+PEERS = Path(os.environ.get("PVSLAM_PEERS", ROOT.parent / "shared" / "peers"))
+SEQUENCES = ("00", "06", "01")
+ORB_FPS = 10.0
+MAX_DIFF = 0.02  # seconds: timestamp association of estimates and ground truth
+
+
+# ------------------------------------------------------------------------------------------------ scores
+def score(ts: np.ndarray, poses: np.ndarray, gt_ts: np.ndarray, gt: np.ndarray, total: int,
+          posed: Optional[int] = None) -> dict:
+    """ATE (Sim(3), m and %), RPE per frame (translation m, rotation deg), frames posed of ``total``.
+    ``poses`` [N, 7] T_wc (rows with NaN are not posed); ``posed`` overrides the count of finite rows."""
+    from bench.peers.common import ate_sim3
+    from pvslam_core.evaluation.trajectory import rpe
+
+    ts = np.asarray(ts, np.float64).reshape(-1)
+    poses = np.asarray(poses, np.float64).reshape(-1, 7)
+    finite = np.all(np.isfinite(poses), axis=1)
+    out = {"posed": int(finite.sum()) if posed is None else int(posed), "total": int(total)}
+    if finite.sum() < 3:
+        return {**out, "ate_m": math.nan, "ate_pct": math.nan, "rpe_t_m": math.nan, "rpe_r_deg": math.nan,
+                "error": f"{int(finite.sum())} poses: nothing to align"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = ate_sim3(ts, poses, gt_ts, gt, max_diff=MAX_DIFF)
+        r = rpe(ts[finite], poses[finite], gt_ts, gt, delta=1, delta_unit="frames", align="sim3", max_diff=MAX_DIFF)
+    return {**out, "ate_m": float(a["rmse"]), "ate_pct": float(a["rmse_percent_of_path"]),
+            "path_m": float(a["path_length"]), "rpe_t_m": r["trans_rmse"], "rpe_r_deg": r["rot_rmse"],
+            "rpe_pairs": r["num_pairs"]}
+
+
+def child_cpu() -> float:
+    """CPU seconds (user + system) of the waited-for child processes so far."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def run_child(cmd: list[str], log: Path, timeout: float) -> tuple[int, float, float, str]:
+    """Run ``cmd`` -> (exit status, CPU seconds from its rusage, wall seconds, its output); output also to ``log``."""
+    c0, t0 = child_cpu(), time.perf_counter()
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        rc, text = p.returncode, p.stdout + p.stderr
+    except subprocess.TimeoutExpired as exc:
+        rc, text = -1, f"timed out after {timeout:.0f} s\n{exc.stdout or ''}{exc.stderr or ''}"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text(text)
+    return rc, child_cpu() - c0, time.perf_counter() - t0, text
+
+
+def _ms(cpu_s: float, frames: int) -> float:
+    return 1000.0 * cpu_s / frames if frames else math.nan
+
+
+# ------------------------------------------------------------------------------------------------ methods
+def run_pvslam(seq: str, out: Path, timeout: float) -> dict:
+    from pvslam_core.outputs.trajectory_io import read_tum
+
+    src = KITTI / "sequences" / seq
+    exe = shutil.which("pvslam", path=str(Path(sys.executable).parent)) or shutil.which("pvslam")
+    if exe is None:
+        return {"error": "the pvslam command is not installed (pip install -e .)"}
+    cmd = [exe, "run", str(src), "--calib", str(src / "calib.txt"), "--output-dir", str(out / "pvslam"),
+           "--name", f"kitti_{seq}", "--quiet"]
+    rc, cpu, wall, text = run_child(cmd, out / "logs" / f"pvslam_{seq}.log", timeout)
+    m = re.search(r"^run directory: (.+)$", text, re.M)
+    if m is None or not (Path(m.group(1)) / "trajectory.txt").is_file():
+        return {"error": f"pvslam exited with {rc} and no trajectory (log: {out / 'logs'})", "cpu_s": cpu}
+    run_dir = Path(m.group(1).strip())
+    ts, poses = read_tum(run_dir / "trajectory.txt")
+    timing = json.loads((run_dir / "metrics.json").read_text()).get("timing", {})
+    failures = int(timing.get("tracking_failures", 0))
+    posed = 0 if rc != 0 else int(np.all(np.isfinite(poses), axis=1).sum()) - failures
+    return {"ts": np.asarray(ts), "poses": np.asarray(poses), "posed": posed, "cpu_s": cpu, "wall_s": wall,
+            "exit": rc, "run_dir": str(run_dir), "command": cmd, "reinits": int(timing.get("reinitialisations", 0))}
+
+
+def orb_timestamps(orb_ts: np.ndarray, seq_ts: np.ndarray, fps: float = ORB_FPS) -> np.ndarray:
+    """ORB-SLAM3's timestamps (frame index / fps) -> the sequence's own timestamps (``times.txt`` or 10 Hz)."""
+    idx = np.rint(np.asarray(orb_ts, np.float64) * fps).astype(np.int64)
+    if len(idx) and (idx.min() < 0 or idx.max() >= len(seq_ts)):
+        raise ValueError(f"ORB-SLAM3 returned frame {idx.max()} of a {len(seq_ts)}-frame sequence")
+    return np.asarray(seq_ts, np.float64)[idx]
+
+
+def orb_missing(python: Optional[str], vocab: Optional[str], runner: Path) -> Optional[str]:
+    """Why the ORB-SLAM3 peer cannot run (a note), or None."""
+    if not python:
+        return "no --orb-python (the python of a venv with pyorbslam3, see ../shared/peers/README.md)"
+    if not Path(python).is_file():
+        return f"--orb-python {python}: no such file"
+    probe = subprocess.run([python, "-c", "import pyorbslam3, scipy, cv2, numpy"], capture_output=True, text=True)
+    if probe.returncode != 0:
+        lines = probe.stderr.strip().splitlines() or ["no output"]
+        return f"--orb-python {python} cannot run the ORB-SLAM3 runner ({lines[-1]}; it needs pyorbslam3, scipy, " \
+               "opencv-python-headless, numpy)"
+    if not runner.is_file():
+        return f"{runner}: the ORB-SLAM3 runner is missing (../shared/peers)"
+    if not vocab:
+        return "no --orb-vocab for this sequence (train one with ../shared/peers/make_orb_vocab.py on other images)"
+    if not Path(vocab).is_file():
+        return f"--orb-vocab {vocab}: no such file"
+    return None
+
+
+def run_orb(seq: str, seq_dir: Path, python: str, vocab: str, run: int, out: Path, timeout: float) -> dict:
+    from bench.peers.common import load_sequence, read_tum_trajectory
+
+    s = load_sequence(seq_dir)
+    fx, fy, cx, cy = s.intrinsics
+    traj = out / "orbslam3" / f"{seq}_run{run}.tum"
+    traj.parent.mkdir(parents=True, exist_ok=True)
+    traj.unlink(missing_ok=True)
+    cmd = [python, str(PEERS / "orbslam3_traj.py"), str(KITTI / "sequences" / seq / "image_0"), "--fx", str(fx),
+           "--fy", str(fy), "--cx", str(cx), "--cy", str(cy), "--vocab", str(vocab), "--fps", str(ORB_FPS),
+           "--realtime", "--out", str(traj)]
+    rc, cpu, wall, text = run_child(cmd, out / "logs" / f"orbslam3_{seq}_run{run}.log", timeout)
+    last = re.search(r"tracked=(\d+)/(\d+) saved=(\d+).*?vocab_load_s=([\d.]+)", text)
+    res = {"cpu_s": cpu, "wall_s": wall, "exit": rc, "command": cmd, "vocab": str(vocab),
+           "vocab_load_s": float(last.group(4)) if last else None}
+    if not traj.is_file() or traj.stat().st_size == 0:
+        tail = text.strip().splitlines()[-1:] or ["no output"]
+        return {**res, "note": f"no trajectory (exit {rc}): {tail[0][:200]}"}
+    ts, poses = read_tum_trajectory(traj)
+    return {**res, "ts": orb_timestamps(ts, s.timestamps), "poses": poses}
+
+
+def run_vo(seq_dir: Path) -> dict:
+    from bench.peers.textbook_vo import run_textbook_vo
+
+    r = run_textbook_vo(seq_dir)
+    return {"ts": r["timestamps"], "poses": r["poses"], "cpu_s": r["cpu_seconds"], "wall_s": r["seconds"]}
+
+
+# ------------------------------------------------------------------------------------------------ table
+def _cell(v: float, fmt: str) -> str:
+    return "-" if v is None or not np.isfinite(v) else format(v, fmt)
+
+
+def _span(vals: list[float], fmt: str) -> str:
+    vals = [v for v in vals if v is not None and np.isfinite(v)]
+    if not vals:
+        return "-"
+    lo, hi = min(vals), max(vals)
+    return format(lo, fmt) if len(vals) == 1 or format(lo, fmt) == format(hi, fmt) else \
+        f"{format(lo, fmt)}-{format(hi, fmt)}"
+
+
+def table(rows: list[dict]) -> list[str]:
+    """Markdown rows: one per (sequence, method); a method with several runs shows each figure's range."""
+    out = ["| sequence | method | runs | ATE m | ATE % | RPE m/frame | RPE deg/frame | posed / total | CPU ms/frame |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        runs = r.get("runs") or []
+        if not runs:
+            out.append(f"| {r['sequence']} | {r['method']} | 0 | {r.get('note', '-')} | | | | | |")
+            continue
+        posed = _span([x["posed"] for x in runs], "d")
+        tried = r.get("attempted", len(runs))
+        n = str(len(runs)) if tried == len(runs) else f"{len(runs)} of {tried}"
+        out.append(f"| {r['sequence']} | {r['method']} | {n} | {_span([x['ate_m'] for x in runs], '.3f')} | "
+                   f"{_span([x['ate_pct'] for x in runs], '.2f')} | {_span([x['rpe_t_m'] for x in runs], '.3f')} | "
+                   f"{_span([x['rpe_r_deg'] for x in runs], '.3f')} | {posed} / {runs[0]['total']} | "
+                   f"{_span([x['cpu_ms_per_frame'] for x in runs], '.0f')} |")
+    return out
+
+
+def run_details(rows: list[dict]) -> list[str]:
+    """One line per method with several runs: each run's ATE and frames posed (ranges hide which run posed what)."""
+    out = []
+    for r in rows:
+        if len(r.get("runs") or []) > 1:
+            runs = ", ".join(f"{x['ate_m']:.3f} m = {x['ate_pct']:.2f} % ({x['posed']}/{x['total']} frames)"
+                             for x in r["runs"])
+            out.append(f"{r['sequence']} {r['method']}, each run: {runs}")
+    return out
+
+
+def evaluate(method: str, res: dict, gt_ts: np.ndarray, gt: np.ndarray, total: int) -> dict:
+    """One run's scores (or its error) plus CPU per frame of the sequence's ``total`` frames."""
+    keep = {k: v for k, v in res.items() if k not in ("ts", "poses")}
+    if "ts" not in res:
+        return {**keep, "method": method}
+    s = score(res["ts"], res["poses"], gt_ts, gt, total, res.get("posed"))
+    return {**keep, **s, "method": method, "cpu_ms_per_frame": _ms(res.get("cpu_s", math.nan), total)}
+
+
+def bench_sequence(seq: str, out: Path, args, vocab: Optional[str]) -> list[dict]:
+    seq_dir = kitti_as_tum(seq, out / "peers")
+    gt_ts, gt = read_gt(seq_dir)
+    total = len(gt_ts)
+    rows = []
+    print(f"[{seq}] pvslam ...", flush=True)
+    pv = evaluate("pvslam", run_pvslam(seq, out, args.timeout), gt_ts, gt, total)
+    rows.append({"sequence": seq, "method": "pvslam", "runs": [pv] if "ate_m" in pv else [],
+                 "note": pv.get("error", "")})
+    note = orb_missing(args.orb_python, vocab, PEERS / "orbslam3_traj.py")
+    orb_runs = []
+    if note is None:
+        for k in range(args.orb_runs):
+            print(f"[{seq}] ORB-SLAM3 run {k + 1}/{args.orb_runs} ...", flush=True)
+            orb_runs.append(evaluate("orbslam3", run_orb(seq, seq_dir, args.orb_python, vocab, k, out,
+                                                         args.timeout), gt_ts, gt, total))
+    else:
+        print(f"[{seq}] ORB-SLAM3 skipped: {note}", flush=True)
+    rows.append({"sequence": seq, "method": "orbslam3", "runs": [r for r in orb_runs if "ate_m" in r],
+                 "failed_runs": [r for r in orb_runs if "ate_m" not in r], "attempted": len(orb_runs), "vocab": vocab,
+                 "note": note or "; ".join(r.get("note", "") for r in orb_runs if "ate_m" not in r)})
+    print(f"[{seq}] textbook VO ...", flush=True)
+    rows.append({"sequence": seq, "method": "textbook_vo", "runs": [evaluate("textbook_vo", run_vo(seq_dir), gt_ts,
+                                                                             gt, total)], "note": ""})
+    return rows
+
+
+def vocab_for(specs: list[str], seq: str) -> Optional[str]:
+    """``--orb-vocab`` values (``PATH`` for every sequence, ``SEQ=PATH`` for one, the latter first)."""
+    for s in specs:
+        if "=" in s and s.split("=", 1)[0] == seq:
+            return s.split("=", 1)[1]
+    plain = [s for s in specs if not re.match(r"^\d\d=", s)]
+    return plain[-1] if plain else None
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), help="KITTI excerpts (default: 00 06 01)")
+    ap.add_argument("--orb-python", help="python of the venv with pyorbslam3 (skipped without it)")
+    ap.add_argument("--orb-vocab", action="append", default=[], metavar="[SEQ=]PATH",
+                    help="ORB vocabulary trained on other images: PATH for every sequence, SEQ=PATH for one "
+                    "(repeatable)")
+    ap.add_argument("--orb-runs", type=int, default=3, help="ORB-SLAM3 runs per sequence (default 3)")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per child process (default 1800)")
+    ap.add_argument("--out", default=str(ROOT / "runs" / "bench" / "real"), help="folder for run directories, "
+                    "ORB-SLAM3 trajectories and logs (default runs/bench/real)")
+    ap.add_argument("--json", default=str(ROOT / "runs" / "bench" / "real.json"),
+                    help="result file with provenance (default runs/bench/real.json; not into bench/)")
+    ap.add_argument("--reprint", metavar="JSON", help="print the table of a saved result file and stop")
+    args = ap.parse_args(argv)
+    if args.reprint:
+        saved = provenance.read_json(args.reprint)
+        print(f"commit {saved['provenance']['commit']} (dirty: {saved['provenance'].get('dirty')})")
+        print("\n".join(table(saved["rows"]) + run_details(saved["rows"])))
+        return 0
+    if not (KITTI / "sequences").is_dir():
+        print(f"pvslam: error: no KITTI excerpts at {KITTI} (../shared/data, or set PVSLAM_KITTI)", file=sys.stderr)
+        return 2
+    missing = [s for s in args.sequences if not (KITTI / "sequences" / s / "image_0").is_dir()]
+    if missing:
+        print(f"pvslam: error: KITTI excerpt(s) {missing} not in {KITTI / 'sequences'}", file=sys.stderr)
+        return 2
+    try:
+        prov = provenance.check(args.json)
+    except provenance.ProvenanceError as exc:
+        return provenance.fail(exc)
+    out = Path(args.out).resolve()
+    rows = []
+    for seq in args.sequences:
+        rows += bench_sequence(seq, out, args, vocab_for(args.orb_vocab, seq))
+    lines = table(rows) + run_details(rows)
+    print("\n".join(lines))
+    for r in rows:
+        if r["method"] == "orbslam3" and r.get("note"):
+            print(f"note: {r['sequence']} ORB-SLAM3: {r['note']}")
+    path = provenance.write_json(args.json, {"sequences": args.sequences, "orb_runs": args.orb_runs,
+                                             "orb_vocab": args.orb_vocab, "rows": rows, "table": lines}, prov)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,103 @@
+"""Tests of bench/bench_real.py's logic on tiny fake inputs (no pvslam run, no ORB-SLAM3): the scores against an
+independent Sim(3) alignment, frames posed, ORB-SLAM3's timestamps, the table's ranges and notes, the vocabulary
+options and the note when the ORB-SLAM3 peer cannot run."""
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench import bench_real  # noqa: E402
+
+
+def _gt(n: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """A curved drive at 10 Hz: positions along an arc, heading along the path."""
+    ts = np.arange(n) / 10.0
+    a = np.linspace(0.0, 1.2, n)
+    pos = np.stack([20 * np.sin(a), 0.1 * np.sin(5 * a), 20 * (1 - np.cos(a))], 1)
+    q = Rotation.from_euler("y", -a[:, None]).as_quat()
+    return ts, np.concatenate([pos, q], 1)
+
+
+def _similar(poses: np.ndarray, s: float, rotvec, t) -> np.ndarray:
+    R = Rotation.from_rotvec(rotvec)
+    out = poses.copy()
+    out[:, :3] = s * R.apply(poses[:, :3]) + np.asarray(t)
+    out[:, 3:] = (R * Rotation.from_quat(poses[:, 3:])).as_quat()
+    return out
+
+
+def test_a_similar_copy_of_the_ground_truth_scores_zero_and_an_offset_scores_its_size():
+    ts, gt = _gt()
+    est = _similar(gt, 0.3, [0.1, -0.4, 0.2], [5.0, -1.0, 2.0])  # another scale, rotation and origin
+    s = bench_real.score(ts, est, ts, gt, total=len(ts))
+    assert s["ate_m"] < 1e-6 and s["rpe_t_m"] < 1e-6 and s["rpe_r_deg"] < 1e-4
+    assert s["posed"] == s["total"] == len(ts)
+    assert s["path_m"] == pytest.approx(np.linalg.norm(np.diff(gt[:, :3], axis=0), axis=1).sum())
+    # a lateral error of +-0.5 m on alternate frames: ATE 0.5 m (the alignment cannot absorb it), RPE 1 m per frame
+    noisy = gt.copy()
+    a = np.linspace(0, 1.2, len(ts))
+    normal = np.stack([np.sin(a), np.zeros(len(ts)), -np.cos(a)], 1)
+    noisy[:, :3] += 0.5 * normal * np.where(np.arange(len(ts)) % 2 == 0, 1.0, -1.0)[:, None]
+    s = bench_real.score(ts, noisy, ts, gt, total=len(ts))
+    assert s["ate_m"] == pytest.approx(0.5, rel=0.05)
+    assert s["ate_pct"] == pytest.approx(100 * s["ate_m"] / s["path_m"])
+    assert s["rpe_t_m"] == pytest.approx(1.0, rel=0.05)
+
+
+def test_frames_that_are_not_posed_count_and_too_few_poses_give_no_score():
+    ts, gt = _gt()
+    est = gt.copy()
+    est[:10] = np.nan  # not initialised yet
+    s = bench_real.score(ts, est, ts, gt, total=len(ts))
+    assert s["posed"] == len(ts) - 10 and s["ate_m"] < 1e-6
+    # a method returning only some frames (ORB-SLAM3's largest map): the missing rows are simply absent
+    s = bench_real.score(ts[15:], gt[15:], ts, gt, total=len(ts))
+    assert (s["posed"], s["total"]) == (len(ts) - 15, len(ts))
+    s = bench_real.score(ts[:2], gt[:2], ts, gt, total=len(ts))
+    assert math.isnan(s["ate_m"]) and "nothing to align" in s["error"] and s["posed"] == 2
+    assert bench_real.score(ts, est, ts, gt, total=len(ts), posed=7)["posed"] == 7  # pvslam's count less failures
+
+
+def test_orb_timestamps_map_to_the_sequence_timestamps():
+    seq_ts = np.array([0.0, 0.1036, 0.2072, 0.3108])  # times.txt, not exactly 10 Hz
+    assert np.allclose(bench_real.orb_timestamps(np.array([0.1, 0.3]), seq_ts), [0.1036, 0.3108])
+    with pytest.raises(ValueError, match="frame 4 of a 4-frame"):
+        bench_real.orb_timestamps(np.array([0.4]), seq_ts)
+
+
+def test_the_table_shows_ranges_over_runs_and_notes_for_skipped_peers():
+    def run(ate, posed, cpu):
+        return {"ate_m": ate, "ate_pct": ate, "rpe_t_m": 0.01, "rpe_r_deg": 0.1, "posed": posed, "total": 160,
+                "cpu_ms_per_frame": cpu}
+    rows = [{"sequence": "00", "method": "pvslam", "runs": [run(0.5, 160, 900.0)]},
+            {"sequence": "00", "method": "orbslam3", "runs": [run(0.39, 119, 60.0), run(0.54, 159, 70.0)],
+             "attempted": 3},
+            {"sequence": "06", "method": "orbslam3", "runs": [], "note": "no --orb-vocab for this sequence"}]
+    lines = bench_real.table(rows)
+    assert lines[0].startswith("| sequence | method | runs | ATE m | ATE % |")
+    assert "| 00 | pvslam | 1 | 0.500 | 0.50 | 0.010 | 0.100 | 160 / 160 | 900 |" in lines
+    assert "| 00 | orbslam3 | 2 of 3 | 0.390-0.540 | 0.39-0.54 | 0.010 | 0.100 | 119-159 / 160 | 60-70 |" in lines
+    assert any("| 06 | orbslam3 | 0 | no --orb-vocab" in line for line in lines)
+    assert bench_real.run_details(rows) == ["00 orbslam3, each run: 0.390 m = 0.39 % (119/160 frames), "
+                                            "0.540 m = 0.54 % (159/160 frames)"]
+
+
+def test_vocabulary_options_per_sequence_and_the_note_when_orb_slam3_cannot_run(tmp_path):
+    specs = ["00=/v/a.txt", "/v/b.txt"]
+    assert bench_real.vocab_for(specs, "00") == "/v/a.txt" and bench_real.vocab_for(specs, "06") == "/v/b.txt"
+    assert bench_real.vocab_for(["00=/v/a.txt"], "01") is None
+    runner = tmp_path / "orbslam3_traj.py"
+    assert "no --orb-python" in bench_real.orb_missing(None, "/v/a.txt", runner)
+    assert "no such file" in bench_real.orb_missing(str(tmp_path / "nope"), "/v/a.txt", runner)
+    # this test's own python lacks pyorbslam3: said plainly, not a traceback
+    note = bench_real.orb_missing(sys.executable, "/v/a.txt", runner)
+    assert note is not None and "cannot run the ORB-SLAM3 runner" in note and "pyorbslam3" in note
