@@ -12,8 +12,9 @@
 
 pvslam's figures come from its ``metrics.json`` timing (evaluation and start-up excluded): wall frames/s, the
 process's CPU per frame (every thread), and per stage the pipeline thread's CPU per frame -- the mapping's parts
-(track, edges, BA, loops, pose guess, fill, the rest of the map stage), then segment, VPS, outputs and read -- and
-``other threads`` (the process less the pipeline thread: reading ahead, writing behind, the flow lanes).  The final
+(track, a new keyframe's setup, edges, BA, loops, pose guess, fill, the rest of the map stage), then segment, VPS,
+outputs and read -- and ``other threads`` (the process less the pipeline thread: reading ahead, writing behind, the
+flow lanes).  The final
 BA is a separate column (once per run, spread over its frames).  The peers have totals only: the textbook VO its
 loop's process time, ORB-SLAM3 its child process's rusage less its vocabulary load (python start-up still in it;
 one run, it is not reproducible: bench_real.py runs it three times).  CPU time does not depend on what else runs on
@@ -28,7 +29,7 @@ from typing import Optional, Sequence
 
 # (column, where it comes from): "map:" a part of the map stage (timing.map_cpu_seconds), else a pipeline stage
 # (timing.stage_cpu_seconds)
-STAGES = (("track", "map:track"), ("edges", "map:edges"), ("BA", "map:ba"), ("loops", "map:loops"),
+STAGES = (("track", "map:track"), ("new keyframe", "map:keyframe"), ("edges", "map:edges"), ("BA", "map:ba"), ("loops", "map:loops"),
           ("pose guess", "map:pose_guess"), ("fill", "map:fill"), ("map other", "map:"), ("segment", "segment"),
           ("VPS", "vps"), ("outputs", "outputs"), ("read", "read"), ("final BA", "finalize"))
 HEAD = ("group", "run", "frames", "kf/frame", "frames/s wall", "CPU ms/frame", *(s for s, _ in STAGES),

@@ -158,3 +158,13 @@ def test_run_threads_set_the_thread_pools_of_torch_and_opencv(fake_registry, fak
     finally:
         cv2.setNumThreads(saved[0])
         torch.set_num_threads(saved[1])
+
+
+def test_the_map_stage_accounts_a_new_keyframes_setup(fake_registry, fake_config_file):
+    """``timing.map_cpu_seconds`` has the setup of each new keyframe as a part of its own (``keyframe``), within the
+    map stage's CPU like the other parts."""
+    res = run_config(fake_config_file, overrides=["run.name=parts"], registry=fake_registry)
+    t = res.metrics["timing"]
+    parts = t["map_cpu_seconds"]
+    assert t["keyframes"] > 1 and parts["keyframe"] > 0
+    assert sum(parts.values()) <= t["stage_cpu_seconds"]["map"] + 1e-3
