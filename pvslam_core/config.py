@@ -79,8 +79,8 @@ class RunSection(PluginConfig):
     output_dir: str = Field("runs", description="folder that holds run directories (relative to the current directory)")
     device: str = Field("cpu", description="torch device for the pipeline's tensors: cpu, cuda, cuda:0, ...")
     seed: int = Field(0, description="seed of torch, numpy and OpenCV's RANSAC: a run is deterministic for a seed")
-    threads: int = Field(1, ge=0, description="torch and OpenCV CPU threads (0 = their defaults); the BA's tensors "
-                                             "and the flow's images are small, one thread avoids contention")
+    threads: int = Field(1, ge=0, description="torch CPU threads (0 = torch's default); the BA's tensors are small, "
+                                             "one thread avoids contention on small machines")
     progress: bool = Field(True, description="show progress bars (only on a terminal)")
     max_frames: Optional[int] = Field(None, ge=1, description="stop after this many input frames")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field("INFO", description="log level of log.txt")

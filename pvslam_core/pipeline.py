@@ -167,9 +167,6 @@ class Pipeline:
         cv2.setRNGSeed(self.pcfg.run.seed)  # RANSAC (two-view init, loop verification) draws from OpenCV's RNG
         if self.pcfg.run.threads > 0:
             torch.set_num_threads(self.pcfg.run.threads)
-            # OpenCV's worker pool too: its calls here are small (DIS at the flow resolution, remaps), the flow
-            # frontend spreads its DIS calls over threads of its own, and an idle pool worker spins between calls
-            cv2.setNumThreads(self.pcfg.run.threads)
         if self.pcfg.run.keep_freed_memory:
             from .allocator import keep_freed_memory
 

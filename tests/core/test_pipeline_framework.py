@@ -136,30 +136,6 @@ def test_loop_ba_not_rerun_along_one_revisit(fake_registry, fake_config_file, ga
     assert sum(c.loop_ba for c in res.loops) == expected
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_run_threads_set_the_thread_pools_of_torch_and_opencv(fake_registry, fake_config_file, threads):
-    """``run.threads`` caps OpenCV's worker pool as well as torch's (an idle OpenCV worker spins between the
-    frontend's small calls); 0 leaves both as they were."""
-    import cv2
-    import torch
-
-    from pvslam_core.pipeline import Pipeline
-
-    saved = cv2.getNumThreads(), torch.get_num_threads()
-    try:
-        for value, expect in ((threads, threads), (0, 3)):
-            cv2.setNumThreads(3)
-            torch.set_num_threads(3)
-            cfg = load_config(fake_config_file, overrides=[f"run.threads={value}"], registry=fake_registry)
-            pipe = Pipeline(cfg, None, registry=fake_registry)
-            pipe.start()
-            assert (cv2.getNumThreads(), torch.get_num_threads()) == (expect, expect)
-            pipe.mapper.state.spill.close()
-    finally:
-        cv2.setNumThreads(saved[0])
-        torch.set_num_threads(saved[1])
-
-
 def test_the_map_stage_accounts_a_new_keyframes_setup(fake_registry, fake_config_file):
     """``timing.map_cpu_seconds`` has the setup of each new keyframe as a part of its own (``keyframe``), within the
     map stage's CPU like the other parts."""

@@ -47,8 +47,8 @@ def test_two_threads_give_the_flows_of_one_in_any_order():
 
 
 def test_flows_do_not_depend_on_opencv_threads():
-    """DIS splits its patch search into stripes by OpenCV's thread count; its flows are still the same to the bit
-    with 1, 2 or 4 threads (the pipeline sets ``run.threads`` for OpenCV too, so a run must not depend on it)."""
+    """DIS splits its patch search into stripes by OpenCV's thread count (the machine's cores by default); its flows
+    are still the same to the bit with 1, 2 or 4 threads, so a run does not depend on the machine's core count."""
     imgs, rng = _images()
     calls = _calls(imgs, rng)[:9]
     saved = cv2.getNumThreads()
