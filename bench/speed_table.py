@@ -29,9 +29,9 @@ from typing import Optional, Sequence
 
 # (column, where it comes from): "map:" a part of the map stage (timing.map_cpu_seconds), else a pipeline stage
 # (timing.stage_cpu_seconds)
-STAGES = (("track", "map:track"), ("new keyframe", "map:keyframe"), ("edges", "map:edges"), ("BA", "map:ba"), ("loops", "map:loops"),
-          ("pose guess", "map:pose_guess"), ("fill", "map:fill"), ("map other", "map:"), ("segment", "segment"),
-          ("VPS", "vps"), ("outputs", "outputs"), ("read", "read"), ("final BA", "finalize"))
+STAGES = (("track", "map:track"), ("new keyframe", "map:keyframe"), ("edges", "map:edges"), ("BA", "map:ba"),
+          ("loops", "map:loops"), ("pose guess", "map:pose_guess"), ("fill", "map:fill"), ("map other", "map:"),
+          ("segment", "segment"), ("VPS", "vps"), ("outputs", "outputs"), ("read", "read"), ("final BA", "finalize"))
 HEAD = ("group", "run", "frames", "kf/frame", "frames/s wall", "CPU ms/frame", *(s for s, _ in STAGES),
         "other threads")
 

@@ -1,5 +1,5 @@
-"""bench/speed_table.py: the per-stage CPU figures of a run's timing, the scenario means, the peers' rows and CPU ratios,
-the target lines, and which runs the section makes (fakes instead of pipeline runs)."""
+"""bench/speed_table.py: the per-stage CPU figures of a run's timing, the scenario means, the peers' rows and CPU
+ratios, the target lines, and which runs the section makes (fakes instead of pipeline runs)."""
 from __future__ import annotations
 
 import json
