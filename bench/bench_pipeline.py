@@ -7,6 +7,9 @@
 
 Sections (each prints its figures and a target line ``[PASS]``/``[MISS]`` with the measured value):
   throughput  frames/s end-to-end at 320x240 and at KITTI resolution (evaluation excluded)
+  speed       one table of frames/s, CPU ms/frame per stage and keyframes/frame: the default run, every scenario's
+              report seeds, the KITTI excerpts as a user runs them beside the textbook VO and ORB-SLAM3
+              (``--orb-python``, ``--orb-vocab``; bench/speed_table.py)
   accuracy    Sim(3) ATE on the built-in driving loop: online BA + loop closure, loop off, offline BA
   peers       the same driving loop through a textbook OpenCV VO and COLMAP (pycolmap), side by side
   long        3000-frame run: last-500 vs first-500 mean per-frame time, peak memory, ATE, loops and map
@@ -417,12 +420,15 @@ def section_kitti(out: Path, quick: bool) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--only", nargs="*", choices=["throughput", "accuracy", "peers", "long", "kitti"])
+    ap.add_argument("--only", nargs="*", choices=["throughput", "speed", "accuracy", "peers", "long", "kitti"])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--no-colmap", action="store_true", help="skip COLMAP in the peers section (it takes ~20 min)")
     ap.add_argument("--long-frames", type=int, default=3000, help="frames of the long run (the target is 3000)")
     ap.add_argument("--flat-frames", type=int, default=10000,
                     help="frames of the second long run whose peak memory is compared (0: skip it; not with --quick)")
+    ap.add_argument("--orb-python", help="speed: python of the venv with pyorbslam3 (ORB-SLAM3 skipped without it)")
+    ap.add_argument("--orb-vocab", action="append", default=[], metavar="[SEQ=]PATH",
+                    help="speed: ORB vocabulary trained on other images, as bench/bench_real.py takes it")
     ap.add_argument("--long-child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--out", help="folder for the run directories (default: a temporary folder)")
     ap.add_argument("--json", help="result file (default: runs/bench/results_pipeline_<sections>.json; not into bench/)")
@@ -437,7 +443,7 @@ def main() -> None:
     if args.long_child:
         _long_child(args.long_child, args.out)
         return
-    sections = args.only or ["throughput", "accuracy", "peers", "long", "kitti"]
+    sections = args.only or ["throughput", "speed", "accuracy", "peers", "long", "kitti"]
     name = "results_pipeline_" + "_".join(sections) + ("_overrides" if EXTRA else "") + ".json"
     result_path = Path(args.json) if args.json else provenance.RESULTS_DIR / name
     try:
@@ -449,6 +455,10 @@ def main() -> None:
     acc = None
     if "throughput" in sections:
         section_throughput(out, args.quick)
+    if "speed" in sections:
+        from bench import speed_table
+
+        speed_table.section(run, out, args.quick, args.orb_python, args.orb_vocab, RESULTS, target)
     if "accuracy" in sections:
         acc = section_accuracy(out, args.quick)
     if "peers" in sections:

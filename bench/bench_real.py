@@ -34,7 +34,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -99,7 +99,8 @@ def _ms(cpu_s: float, frames: int) -> float:
 
 
 # ------------------------------------------------------------------------------------------------ methods
-def run_pvslam(seq: str, out: Path, timeout: float) -> dict:
+def run_pvslam(seq: str, out: Path, timeout: float, extra: Sequence[str] = ()) -> dict:
+    """``pvslam run`` on excerpt ``seq`` in a child process (``extra``: more command-line arguments)."""
     from pvslam_core.outputs.trajectory_io import read_tum
 
     src = KITTI / "sequences" / seq
@@ -107,7 +108,7 @@ def run_pvslam(seq: str, out: Path, timeout: float) -> dict:
     if exe is None:
         return {"error": "the pvslam command is not installed (pip install -e .)"}
     cmd = [exe, "run", str(src), "--calib", str(src / "calib.txt"), "--output-dir", str(out / "pvslam"),
-           "--name", f"kitti_{seq}", "--quiet"]
+           "--name", f"kitti_{seq}", "--quiet", *extra]
     rc, cpu, wall, text = run_child(cmd, out / "logs" / f"pvslam_{seq}.log", timeout)
     m = re.search(r"^run directory: (.+)$", text, re.M)
     if m is None or not (Path(m.group(1)) / "trajectory.txt").is_file():

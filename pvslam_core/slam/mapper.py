@@ -87,7 +87,7 @@ class Mapper:
 
     @property
     def cpu(self) -> dict[str, float]:
-        """CPU seconds of the mapping thread per part (track, pose_guess, edges, ba, loops, fill)."""
+        """CPU seconds of the mapping thread per part (track, pose_guess, keyframe, edges, ba, loops, fill)."""
         return self.state.cpu
 
     @property
@@ -175,6 +175,14 @@ class Mapper:
                       provisional: bool = False) -> int:
         """Add a keyframe (graph, frontend, frame poses, thumbnails, loop detector; the keyframe policy connects it
         or holds it provisional); returns its stable id."""
+        t0 = thread_time()
+        try:
+            return self._add_keyframe_now(frame, seg, pose, provisional)
+        finally:
+            self.state.cpu["keyframe"] += thread_time() - t0
+
+    def _add_keyframe_now(self, frame: Frame, seg: Optional[PanopticSegmentation], pose: torch.Tensor,
+                          provisional: bool) -> int:
         st, g = self.state, self.state.graph
         disp, known = new_keyframe.initial_depth(st, self.frontend, pose)
         k = g.add_keyframe(frame.index, frame.timestamp, pose.to(g.device), disp.to(g.device))

@@ -134,3 +134,13 @@ def test_loop_ba_not_rerun_along_one_revisit(fake_registry, fake_config_file, ga
     assert len(res.loops) == 8  # every accepted loop is recorded (loops.json, loop metrics)
     assert fakes.RecordingOptimizer.loop_calls == expected
     assert sum(c.loop_ba for c in res.loops) == expected
+
+
+def test_the_map_stage_accounts_a_new_keyframes_setup(fake_registry, fake_config_file):
+    """``timing.map_cpu_seconds`` has the setup of each new keyframe as a part of its own (``keyframe``), within the
+    map stage's CPU like the other parts."""
+    res = run_config(fake_config_file, overrides=["run.name=parts"], registry=fake_registry)
+    t = res.metrics["timing"]
+    parts = t["map_cpu_seconds"]
+    assert t["keyframes"] > 1 and parts["keyframe"] > 0
+    assert sum(parts.values()) <= t["stage_cpu_seconds"]["map"] + 1e-3

@@ -46,6 +46,25 @@ def test_two_threads_give_the_flows_of_one_in_any_order():
         two.close()
 
 
+def test_flows_do_not_depend_on_opencv_threads():
+    """DIS splits its patch search into stripes by OpenCV's thread count (the machine's cores by default); its flows
+    are still the same to the bit with 1, 2 or 4 threads, so a run does not depend on the machine's core count."""
+    imgs, rng = _images()
+    calls = _calls(imgs, rng)[:9]
+    saved = cv2.getNumThreads()
+    out = []
+    try:
+        for n in (1, 2, 4):
+            cv2.setNumThreads(n)
+            out.append([F.compute_flow(F.create_dis("ultrafast", finest_scale=0), i0, i1, init)
+                        for _, i0, i1, init in calls])
+    finally:
+        cv2.setNumThreads(saved)
+    for flows in out[1:]:
+        for f, r in zip(flows, out[0]):
+            np.testing.assert_array_equal(f, r)
+
+
 def test_a_call_must_match_its_kind():
     lanes = DisLanes(lambda kind: F.create_dis("ultrafast"), 1)
     img = np.zeros((32, 32), np.uint8)
