@@ -355,6 +355,12 @@ class FrameGraph:
         rii, rjj = self.retired_edges()
         return torch.cat([self.ii, rii]), torch.cat([self.jj, rjj])
 
+    def linked_ids(self) -> set[int]:
+        """Stable ids of the keyframes that have at least one edge (active or retired)."""
+        ids = set(self._ids[torch.cat([self.ii, self.jj]).unique()].tolist()) if self.ii.numel() else set()
+        ids.update(a for key in self._retired for a in key)
+        return ids
+
     def retired_bytes(self) -> int:
         """Bytes of the retired edges' stored observations (in memory, or in the spill store's file)."""
         h, w = self.ba_shape

@@ -54,13 +54,14 @@ class RevisitCulling:
 
     def __init__(self, thresh: float, state: MapState, observer: EdgeObserver, active_window: int,
                  loops: list[LoopClosure]) -> None:
-        self.thresh = float(thresh)
+        self.thresh = float(thresh) * state.px_scale  # in this camera's BA px (an angle of view: adapt.ba_px_scale)
         self.state = state
         self.observer = observer
         self.active_window = int(active_window)
         self.loops = loops
         self.culled = 0  # keyframes culled so far
         self._pending: deque[int] = deque()  # ids of keyframes that left the window, waiting for the map to settle
+        self._kept: dict[int, None] = {}  # ids of revisit keyframes that stayed (in order), watched for isolation
 
     def candidates(self, r: int) -> list[int]:
         """Graph indices of the older keyframes that may hold keyframe ``r``'s view: those near the partner of a loop
@@ -94,7 +95,34 @@ class RevisitCulling:
             r_id = self._pending.popleft()
             if g.has_id(r_id) and g.index_of(r_id) - 1 > st.fragment_start:
                 culled += self._cull_one(g.index_of(r_id))
+        if culled and self._kept:
+            culled += self._cull_isolated()
         return culled
+
+    def _cull_isolated(self) -> int:
+        """Cull the revisit keyframes that stayed (:meth:`_cull_one` said no) and have since lost every edge, their
+        neighbours being culled: nothing ties such a keyframe to the map any more, so a later loop edge or BA would
+        move it (and its frames) freely.  Its frames are held, at their poses now, to the nearest of its candidates
+        (or the keyframe before it).  Returns how many."""
+        st, g = self.state, self.state.graph
+        linked = g.linked_ids()
+        done = 0
+        for r_id in list(self._kept):
+            if not g.has_id(r_id) or r_id in linked:
+                if not g.has_id(r_id):
+                    del self._kept[r_id]
+                continue
+            r = g.index_of(r_id)
+            cands = self.candidates(r) or [r - 1]
+            jj = torch.tensor(cands, dtype=torch.int64)
+            src = torch.full_like(jj, r)
+            d = g.frame_distance(src, jj).cpu() + g.frame_distance(jj, src).cpu()  # [C]
+            st.frames.rehome(r_id, g.id_of(cands[int(torch.argmin(d))]))
+            g.remove_keyframe(r)
+            del self._kept[r_id]
+            done += 1
+        self.culled += done
+        return done
 
     def _cull_one(self, r: int) -> bool:
         """Cull keyframe ``r`` when the nearest of its candidates (:meth:`candidates`) is under the threshold."""
@@ -108,7 +136,15 @@ class RevisitCulling:
         best = int(torch.argmin(d))
         if float(d[best]) >= self.thresh:
             return False
-        j = cands[best]
+        if not self._relocalise_and_cull(r, cands[best], float(d[best])):
+            self._kept[g.id_of(r)] = None
+            return False
+        return True
+
+    def _relocalise_and_cull(self, r: int, j: int, dist: float) -> bool:
+        """Relocalise keyframe ``r`` against ``j`` (which holds its view at frame distance ``dist``) and cull it
+        there, unless the two disagree (the gates of the module docstring)."""
+        st, g = self.state, self.state.graph
         obs = self.observer.observe_pair(j, r)  # j's pixels in r, measured now
         reloc = relocalise(g.poses[j], g.disps[j], g.disps[r], g.intrinsics, obs.target[0], obs.weight[0])
         if reloc is None or not 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE:
@@ -120,7 +156,7 @@ class RevisitCulling:
             return False
         LOG.debug("culling keyframe %d (frame %d) for keyframe %d (frame %d): frame distance %.2f, relocalised by "
                   "%.3f (median error %.2f BA px, scale %.3f) now %.3f", r_id, int(g.frame_index[r]), j_id,
-                  int(g.frame_index[j]), float(d[best]), float((reloc.pose[:3] - pose_r[:3]).norm()), reloc.error,
+                  int(g.frame_index[j]), dist, float((reloc.pose[:3] - pose_r[:3]).norm()), reloc.error,
                   reloc.scale, err_now)
         q, t = sim3_between(pose_r, reloc.pose, reloc.scale)
         st.frames.rehome(r_id, j_id, lambda poses: apply_sim3(poses, q, t, reloc.scale))

@@ -68,6 +68,7 @@ def test_candidates_are_the_old_keyframes_near_a_nearby_loop_partner():
     class _State:
         graph = _graph(80)
         fragment_start = 0
+        px_scale = 1.0
 
     loops = [LoopClosure(frame_i=600, frame_j=50, kf_i=60, kf_j=5, score=0.9, verified=True)]
     cull = RevisitCulling(4.0, _State(), observer=None, active_window=10, loops=loops)
