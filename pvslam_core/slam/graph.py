@@ -355,11 +355,11 @@ class FrameGraph:
         rii, rjj = self.retired_edges()
         return torch.cat([self.ii, rii]), torch.cat([self.jj, rjj])
 
-    def linked_ids(self) -> set[int]:
-        """Stable ids of the keyframes that have at least one edge (active or retired)."""
-        ids = set(self._ids[torch.cat([self.ii, self.jj]).unique()].tolist()) if self.ii.numel() else set()
-        ids.update(a for key in self._retired for a in key)
-        return ids
+    def edge_id_pairs(self) -> list[tuple[int, int]]:
+        """``(src id, dst id)`` of every edge, active and retired (stable ids)."""
+        ids = self._ids[: self.n]
+        pairs = list(zip(ids[self.ii].tolist(), ids[self.jj].tolist())) if self.ii.numel() else []
+        return pairs + list(self._retired)
 
     def retired_bytes(self) -> int:
         """Bytes of the retired edges' stored observations (in memory, or in the spill store's file)."""

@@ -2,19 +2,27 @@
 (``graph.keyframes.revisit_thresh``).
 
 Driving the same place again makes new keyframes where the map has keyframes already, so without culling the map,
-the final BA and the memory grow with the time driven, not with the places seen.  Along a revisit nearly every new
-keyframe closes a loop (:mod:`.loop_closer`), and the window BAs that follow optimise it against the older
-keyframes its loop edges join (:attr:`.map_state.MapState.loop_partners`).  When such a keyframe ``r`` leaves the
-optimisation window (it is ``active_window`` keyframes behind the newest) and its frame distance to the nearest of
-those partners ``j`` is under ``revisit_thresh`` under the current estimate, ``r`` is culled: its own pose and its
-frames are held rigidly to ``j`` at their poses now (:meth:`.frame_poses.FramePoses.rehome`, so they follow ``j``
-through later loop BAs and the final BA), then ``r`` and its edges go (every GraphListener hears of it).  This is
-ORB-SLAM3's keyframe culling in this map's terms: a keyframe whose view other keyframes hold is not kept.
+the final BA and the memory grow with the time driven, not with the places seen.  Along a revisit the loop policy
+closes a loop every few keyframes (:mod:`.loop_closer`).  A keyframe ``r`` that left the optimisation window (it is
+``active_window`` keyframes behind the newest) is examined once the map has settled after the newest loop BA:
 
-Only the window's tail is culled, so the window BAs, the tracking reference and the loop queries of the newest
-keyframes are what they are without culling; a keyframe that closed no loop, or whose partners see another view,
-stays.  The first two keyframes of a fragment always stay.  Keyframes are named by stable id; ``k``, ``r``, ``j``
-are graph indices.  Poses are T_wc.
+1. **candidates**: the older keyframes near the partner of a loop closed near ``r`` (:data:`LOOP_REACH`);
+2. **view**: the nearest candidate ``j`` by frame distance under the current estimate must be under
+   ``revisit_thresh``;
+3. **agreement**: ``r`` is relocalised against ``j`` from their flow, measured now, and ``j``'s depth
+   (:func:`.fragments.relocalise`); the two must agree on the local scale (:data:`MAX_SCALE_CHANGE`) and the current
+   estimate must explain that flow (:data:`MAX_DISAGREEMENT`).  Where they disagree the map has not settled there
+   (a lap's junction, before the final BA reconciles it) and ``r`` stays;
+4. **cull**: ``r``'s own pose and its frames are moved as the relocalisation moves ``r`` and held rigidly to ``j``
+   (:meth:`.frame_poses.FramePoses.rehome`: they follow ``j`` through later loop BAs and the final BA); ``r`` and
+   its edges go (every GraphListener hears of it).
+5. **islands**: keyframes that stayed but whose every edge led to culled ones are no longer tied to the map (a later
+   loop edge or BA would move them freely); they are held where they are to their nearest candidate and culled.
+
+This is ORB-SLAM3's keyframe culling in this map's terms: a keyframe whose view other keyframes hold is not kept.
+Only keyframes past the window are culled, so the window BAs, the tracking reference and the loop queries of the
+newest keyframes are what they are without culling.  The first two keyframes of a fragment always stay.  Keyframes
+are named by stable id; ``k``, ``r``, ``j`` are graph indices.  Poses are T_wc.
 """
 from __future__ import annotations
 
@@ -61,7 +69,6 @@ class RevisitCulling:
         self.loops = loops
         self.culled = 0  # keyframes culled so far
         self._pending: deque[int] = deque()  # ids of keyframes that left the window, waiting for the map to settle
-        self._kept: dict[int, None] = {}  # ids of revisit keyframes that stayed (in order), watched for isolation
 
     def candidates(self, r: int) -> list[int]:
         """Graph indices of the older keyframes that may hold keyframe ``r``'s view: those near the partner of a loop
@@ -95,34 +102,43 @@ class RevisitCulling:
             r_id = self._pending.popleft()
             if g.has_id(r_id) and g.index_of(r_id) - 1 > st.fragment_start:
                 culled += self._cull_one(g.index_of(r_id))
-        if culled and self._kept:
-            culled += self._cull_isolated()
+        if culled:
+            culled += self._cull_islands()
         return culled
 
-    def _cull_isolated(self) -> int:
-        """Cull the revisit keyframes that stayed (:meth:`_cull_one` said no) and have since lost every edge, their
-        neighbours being culled: nothing ties such a keyframe to the map any more, so a later loop edge or BA would
-        move it (and its frames) freely.  Its frames are held, at their poses now, to the nearest of its candidates
-        (or the keyframe before it).  Returns how many."""
+    def _cull_islands(self) -> int:
+        """Cull the keyframes that culling cut off from the map: once their neighbours are culled, keyframes that
+        stayed (:meth:`_cull_one` said no) may keep edges only among themselves or none, and nothing then ties them
+        to the map: a later loop edge or BA would move them, and their frames, freely.  Each such keyframe (not
+        linked by edges to the first keyframe or to the window) has its frames held, at their poses now, to the
+        nearest of its candidates, else to the keyframe before it.  Returns how many."""
         st, g = self.state, self.state.graph
-        linked = g.linked_ids()
-        done = 0
-        for r_id in list(self._kept):
-            if not g.has_id(r_id) or r_id in linked:
-                if not g.has_id(r_id):
-                    del self._kept[r_id]
-                continue
+        if st.fragments.unmerged > 1:
+            return 0  # separate map fragments are unlinked by design
+        parent: dict[int, int] = {}
+
+        def find(x: int) -> int:
+            parent.setdefault(x, x)
+            while parent[x] != x:
+                parent[x] = parent[parent[x]]
+                x = parent[x]
+            return x
+
+        for a, b in g.edge_id_pairs():
+            parent[find(a)] = find(b)
+        roots = {find(g.id_of(k)) for k in [0, *range(max(0, g.n - self.active_window), g.n)]}
+        island = [g.id_of(r) for r in range(st.fragment_start + 2, g.n - self.active_window)
+                  if find(g.id_of(r)) not in roots]
+        for r_id in island:
             r = g.index_of(r_id)
-            cands = self.candidates(r) or [r - 1]
+            cands = [j for j in self.candidates(r) if find(g.id_of(j)) in roots] or [r - 1]
             jj = torch.tensor(cands, dtype=torch.int64)
             src = torch.full_like(jj, r)
             d = g.frame_distance(src, jj).cpu() + g.frame_distance(jj, src).cpu()  # [C]
             st.frames.rehome(r_id, g.id_of(cands[int(torch.argmin(d))]))
             g.remove_keyframe(r)
-            del self._kept[r_id]
-            done += 1
-        self.culled += done
-        return done
+        self.culled += len(island)
+        return len(island)
 
     def _cull_one(self, r: int) -> bool:
         """Cull keyframe ``r`` when the nearest of its candidates (:meth:`candidates`) is under the threshold."""
@@ -136,10 +152,7 @@ class RevisitCulling:
         best = int(torch.argmin(d))
         if float(d[best]) >= self.thresh:
             return False
-        if not self._relocalise_and_cull(r, cands[best], float(d[best])):
-            self._kept[g.id_of(r)] = None
-            return False
-        return True
+        return self._relocalise_and_cull(r, cands[best], float(d[best]))
 
     def _relocalise_and_cull(self, r: int, j: int, dist: float) -> bool:
         """Relocalise keyframe ``r`` against ``j`` (which holds its view at frame distance ``dist``) and cull it
