@@ -70,7 +70,7 @@ class Mapper:
         self.loop_closer = LoopCloser(pcfg.loop_closure, st, observer, optimizer, loop_detector,
                                       self.cfg.edges.active_window)
         self.revisits = RevisitCulling(self.cfg.keyframes.revisit_thresh, st, observer, self.cfg.edges.active_window,
-                                       self.loop_closer.loops)
+                                       self.loop_closer.loops, self.cfg.edges.neighbours)
         self.optimizer = optimizer
         self.observer = observer
         self.failures = 0

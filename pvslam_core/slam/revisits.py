@@ -13,7 +13,10 @@ closes a loop every few keyframes (:mod:`.loop_closer`).  A keyframe ``r`` that 
    (:func:`.fragments.relocalise`); the two must agree on the local scale (:data:`MAX_SCALE_CHANGE`) and the current
    estimate must explain that flow (:data:`MAX_DISAGREEMENT`).  Where they disagree the map has not settled there
    (a lap's junction, before the final BA reconciles it) and ``r`` stays;
-4. **cull**: ``r``'s own pose and its frames are moved as the relocalisation moves ``r`` and held rigidly to ``j``
+4. **cull**, once the ``neighbours`` keyframes on either side of ``r`` were examined too and none of them stays (a
+   keyframe that stays keeps its odometry neighbours, so what stays is a connected stretch, not a perforated one
+   whose single keyframes a later BA would move on their loop edges alone): ``r``'s own pose and its frames are
+   moved as the relocalisation moves ``r`` and held rigidly to ``j``
    (:meth:`.frame_poses.FramePoses.rehome`: they follow ``j`` through later loop BAs and the final BA); ``r`` and
    its edges go (every GraphListener hears of it).
 5. **islands**: keyframes that stayed but whose every edge led to culled ones are no longer tied to the map (a later
@@ -29,9 +32,11 @@ from __future__ import annotations
 import bisect
 import logging
 from collections import deque
+from typing import Optional
 
 import torch
 
+from ..geometry.lie import se3_inv, se3_mul
 from ..types import LoopClosure
 from .fragments import apply_sim3, median_error, relocalise, sim3_between
 from .map_state import MapState
@@ -61,14 +66,18 @@ class RevisitCulling:
     closures, in order (the list grows as loops are closed)."""
 
     def __init__(self, thresh: float, state: MapState, observer: EdgeObserver, active_window: int,
-                 loops: list[LoopClosure]) -> None:
+                 loops: list[LoopClosure], neighbours: int = 3) -> None:
         self.thresh = float(thresh) * state.px_scale  # in this camera's BA px (an angle of view: adapt.ba_px_scale)
         self.state = state
         self.observer = observer
         self.active_window = int(active_window)
+        self.neighbours = int(neighbours)  # a keyframe that stays keeps this many on either side (its odometry edges)
         self.loops = loops
         self.culled = 0  # keyframes culled so far
         self._pending: deque[int] = deque()  # ids of keyframes that left the window, waiting for the map to settle
+        # examined keyframes waiting for their later neighbours' verdicts: (id, verdict of _examine)
+        self._examined: deque[tuple[int, Optional[tuple]]] = deque()
+        self._recent_stays: deque[bool] = deque(maxlen=self.neighbours)  # whether each last decided keyframe stayed
 
     def candidates(self, r: int) -> list[int]:
         """Graph indices of the older keyframes that may hold keyframe ``r``'s view: those near the partner of a loop
@@ -87,8 +96,9 @@ class RevisitCulling:
 
     def cull(self, k: int) -> int:
         """After the newest keyframe ``k``'s window BA and loop closure: keyframe ``k - active_window`` leaves the
-        window; once the map has settled after the newest loop BA, each keyframe that left it since is culled when
-        an older keyframe holds its view.  Returns how many were culled."""
+        window; once the map has settled after the newest loop BA, each keyframe that left it since is examined, and
+        each examined keyframe whose neighbours (``neighbours`` on either side) were examined too is culled when it
+        and they all may go.  Returns how many were culled."""
         st, g = self.state, self.state.graph
         if self.thresh <= 0 or not self.loops:
             return 0
@@ -97,11 +107,17 @@ class RevisitCulling:
         last_ba = next((c.kf_i for c in reversed(self.loops) if c.loop_ba), None)
         if last_ba is not None and g.id_of(k) - last_ba < SETTLE_KEYFRAMES:
             return 0
-        culled = 0
         while self._pending:
             r_id = self._pending.popleft()
-            if g.has_id(r_id) and g.index_of(r_id) - 1 > st.fragment_start:
-                culled += self._cull_one(g.index_of(r_id))
+            ok = g.has_id(r_id) and g.index_of(r_id) - 1 > st.fragment_start
+            self._examined.append((r_id, self._examine(g.index_of(r_id)) if ok else None))
+        culled = 0
+        while len(self._examined) > self.neighbours:
+            r_id, verdict = self._examined.popleft()
+            stays = [v is None for _, v in list(self._examined)[: self.neighbours]]
+            if verdict is not None and not any(self._recent_stays) and not any(stays):
+                culled += self._cull(r_id, *verdict)
+            self._recent_stays.append(verdict is None)
         if culled:
             culled += self._cull_islands()
         return culled
@@ -140,39 +156,44 @@ class RevisitCulling:
         self.culled += len(island)
         return len(island)
 
-    def _cull_one(self, r: int) -> bool:
-        """Cull keyframe ``r`` when the nearest of its candidates (:meth:`candidates`) is under the threshold."""
-        st, g = self.state, self.state.graph
+    def _examine(self, r: int) -> Optional[tuple[int, torch.Tensor, float]]:
+        """Whether keyframe ``r`` may go (steps 1-3 of the module docstring): ``(j's id, r's relocalised pose relative
+        to j [7], the relocalisation's scale)``, or None when it stays."""
+        g = self.state.graph
         cands = self.candidates(r)
         if not cands:
-            return False
+            return None
         jj = torch.tensor(cands, dtype=torch.int64)
         src = torch.full_like(jj, r)
         d = 0.5 * (g.frame_distance(src, jj).cpu() + g.frame_distance(jj, src).cpu())  # [C] BA px
         best = int(torch.argmin(d))
         if float(d[best]) >= self.thresh:
-            return False
-        return self._relocalise_and_cull(r, cands[best], float(d[best]))
-
-    def _relocalise_and_cull(self, r: int, j: int, dist: float) -> bool:
-        """Relocalise keyframe ``r`` against ``j`` (which holds its view at frame distance ``dist``) and cull it
-        there, unless the two disagree (the gates of the module docstring)."""
-        st, g = self.state, self.state.graph
+            return None
+        j = cands[best]
         obs = self.observer.observe_pair(j, r)  # j's pixels in r, measured now
         reloc = relocalise(g.poses[j], g.disps[j], g.disps[r], g.intrinsics, obs.target[0], obs.weight[0])
         if reloc is None or not 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE:
+            return None
+        pose_j, pose_r = g.poses[j].double().cpu(), g.poses[r].double().cpu()
+        if median_error(pose_j, pose_r, g.disps[j], g.intrinsics, obs.target[0], obs.weight[0]) > MAX_DISAGREEMENT:
+            return None
+        LOG.debug("keyframe %d (frame %d) may go for keyframe %d (frame %d): frame distance %.2f, relocalised by %.3f "
+                  "(median error %.2f BA px, scale %.3f)", g.id_of(r), int(g.frame_index[r]), g.id_of(j),
+                  int(g.frame_index[j]), float(d[best]), float((reloc.pose[:3] - pose_r[:3]).norm()), reloc.error,
+                  reloc.scale)
+        return g.id_of(j), se3_mul(se3_inv(pose_j), reloc.pose.double().cpu()), float(reloc.scale)
+
+    def _cull(self, r_id: int, j_id: int, rel_jr: torch.Tensor, scale: float) -> bool:
+        """Cull keyframe ``r_id`` in favour of ``j_id`` (step 4): its frames are moved as its relocalisation moves it
+        (``rel_jr``: its pose relative to ``j``, scale ``scale``) and held to ``j``."""
+        st, g = self.state, self.state.graph
+        if not (g.has_id(r_id) and g.has_id(j_id)):
             return False
-        r_id, j_id = g.id_of(r), g.id_of(j)
+        r = g.index_of(r_id)
         pose_r = g.poses[r].double().cpu()
-        err_now = median_error(g.poses[j], pose_r, g.disps[j], g.intrinsics, obs.target[0], obs.weight[0])
-        if err_now > MAX_DISAGREEMENT:
-            return False
-        LOG.debug("culling keyframe %d (frame %d) for keyframe %d (frame %d): frame distance %.2f, relocalised by "
-                  "%.3f (median error %.2f BA px, scale %.3f) now %.3f", r_id, int(g.frame_index[r]), j_id,
-                  int(g.frame_index[j]), dist, float((reloc.pose[:3] - pose_r[:3]).norm()), reloc.error,
-                  reloc.scale, err_now)
-        q, t = sim3_between(pose_r, reloc.pose, reloc.scale)
-        st.frames.rehome(r_id, j_id, lambda poses: apply_sim3(poses, q, t, reloc.scale))
+        target = se3_mul(g.poses[g.index_of(j_id)].double().cpu(), rel_jr)
+        q, t = sim3_between(pose_r, target, scale)
+        st.frames.rehome(r_id, j_id, lambda poses: apply_sim3(poses, q, t, scale))
         g.remove_keyframe(r)  # listeners (frame poses, frontend, loop detector, map state) hear of it
         self.culled += 1
         return True

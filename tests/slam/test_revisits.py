@@ -80,6 +80,36 @@ def test_candidates_are_the_old_keyframes_near_a_nearby_loop_partner():
     assert max(cull.candidates(72)) < 72 - 10
 
 
+def test_keyframes_cut_off_from_the_map_are_culled_and_their_frames_stay():
+    class _Fragments:
+        unmerged = 1
+
+    class _State:
+        graph = _graph(30)
+        fragments = _Fragments()
+        fragment_start = 0
+        px_scale = 1.0
+
+    st = _State()
+    g = st.graph
+    st.frames = fp = FramePoses(g)
+    for k in range(30):
+        fp.add_keyframe(10 * k, float(k), g.id_of(k))
+        fp.add_frame(10 * k + 5, k + 0.5, g.id_of(k), _pose(0.1))
+    chain = [(k, k + 1) for k in range(19)] + [(19, 24)] + [(k, k + 1) for k in range(24, 29)]
+    island = [(21, 22), (22, 23)]  # 20 has no edge at all; 21-23 only among themselves
+    ii, jj = zip(*(chain + island))
+    g.add_edges(torch.tensor(ii), torch.tensor(jj))
+    before = fp.poses()[1].clone()
+    cull = RevisitCulling(4.0, st, observer=None, active_window=5, loops=[])
+    assert cull._cull_islands() == 4
+    assert g.n == 26 and cull.culled == 4
+    assert torch.allclose(fp.poses()[1], before, atol=1e-12)  # every frame stays where it was
+    anchors = {e.anchor for e in fp.entries}
+    assert anchors <= set(g.ids.tolist()) and g.id_of(19) in anchors
+    assert cull._cull_islands() == 0  # nothing left to cut off
+
+
 # ------------------------------------------------------------------------------- a loop driven again --
 LAPS = 2.6  # driving_block: about 210 frames a lap
 
