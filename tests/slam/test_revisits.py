@@ -130,7 +130,7 @@ def _run(out: Path, *extra: str):
 @pytest.fixture(scope="module")
 def laps_runs(tmp_path_factory):
     out = tmp_path_factory.mktemp("revisits")
-    return _run(out / "on"), _run(out / "off", "graph.keyframes.revisit_thresh=0")
+    return _run(out / "on", "graph.keyframes.revisit_thresh=4"), _run(out / "off")
 
 
 def _bounded(tracking: dict) -> bool:
