@@ -260,6 +260,7 @@ def _long_child(frames: int, out: str) -> None:
     print(json.dumps({"frames": len(fs), "first": sum(fs[:k]) / k, "last": sum(fs[-k:]) / k, "window": k,
                       "first_cpu": sum(cs[:k]) / k, "last_cpu": sum(cs[-k:]) / k,
                       "peak_mb": peak_mb, "peak_run_mb": peak_run_mb, "keyframes": r.metrics["timing"]["keyframes"], "samples": samples,
+                      "culled": r.metrics["tracking"].get("keyframes_culled_on_revisits"),
                       "ate_pct": ate.get("rmse_percent_of_path"), "ate_m": ate.get("rmse"),
                       "path_m": ate.get("path_length"), "reinitialisations": r.metrics["timing"]["reinitialisations"],
                       "loops": len(r.loops), "loop_bas": sum(1 for c in r.loops if c.loop_ba),
@@ -288,7 +289,8 @@ def section_long(out: Path, quick: bool, frames: int = 3000) -> dict | None:
         return None
     ratio = d["last"] / d["first"]
     RESULTS["long"] = d
-    print(f"  {d['frames']} frames, {d['keyframes']} keyframes: mean per-frame time first {d['window']}: "
+    print(f"  {d['frames']} frames, {d['keyframes']} keyframes ({d.get('culled')} culled on revisits): mean per-frame "
+          f"time first {d['window']}: "
           f"{1000 * d['first']:.1f} ms, last {d['window']}: {1000 * d['last']:.1f} ms; peak RSS {d['peak_mb']:.0f} MB "
           f"({d['peak_run_mb']:.0f} MB before the final BA)")
     cpu_ratio = d["last_cpu"] / d["first_cpu"]

@@ -31,6 +31,9 @@ class KeyframesConfig(PluginConfig):
     max_gap_s: float = Field(
         0.5, gt=0, description="seconds: a keyframe whose removal would leave a longer gap between its neighbours is "
         "never redundant (docs/decisions.md: graph.keyframes.max_gap_s)")
+    revisit_thresh: float = Field(
+        0.0, ge=0, description="frame distance (reference BA px) to an older keyframe near a loop under which a "
+        "keyframe leaving the window is culled; 0 keeps all. 4 bounds the map on endless input, at some accuracy")
 
 
 class EdgesConfig(PluginConfig):

@@ -110,6 +110,17 @@ def _residuals(pose_j: torch.Tensor, pose_k: torch.Tensor, disp_j: torch.Tensor,
     return torch.where(out["valid"][0], err, torch.full_like(err, float("inf"))), out
 
 
+def median_error(pose_j: torch.Tensor, pose_k: torch.Tensor, disp_j: torch.Tensor, intr: torch.Tensor,
+                 target: torch.Tensor, weight: torch.Tensor, min_weight: float = 0.5) -> float:
+    """Median reprojection error (BA px) of ``j``'s confidently matched pixels (mean weight >= ``min_weight``) in
+    ``k`` at pose ``pose_k``, against the flow targets (inf when none is matched)."""
+    conf = (weight.float().mean(0) >= min_weight).reshape(-1).cpu()
+    if not bool(conf.any()):
+        return float("inf")
+    err, _ = _residuals(pose_j.double().cpu(), pose_k.double().cpu(), disp_j, intr, target)
+    return float(err[conf].median())
+
+
 def relocalise(pose_j: torch.Tensor, disp_j: torch.Tensor, disp_k: torch.Tensor, intr: torch.Tensor,
                target: torch.Tensor, weight: torch.Tensor, min_weight: float = 0.5, min_matched: int = 30,
                max_median_px: float = 1.0, iters: int = 10) -> Optional[Relocalisation]:

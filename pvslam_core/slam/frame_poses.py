@@ -20,7 +20,7 @@ BETWEEN KEYFRAMES).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import torch
 
@@ -116,6 +116,21 @@ class FramePoses:
         e.anchor, e.upto, e.obs = anchor, upto, None
         e.is_keyframe = False
         e.rel = se3_mul(se3_inv(self._bases([e])[0]), pose_wc.double().cpu())
+
+    def rehome(self, kf_id: int, to_id: int, move: Optional[Callable[[torch.Tensor], torch.Tensor]] = None) -> int:
+        """Hold keyframe ``kf_id``'s own entry, the frames anchored to it and those held up to it rigidly to keyframe
+        ``to_id`` (before ``kf_id`` is removed in favour of ``to_id``), at their poses now, or at ``move`` of them
+        (float64 ``[N, 7]`` T_wc -> ``[N, 7]``: where a relocalisation puts them).  Returns how many."""
+        self.sync()
+        todo = [e for e in self._entries if e.anchor == kf_id or e.upto == kf_id]
+        if not todo:
+            return 0
+        poses = torch.stack([self.pose_of(e) for e in todo])  # [N, 7], all read before any moves
+        if move is not None:
+            poses = move(poses)
+        for e, pose in zip(todo, poses):
+            self.hold_between(e, to_id, None, pose)
+        return len(todo)
 
     def bracket(self, anchor: int, upto: int) -> int:
         """Hold the frames rigidly anchored to keyframe id ``anchor`` without correspondences (re-anchored there by a

@@ -355,6 +355,12 @@ class FrameGraph:
         rii, rjj = self.retired_edges()
         return torch.cat([self.ii, rii]), torch.cat([self.jj, rjj])
 
+    def edge_id_pairs(self) -> list[tuple[int, int]]:
+        """``(src id, dst id)`` of every edge, active and retired (stable ids)."""
+        ids = self._ids[: self.n]
+        pairs = list(zip(ids[self.ii].tolist(), ids[self.jj].tolist())) if self.ii.numel() else []
+        return pairs + list(self._retired)
+
     def retired_bytes(self) -> int:
         """Bytes of the retired edges' stored observations (in memory, or in the spill store's file)."""
         h, w = self.ba_shape

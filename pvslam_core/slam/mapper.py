@@ -38,6 +38,7 @@ from .edges import connect_keyframe, retirement_mask
 from .frame_poses import FrameEntry
 from .graph import FrameGraph
 from .keyframes import KeyframePolicy
+from .revisits import RevisitCulling
 from .loop_closer import LoopCloser
 from .map_state import KeyframeSnapshot, MapSnapshot, MapState
 from .observe import EdgeObserver
@@ -68,6 +69,8 @@ class Mapper:
         self.keyframe_policy = KeyframePolicy(self.cfg.keyframes, st, self._connect)
         self.loop_closer = LoopCloser(pcfg.loop_closure, st, observer, optimizer, loop_detector,
                                       self.cfg.edges.active_window)
+        self.revisits = RevisitCulling(self.cfg.keyframes.revisit_thresh, st, observer, self.cfg.edges.active_window,
+                                       self.loop_closer.loops, self.cfg.edges.neighbours)
         self.optimizer = optimizer
         self.observer = observer
         self.failures = 0
@@ -118,6 +121,7 @@ class Mapper:
         return {"active_edges": g.num_edges, "retired_edges": g.num_retired, "keyframes_added": g.next_id,
                 "keyframes_removed": g.next_id - g.n,
                 "keyframes_provisional_removed": self.keyframe_policy.provisional_removed,
+                "keyframes_culled_on_revisits": self.revisits.culled,
                 "second_starts": self.window_ba.second_starts, "second_starts_kept": self.window_ba.second_starts_kept,
                 # stretches of keyframes whose depth was never measured (pvslam_core/slam/scale_gaps.py)
                 "scale_gaps": [gap.as_dict() for gap in self.scale_gaps],
@@ -169,6 +173,7 @@ class Mapper:
         st.place_frames(a_id)
         result = self._result(frame, entry, ref, track, kf_id=kf_id)  # before the reference may be removed
         self.keyframe_policy.remove_redundant(k)
+        self.revisits.cull(g.n - 1)
         return result
 
     def _add_keyframe(self, frame: Frame, seg: Optional[PanopticSegmentation], pose: torch.Tensor,

@@ -1,0 +1,157 @@
+"""Keyframe culling on revisits (pvslam_core.slam.revisits): the frames of a culled keyframe held to the keyframe that
+holds its view, the candidates a loop gives, and on a loop driven again a map that stops growing while the
+trajectory stays as accurate as with every keyframe kept."""
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from pvslam_core.geometry.lie import se3_mul
+from pvslam_core.slam.frame_poses import FramePoses
+from pvslam_core.slam.graph import FrameGraph
+from pvslam_core.slam.revisits import LOOP_REACH, RevisitCulling
+from pvslam_core.types import LoopClosure
+
+
+def _pose(x: float, yaw: float = 0.0) -> torch.Tensor:
+    return torch.tensor([x, 0, 0, 0, math.sin(yaw / 2), 0, math.cos(yaw / 2)], dtype=torch.float64)
+
+
+def _graph(n: int) -> FrameGraph:
+    g = FrameGraph(3, 4, torch.tensor([4.0, 4.0, 1.5, 1.0]))
+    for k in range(n):
+        g.add_keyframe(10 * k, float(k), _pose(0.5 * k), torch.ones(3, 4))
+    return g
+
+
+def test_rehome_keeps_poses_and_then_follows_the_new_anchor():
+    g = _graph(4)
+    fp = FramePoses(g)
+    for k in range(4):
+        fp.add_keyframe(10 * k, float(k), g.id_of(k))
+        if k == 2:  # two frames tracked against keyframe 2, one held between keyframes 1 and 2
+            fp.add_frame(21, 2.1, g.id_of(2), _pose(0.1, 0.05))
+            fp.add_frame(22, 2.2, g.id_of(2), _pose(0.2, 0.1))
+    held = fp.add_frame(15, 1.5, g.id_of(1), _pose(0.0))
+    fp.hold_between(held, g.id_of(1), g.id_of(2), fp.pose_of(held))
+    before = fp.poses()[1].clone()
+    assert fp.rehome(g.id_of(2), g.id_of(0)) == 4  # keyframe 2's own entry, its two frames, the frame held up to it
+    assert torch.allclose(fp.poses()[1], before, atol=1e-12)
+    g.remove_keyframe(2)
+    assert torch.allclose(fp.poses()[1], before, atol=1e-12)  # nothing was anchored to the removed keyframe
+    moved = _pose(0.0, 0.3)
+    g.set_poses(torch.tensor([0]), moved[None])  # the new anchor moves: the rehomed frames follow it rigidly
+    after = fp.poses()[1]
+    rehomed = [n for n, e in enumerate(fp.entries) if e.anchor == g.id_of(0) and n != 0]
+    assert len(rehomed) == 4
+    for n in rehomed:
+        assert torch.allclose(after[n], se3_mul(moved, before[n]), atol=1e-9)
+
+
+def test_rehome_applies_a_move():
+    g = _graph(3)
+    fp = FramePoses(g)
+    for k in range(3):
+        fp.add_keyframe(10 * k, float(k), g.id_of(k))
+    fp.add_frame(25, 2.5, g.id_of(2), _pose(0.1))
+    before = fp.poses()[1].clone()
+    shift = torch.tensor([0.0, 0.25, 0.0], dtype=torch.float64)
+    fp.rehome(g.id_of(2), g.id_of(1), lambda p: torch.cat([p[:, :3] + shift, p[:, 3:]], dim=1))
+    after = fp.poses()[1]
+    assert torch.allclose(after[2:, :3], before[2:, :3] + shift, atol=1e-12)
+    assert torch.allclose(after[:2], before[:2], atol=1e-12)  # keyframes 0 and 1 are not touched
+
+
+def test_candidates_are_the_old_keyframes_near_a_nearby_loop_partner():
+    class _State:
+        graph = _graph(80)
+        fragment_start = 0
+        px_scale = 1.0
+
+    loops = [LoopClosure(frame_i=600, frame_j=50, kf_i=60, kf_j=5, score=0.9, verified=True)]
+    cull = RevisitCulling(4.0, _State(), observer=None, active_window=10, loops=loops)
+    assert cull.candidates(60 + LOOP_REACH + 1) == []  # no loop within reach of it
+    near = cull.candidates(64)
+    assert near == list(range(0, 5 + LOOP_REACH + 1))  # around the partner, keyframe 5
+    # a partner within the window before the keyframe gives nothing of that window
+    loops.append(LoopClosure(frame_i=700, frame_j=650, kf_i=70, kf_j=62, score=0.9, verified=True))
+    assert max(cull.candidates(72)) < 72 - 10
+
+
+def test_keyframes_cut_off_from_the_map_are_culled_and_their_frames_stay():
+    class _Fragments:
+        unmerged = 1
+
+    class _State:
+        graph = _graph(30)
+        fragments = _Fragments()
+        fragment_start = 0
+        px_scale = 1.0
+
+    st = _State()
+    g = st.graph
+    st.frames = fp = FramePoses(g)
+    for k in range(30):
+        fp.add_keyframe(10 * k, float(k), g.id_of(k))
+        fp.add_frame(10 * k + 5, k + 0.5, g.id_of(k), _pose(0.1))
+    chain = [(k, k + 1) for k in range(19)] + [(19, 24)] + [(k, k + 1) for k in range(24, 29)]
+    island = [(21, 22), (22, 23)]  # 20 has no edge at all; 21-23 only among themselves
+    ii, jj = zip(*(chain + island))
+    g.add_edges(torch.tensor(ii), torch.tensor(jj))
+    before = fp.poses()[1].clone()
+    cull = RevisitCulling(4.0, st, observer=None, active_window=5, loops=[])
+    assert cull._cull_islands() == 4
+    assert g.n == 26 and cull.culled == 4
+    assert torch.allclose(fp.poses()[1], before, atol=1e-12)  # every frame stays where it was
+    anchors = {e.anchor for e in fp.entries}
+    assert anchors <= set(g.ids.tolist()) and g.id_of(19) in anchors
+    assert cull._cull_islands() == 0  # nothing left to cut off
+
+
+# ------------------------------------------------------------------------------- a loop driven again --
+LAPS = 2.6  # driving_block: about 210 frames a lap
+
+
+def _run(out: Path, *extra: str):
+    from pvslam_core.api import run_config
+    from pvslam_plugins.datasets.synthetic.generator import generate
+
+    seq = generate("driving_block", None, laps=LAPS, progress=False)
+    res = run_config(None, overrides=[f'run.output_dir="{out.as_posix()}"', "run.progress=false",
+                                      f'dataset.path="{seq.as_posix()}"', "outputs.ply=false", "outputs.plots=false",
+                                      "segmenter.plugin=none", "vps.plugin=none", *extra])
+    assert not res.metrics.get("failed"), res.metrics
+    keyframes = json.loads((Path(res.run_dir) / "metrics.json").read_text())["tracking"]
+    return res, keyframes
+
+
+@pytest.fixture(scope="module")
+def laps_runs(tmp_path_factory):
+    out = tmp_path_factory.mktemp("revisits")
+    return _run(out / "on", "graph.keyframes.revisit_thresh=4"), _run(out / "off")
+
+
+def _bounded(tracking: dict) -> bool:
+    """The map after 2.6 laps keeps at most 1.5 laps' worth of keyframes: the revisits added few."""
+    kept = tracking["keyframes_added"] - tracking["keyframes_removed"]
+    return kept <= 1.5 / LAPS * tracking["keyframes_added"]
+
+
+@pytest.mark.slow
+def test_revisits_keep_the_map_bounded_and_the_trajectory_accurate(laps_runs):
+    (on, t_on), (off, t_off) = laps_runs
+    assert t_on["keyframes_culled_on_revisits"] > 0
+    assert _bounded(t_on), t_on
+    ate_on = on.metrics["ate"]["rmse_percent_of_path"]
+    ate_off = off.metrics["ate"]["rmse_percent_of_path"]
+    assert ate_on <= 1.25 * ate_off + 0.02, (ate_on, ate_off)  # percent of the path
+    assert on.metrics["tracking"]["maps"] == 1
+
+
+@pytest.mark.slow
+def test_the_bound_fails_without_culling(laps_runs):
+    _, (_, t_off) = laps_runs
+    assert t_off["keyframes_culled_on_revisits"] == 0
+    assert not _bounded(t_off), t_off
