@@ -53,8 +53,13 @@ def read_frames(seq: str, indices: list[int]) -> list[Any]:
     from pvslam_plugins.datasets.kitti.config import KittiConfig
     from pvslam_plugins.datasets.kitti.reader import make_reader
 
-    logging.getLogger("pvslam_plugins.datasets.kitti").setLevel(logging.ERROR)  # "no times.txt: 10 Hz"
-    reader = make_reader(KittiConfig(path=str(KITTI), sequence=seq, resize=list(SIZE)))
+    kitti_log = logging.getLogger("pvslam_plugins.datasets.kitti")
+    level = kitti_log.level
+    kitti_log.setLevel(logging.ERROR)  # "no times.txt: 10 Hz", for this reader only
+    try:
+        reader = make_reader(KittiConfig(path=str(KITTI), sequence=seq, resize=list(SIZE)))
+    finally:
+        kitti_log.setLevel(level)
     return [reader[i] for i in indices]
 
 

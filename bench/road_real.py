@@ -58,8 +58,13 @@ def road_pairs(seq: str, max_pixels: Optional[int], every: int) -> dict[str, Any
     from pvslam_plugins.frontends.flow.road_plane import RoadPlane, flow_intrinsics
     from pvslam_plugins.frontends.flow.road_prior import ROAD_MARGIN, ROAD_REGION
 
-    logging.getLogger("pvslam_plugins.datasets.kitti").setLevel(logging.ERROR)
-    reader = make_reader(KittiConfig(path=str(KITTI), sequence=seq, max_pixels=max_pixels))
+    kitti_log = logging.getLogger("pvslam_plugins.datasets.kitti")
+    level = kitti_log.level
+    kitti_log.setLevel(logging.ERROR)  # "no times.txt: 10 Hz", for this reader only
+    try:
+        reader = make_reader(KittiConfig(path=str(KITTI), sequence=seq, max_pixels=max_pixels))
+    finally:
+        kitti_log.setLevel(level)
     n = min(len(reader), FRAMES.get(seq, len(reader)))
     frames = [reader[i] for i in range(n)]
     Rwc, c = _poses(frames)
