@@ -12,9 +12,9 @@ must NOT hold), so a change that switches a piece off without anyone noticing fa
 
 Runs are bit-reproducible on one machine (one torch thread), so each figure in a test is one run (but one draw of a
 chaotic figure: the exposure test takes a median over three brightness levels); the bounds sit
-between the good and broken values measured over dataset seeds 0, 1, 2 (figures in the comments, measured on
-2026-12-01 at ef4e534 with the uncommitted work of issues 13/14/17 in the tree: ``run_config`` with each test's
-overrides on ``generate(scenario, num_frames=..., seed=s)``).  The tests run seed 0.
+between the good and broken values measured over dataset seeds 0, 1, 2 (figures in the comments: ``run_config``
+with each test's overrides on ``generate(scenario, num_frames=..., seed=s)``; the commit that measured them is in
+``git log -- tests/test_regressions.py``).  The tests run seed 0.
 """
 from __future__ import annotations
 
