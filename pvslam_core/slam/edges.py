@@ -51,8 +51,7 @@ def proximity_edges(graph: FrameGraph, k: int, cfg: EdgesConfig, first: int = 0,
     if cfg.max_proximity == 0 or hi <= lo:
         return empty, empty
     cand = torch.arange(lo, hi, dtype=torch.int64)
-    src = torch.full_like(cand, k)
-    d = 0.5 * (graph.frame_distance(src, cand).cpu() + graph.frame_distance(cand, src).cpu())  # [C]
+    d = graph.mutual_distance(k, cand)  # [C]
     order = torch.argsort(d)
     chosen: list[int] = []
     for idx in order.tolist():

@@ -381,6 +381,13 @@ class FrameGraph:
         jj = torch.as_tensor(jj, dtype=torch.int64, device=self.device).reshape(-1)
         return _frame_distance(self.poses, self.disps, self.intrinsics, ii, jj, beta=beta)
 
+    def mutual_distance(self, k: int, cands) -> torch.Tensor:
+        """float ``[C]`` (CPU): the mean of the frame distances ``k -> c`` and ``c -> k`` for each of the graph
+        indices ``cands``."""
+        cand = torch.as_tensor(cands, dtype=torch.int64).reshape(-1)
+        src = torch.full_like(cand, int(k))
+        return 0.5 * (self.frame_distance(src, cand).cpu() + self.frame_distance(cand, src).cpu())
+
     def state_dict(self) -> dict[str, Any]:
         """Keyframes and active edges (the retired store and recorded observations are not included)."""
         return {

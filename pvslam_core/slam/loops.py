@@ -59,8 +59,9 @@ LOOP_BA_MIN_GAP = 8
 PLACE_RECENT = 2
 
 
-class _Places:
-    """Union-find over keyframe ids (path halving, union by size): the places of accepted closures."""
+class UnionFind:
+    """Union-find over keyframe ids (path halving, union by size): the places of accepted closures, the parts of
+    the map that edges link (:mod:`.revisits`)."""
 
     def __init__(self) -> None:
         self.parent: dict[int, int] = {}
@@ -106,7 +107,7 @@ class LoopPolicy:
         self.closures: list[LoopClosure] = []
         self._proposed: dict[int, list[int]] = {}  # new keyframe id -> old keyframe ids it proposed (bounded)
         self._last_loop_ba_n: Optional[int] = None  # graph size at the last loop BA
-        self.places = _Places()  # rule 3: places of accepted closures
+        self.places = UnionFind()  # rule 3: places of accepted closures
         self._endpoints: list[int] = []  # sorted stable ids of accepted closures' keyframes
         self.fragments = fragments  # the map fragments (rule 4), if any
 

@@ -39,6 +39,7 @@ import torch
 from ..geometry.lie import se3_inv, se3_mul
 from ..types import LoopClosure
 from .fragments import apply_sim3, median_error, relocalise, sim3_between
+from .loops import UnionFind
 from .map_state import MapState
 from .observe import EdgeObserver
 
@@ -124,34 +125,24 @@ class RevisitCulling:
 
     def _cull_islands(self) -> int:
         """Cull the keyframes that culling cut off from the map: once their neighbours are culled, keyframes that
-        stayed (:meth:`_cull_one` said no) may keep edges only among themselves or none, and nothing then ties them
-        to the map: a later loop edge or BA would move them, and their frames, freely.  Each such keyframe (not
+        stayed (:meth:`_examine` said no, or a neighbour of theirs did) may keep edges only among themselves or none,
+        and nothing then ties them to the map: a later loop edge or BA would move them, and their frames, freely.  Each such keyframe (not
         linked by edges to the first keyframe or to the window) has its frames held, at their poses now, to the
         nearest of its candidates, else to the keyframe before it.  Returns how many."""
         st, g = self.state, self.state.graph
         if st.fragments.unmerged > 1:
             return 0  # separate map fragments are unlinked by design
-        parent: dict[int, int] = {}
-
-        def find(x: int) -> int:
-            parent.setdefault(x, x)
-            while parent[x] != x:
-                parent[x] = parent[parent[x]]
-                x = parent[x]
-            return x
-
+        parts = UnionFind()  # the parts of the map that edges link
         for a, b in g.edge_id_pairs():
-            parent[find(a)] = find(b)
+            parts.union(a, b)
+        find = parts.find
         roots = {find(g.id_of(k)) for k in [0, *range(max(0, g.n - self.active_window), g.n)]}
         island = [g.id_of(r) for r in range(st.fragment_start + 2, g.n - self.active_window)
                   if find(g.id_of(r)) not in roots]
         for r_id in island:
             r = g.index_of(r_id)
             cands = [j for j in self.candidates(r) if find(g.id_of(j)) in roots] or [r - 1]
-            jj = torch.tensor(cands, dtype=torch.int64)
-            src = torch.full_like(jj, r)
-            d = g.frame_distance(src, jj).cpu() + g.frame_distance(jj, src).cpu()  # [C]
-            st.frames.rehome(r_id, g.id_of(cands[int(torch.argmin(d))]))
+            st.frames.rehome(r_id, g.id_of(cands[int(torch.argmin(g.mutual_distance(r, cands)))]))
             g.remove_keyframe(r)
         self.culled += len(island)
         return len(island)
@@ -163,9 +154,7 @@ class RevisitCulling:
         cands = self.candidates(r)
         if not cands:
             return None
-        jj = torch.tensor(cands, dtype=torch.int64)
-        src = torch.full_like(jj, r)
-        d = 0.5 * (g.frame_distance(src, jj).cpu() + g.frame_distance(jj, src).cpu())  # [C] BA px
+        d = g.mutual_distance(r, cands)  # [C] BA px
         best = int(torch.argmin(d))
         if float(d[best]) >= self.thresh:
             return None
@@ -177,10 +166,11 @@ class RevisitCulling:
         pose_j, pose_r = g.poses[j].double().cpu(), g.poses[r].double().cpu()
         if median_error(pose_j, pose_r, g.disps[j], g.intrinsics, obs.target[0], obs.weight[0]) > MAX_DISAGREEMENT:
             return None
-        LOG.debug("keyframe %d (frame %d) may go for keyframe %d (frame %d): frame distance %.2f, relocalised by %.3f "
-                  "(median error %.2f BA px, scale %.3f)", g.id_of(r), int(g.frame_index[r]), g.id_of(j),
-                  int(g.frame_index[j]), float(d[best]), float((reloc.pose[:3] - pose_r[:3]).norm()), reloc.error,
-                  reloc.scale)
+        if LOG.isEnabledFor(logging.DEBUG):
+            LOG.debug("keyframe %d (frame %d) may go for keyframe %d (frame %d): frame distance %.2f, relocalised by "
+                      "%.3f (median error %.2f BA px, scale %.3f)", g.id_of(r), int(g.frame_index[r]), g.id_of(j),
+                      int(g.frame_index[j]), float(d[best]), float((reloc.pose[:3] - pose_r[:3]).norm()),
+                      reloc.error, reloc.scale)
         return g.id_of(j), se3_mul(se3_inv(pose_j), reloc.pose.double().cpu()), float(reloc.scale)
 
     def _cull(self, r_id: int, j_id: int, rel_jr: torch.Tensor, scale: float) -> bool:

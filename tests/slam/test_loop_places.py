@@ -5,7 +5,7 @@ import torch
 import pvslam_core.slam.loops as loops
 from pvslam_core.config import LoopClosureSection
 from pvslam_core.slam.graph import FrameGraph
-from pvslam_core.slam.loops import LoopPolicy, _Places
+from pvslam_core.slam.loops import LoopPolicy, UnionFind
 from pvslam_core.types import LoopCandidate
 
 LAP = 30  # keyframes per lap: keyframe k sees the same place as k - LAP, k - 2 LAP, ...
@@ -43,7 +43,7 @@ def per_lap(closures: list[tuple[int, int]], laps: int) -> list[int]:
 
 def test_union_find_against_brute_force_components():
     pairs = [(0, 5), (5, 9), (20, 21), (9, 2), (30, 31), (31, 20)]
-    uf = _Places()
+    uf = UnionFind()
     for a, b in pairs:
         uf.union(a, b)
     nodes = sorted({x for p in pairs for x in p})
