@@ -132,9 +132,8 @@ class Tracker:
         opts = ReaderOptions(resize=self.resize, max_pixels=self.max_pixels, crop_multiple=pcfg.graph.ba_downsample,
                              undistort=self.undistort)
         self.geometry = compute_geometry(self._intrinsics(width, height), opts)
-        geo = self.geometry
-        info = SequenceInfo(name=self.name, num_frames=None, intrinsics=geo.out,
-                            input_intrinsics=geo.input if (geo.resize or geo.crop) else None,
+        info = SequenceInfo(name=self.name, num_frames=None, intrinsics=self.geometry.out,
+                            input_intrinsics=self.geometry.input_if_other,
                             source="frames fed through the streaming API (Tracker)")
         if self.run_dir is not None:
             init_run_dir(self.run_dir, self.config, self.registry, self.overrides)

@@ -97,6 +97,12 @@ class ReaderGeometry:
         """The input's own camera: native size, without the distortion when the frames are undistorted."""
         return replace(self.raw, dist=()) if self.undist_maps is not None or not self.raw.has_distortion else self.raw
 
+    @property
+    def input_if_other(self) -> Optional[Intrinsics]:
+        """:attr:`input` when the yielded frames are resized or cropped from it (``SequenceInfo.input_intrinsics``),
+        else None."""
+        return self.input if (self.resize or self.crop) else None
+
 
 def processing_size(width: int, height: int, options: ReaderOptions) -> tuple[int, int]:
     """``(width, height)`` to resize a ``width x height`` image to, before the crop: ``resize`` when set, else the
@@ -326,7 +332,7 @@ class BaseReader(DatasetReader):
                 name=self._sequence_name(),
                 num_frames=num,
                 intrinsics=geo.out,
-                input_intrinsics=geo.input if (geo.resize or geo.crop) else None,
+                input_intrinsics=geo.input_if_other,
                 categories=tuple(self._categories()),
                 has_gt_pose=pose,
                 has_gt_depth=depth,
