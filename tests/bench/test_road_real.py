@@ -61,3 +61,23 @@ def test_road_plane_scale_on_real_frames(shared_dir, monkeypatch):
     assert m["size"] == "616x184" and m["pairs"] == 5
     # the plane finds the road on the highway: its scale within a third of the truth (camera height 1.65 m)
     assert 0.75 < m["ratio_median"] < 1.33
+
+
+def test_keep_test_follows_the_pixel_count_and_the_normal_biases_the_scale(shared_dir, monkeypatch):
+    """On the same real frame pairs at 616x184 and at the native size: the frontend's keep test (the plane's residual
+    over DIS's) reads higher at the native size on nearly every pair, much less so at one angular resolution; and the
+    plane's translation reads nearer the truth with the ground normal orthogonal to the travel than with the
+    camera's y axis."""
+    path = shared_dir / "data" / "kitti-odometry"
+    if not (path / "sequences" / "06" / "image_0").is_dir():
+        pytest.skip(f"{path}: no KITTI excerpts")
+    monkeypatch.setattr(road_real, "KITTI", path)
+    small, native = (road_real.road_pairs("06", mp, 10) for mp in (116000, None))
+    both = [(a, b) for a, b in zip(small["pairs"], native["pairs"]) if a["found"] and b["found"]]
+    assert len(both) >= 4
+    full = np.log([(b["cost"] / b["dis_cost"]) / (a["cost"] / a["dis_cost"]) for a, b in both])
+    fixed = np.log([b["keep_ratio_fixed"] / a["keep_ratio_fixed"] for a, b in both])
+    assert np.mean(full > 0) >= 0.8 and full.mean() > 0.1  # finer pixels: the plane looks worse against DIS
+    assert abs(fixed.mean()) < 0.5 * full.mean()
+    for m in (small["summary"], native["summary"]):
+        assert abs(np.log(m["ratio_travel_median"])) < abs(np.log(m["ratio_median"]))
