@@ -21,6 +21,7 @@ Pixel conventions as flow_ops (centres at integer coordinates); ``K`` is at the 
 """
 from __future__ import annotations
 
+import functools
 from typing import Callable, Optional
 
 import cv2
@@ -54,6 +55,16 @@ def _remap(src: np.ndarray, mx: np.ndarray, my: np.ndarray, border: int) -> np.n
                                      np.ascontiguousarray(my[:, i:i + _REMAP_MAX]), cv2.INTER_LINEAR,
                                      borderMode=border, borderValue=0.0)
                            for i in range(0, mx.shape[1], _REMAP_MAX)], 1)
+
+
+@functools.lru_cache(maxsize=8)
+def _pixels64(h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read-only float64 pixel grids ``ys, xs [h, w]`` and ``(x, y, 1) [3, h, w]`` (plane_flow's, per frame size)."""
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    P = np.stack([xs, ys, np.ones_like(xs)])
+    for a in (ys, xs, P):
+        a.setflags(write=False)
+    return ys, xs, P
 
 
 def homography(K: np.ndarray, R: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -96,17 +107,32 @@ class RoadPlane:
         return np.concatenate([self._block_costs(g1f, K, V[i:i + per], level) for i in range(0, len(V), per)])
 
     def _block_costs(self, g1f: np.ndarray, K: np.ndarray, V: np.ndarray, level) -> np.ndarray:
+        """The costs of ``_costs``, computed in place: ``(A + KV * B) / z`` and ``|g1(H_v x) - g0(x)|`` over the
+        pixels in view, each element by the same operations as the plain expressions."""
         A, B, ref, _ = level
         H, W = g1f.shape
         KV = (V @ K.T).astype(np.float32)  # [M, 3]
-        z = A[2][None] + KV[:, 2:3] * B[None]  # [M, N]
-        inv = np.reciprocal(np.where(z > 1e-6, z, np.float32(np.nan)))
-        mx = (A[0][None] + KV[:, 0:1] * B[None]) * inv
-        my = (A[1][None] + KV[:, 1:2] * B[None]) * inv
-        inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)  # NaN (behind the camera) compares False
-        s = _remap(g1f, mx, my, cv2.BORDER_CONSTANT)
+        z = KV[:, 2:3] * B[None]  # [M, N]
+        z += A[2][None]
+        inv = np.reciprocal(z)  # (1 / 0 here is replaced: search() ignores the division's warning)
+        np.copyto(inv, np.float32(np.nan), where=~(z > 1e-6))  # NaN behind the camera
+        mx = KV[:, 0:1] * B[None]
+        mx += A[0][None]
+        mx *= inv
+        my = KV[:, 1:2] * B[None]
+        my += A[1][None]
+        my *= inv
+        inside = mx >= 0  # NaN (behind the camera) compares False
+        tmp = np.empty_like(inside)
+        inside &= np.less_equal(mx, W - 1, out=tmp)
+        inside &= np.greater_equal(my, 0, out=tmp)
+        inside &= np.less_equal(my, H - 1, out=tmp)
+        d = _remap(g1f, mx, my, cv2.BORDER_CONSTANT)
+        d -= ref[None]
+        np.abs(d, out=d)
+        np.copyto(d, 0.0, where=np.logical_not(inside, out=tmp))
         n_in = inside.sum(1)
-        c = np.where(inside, np.abs(s - ref[None]), 0.0).sum(1) / np.maximum(n_in, 1)
+        c = d.sum(1) / np.maximum(n_in, 1)
         return np.where(n_in >= self.min_inside * B.size, c, np.inf)
 
     def _pattern(self, g1f: np.ndarray, K: np.ndarray, v: np.ndarray, level, step0: float) -> tuple[np.ndarray, float]:
@@ -158,13 +184,14 @@ class RoadPlane:
             return None
         g1f = g1.astype(np.float32)
         fine = self._level(g0, K, R, 2, r0)
-        starts = [np.asarray(prior, np.float64)] if prior is not None else \
-            self._grid_starts(g1f, K, self._level(g0, K, R, 4, r0))
-        best = (np.inf, None)
-        for v in starts:
-            v, cost = self._pattern(g1f, K, v, fine, 0.06 if prior is None else 0.03)
-            if cost < best[0]:
-                best = (cost, v)
+        with np.errstate(divide="ignore"):  # _block_costs' reciprocal of a zero depth (replaced by NaN)
+            starts = [np.asarray(prior, np.float64)] if prior is not None else \
+                self._grid_starts(g1f, K, self._level(g0, K, R, 4, r0))
+            best = (np.inf, None)
+            for v in starts:
+                v, cost = self._pattern(g1f, K, v, fine, 0.06 if prior is None else 0.03)
+                if cost < best[0]:
+                    best = (cost, v)
         if not np.isfinite(best[0]):
             return None
         return best[1], best[0], r0
@@ -175,25 +202,39 @@ class RoadPlane:
         """Flow ``float32 [H, W, 2]`` of homography ``Hm`` and where it applies (rows ``r0:``, the target in front
         of the camera and in view)."""
         H, W = shape
-        ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-        q = np.einsum("ij,jhw->ihw", Hm, np.stack([xs, ys, np.ones_like(xs)]))
+        ys, xs, P = _pixels64(H, W)
+        q = np.einsum("ij,jhw->ihw", Hm, P)
         with np.errstate(divide="ignore", invalid="ignore"):
             mx, my = q[0] / q[2], q[1] / q[2]
-        ok = (ys >= r0) & (q[2] > 1e-6) & (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
-        f = np.stack([np.where(ok, mx - xs, 0.0), np.where(ok, my - ys, 0.0)], -1).astype(np.float32)
+        ok = ys >= r0
+        ok &= q[2] > 1e-6
+        ok &= mx >= 0
+        ok &= mx <= W - 1
+        ok &= my >= 0
+        ok &= my <= H - 1
+        out = ~ok
+        f = np.empty((H, W, 2), np.float32)  # the float64 differences rounded to float32 on assignment
+        np.subtract(mx, xs, out=mx)
+        np.copyto(mx, 0.0, where=out)
+        f[..., 0] = mx
+        np.subtract(my, ys, out=my)
+        np.copyto(my, 0.0, where=out)
+        f[..., 1] = my
         return f, ok
 
-    def _local_residual(self, g0: np.ndarray, g1: np.ndarray, flow: np.ndarray) -> np.ndarray:
-        diff = np.abs(_warp(g1, flow).astype(np.float32) - g0.astype(np.float32))
+    def _local_residual(self, g0f: np.ndarray, g1: np.ndarray, flow: np.ndarray) -> np.ndarray:
+        """5x5 mean of ``|g1(x + f(x)) - g0(x)|`` (``g0f``: ``g0`` as float32)."""
+        diff = np.abs(_warp(g1, flow).astype(np.float32) - g0f)
         return cv2.blur(diff, (self.window, self.window))
 
     def merge(self, g0: np.ndarray, g1: np.ndarray, dis: np.ndarray, plane: np.ndarray,
               ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``dis`` with the plane's flow where it applies and explains ``g0`` in ``g1`` better (module docstring);
         also the bool mask of replaced pixels."""
-        use = ok & (self._local_residual(g0, g1, plane) < self.margin * self._local_residual(g0, g1, dis))
+        g0f = g0.astype(np.float32)
+        use = ok & (self._local_residual(g0f, g1, plane) < self.margin * self._local_residual(g0f, g1, dis))
         self.stats["replaced_px"] += int(use.sum())
-        return np.where(use[..., None], plane, dis).astype(np.float32), use
+        return np.where(use[..., None], plane, dis).astype(np.float32, copy=False), use
 
     @staticmethod
     def _dis_cost(g0: np.ndarray, g1: np.ndarray, dis: np.ndarray, rows: int) -> tuple[float, np.ndarray]:
