@@ -202,24 +202,27 @@ class RoadPlane:
         """Flow ``float32 [H, W, 2]`` of homography ``Hm`` and where it applies (rows ``r0:``, the target in front
         of the camera and in view)."""
         H, W = shape
+        r = min(max(r0, 0), H)  # rows above r0 keep a zero flow: only the rows below are computed
         ys, xs, P = _pixels64(H, W)
+        ys, xs, P = ys[r:], xs[r:], P[:, r:]
         q = np.einsum("ij,jhw->ihw", Hm, P)
         with np.errstate(divide="ignore", invalid="ignore"):
             mx, my = q[0] / q[2], q[1] / q[2]
-        ok = ys >= r0
-        ok &= q[2] > 1e-6
-        ok &= mx >= 0
-        ok &= mx <= W - 1
-        ok &= my >= 0
-        ok &= my <= H - 1
-        out = ~ok
-        f = np.empty((H, W, 2), np.float32)  # the float64 differences rounded to float32 on assignment
+        ok = np.zeros((H, W), bool)
+        ok_r = ok[r:]
+        np.greater(q[2], 1e-6, out=ok_r)
+        ok_r &= mx >= 0
+        ok_r &= mx <= W - 1
+        ok_r &= my >= 0
+        ok_r &= my <= H - 1
+        out = ~ok_r
+        f = np.zeros((H, W, 2), np.float32)  # the float64 differences rounded to float32 on assignment
         np.subtract(mx, xs, out=mx)
         np.copyto(mx, 0.0, where=out)
-        f[..., 0] = mx
+        f[r:, :, 0] = mx
         np.subtract(my, ys, out=my)
         np.copyto(my, 0.0, where=out)
-        f[..., 1] = my
+        f[r:, :, 1] = my
         return f, ok
 
     def _local_residual(self, g0f: np.ndarray, g1: np.ndarray, flow: np.ndarray) -> np.ndarray:
