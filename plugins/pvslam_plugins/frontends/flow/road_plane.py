@@ -114,7 +114,8 @@ class RoadPlane:
         KV = (V @ K.T).astype(np.float32)  # [M, 3]
         z = KV[:, 2:3] * B[None]  # [M, N]
         z += A[2][None]
-        inv = np.reciprocal(z)  # (1 / 0 here is replaced: search() ignores the division's warning)
+        with np.errstate(divide="ignore", over="ignore"):  # those values are replaced just below
+            inv = np.reciprocal(z)
         np.copyto(inv, np.float32(np.nan), where=~(z > 1e-6))  # NaN behind the camera
         mx = KV[:, 0:1] * B[None]
         mx += A[0][None]
@@ -184,14 +185,13 @@ class RoadPlane:
             return None
         g1f = g1.astype(np.float32)
         fine = self._level(g0, K, R, 2, r0)
-        with np.errstate(divide="ignore"):  # _block_costs' reciprocal of a zero depth (replaced by NaN)
-            starts = [np.asarray(prior, np.float64)] if prior is not None else \
-                self._grid_starts(g1f, K, self._level(g0, K, R, 4, r0))
-            best = (np.inf, None)
-            for v in starts:
-                v, cost = self._pattern(g1f, K, v, fine, 0.06 if prior is None else 0.03)
-                if cost < best[0]:
-                    best = (cost, v)
+        starts = [np.asarray(prior, np.float64)] if prior is not None else \
+            self._grid_starts(g1f, K, self._level(g0, K, R, 4, r0))
+        best = (np.inf, None)
+        for v in starts:
+            v, cost = self._pattern(g1f, K, v, fine, 0.06 if prior is None else 0.03)
+            if cost < best[0]:
+                best = (cost, v)
         if not np.isfinite(best[0]):
             return None
         return best[1], best[0], r0
