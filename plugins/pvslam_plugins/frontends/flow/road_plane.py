@@ -107,33 +107,17 @@ class RoadPlane:
         return np.concatenate([self._block_costs(g1f, K, V[i:i + per], level) for i in range(0, len(V), per)])
 
     def _block_costs(self, g1f: np.ndarray, K: np.ndarray, V: np.ndarray, level) -> np.ndarray:
-        """The costs of ``_costs``, computed in place: ``(A + KV * B) / z`` and ``|g1(H_v x) - g0(x)|`` over the
-        pixels in view, each element by the same operations as the plain expressions."""
         A, B, ref, _ = level
         H, W = g1f.shape
         KV = (V @ K.T).astype(np.float32)  # [M, 3]
-        z = KV[:, 2:3] * B[None]  # [M, N]
-        z += A[2][None]
-        with np.errstate(divide="ignore", over="ignore"):  # those values are replaced just below
-            inv = np.reciprocal(z)
-        np.copyto(inv, np.float32(np.nan), where=~(z > 1e-6))  # NaN behind the camera
-        mx = KV[:, 0:1] * B[None]
-        mx += A[0][None]
-        mx *= inv
-        my = KV[:, 1:2] * B[None]
-        my += A[1][None]
-        my *= inv
-        inside = mx >= 0  # NaN (behind the camera) compares False
-        tmp = np.empty_like(inside)
-        inside &= np.less_equal(mx, W - 1, out=tmp)
-        inside &= np.greater_equal(my, 0, out=tmp)
-        inside &= np.less_equal(my, H - 1, out=tmp)
-        d = _remap(g1f, mx, my, cv2.BORDER_CONSTANT)
-        d -= ref[None]
-        np.abs(d, out=d)
-        np.copyto(d, 0.0, where=np.logical_not(inside, out=tmp))
+        z = A[2][None] + KV[:, 2:3] * B[None]  # [M, N]
+        inv = np.reciprocal(np.where(z > 1e-6, z, np.float32(np.nan)))
+        mx = (A[0][None] + KV[:, 0:1] * B[None]) * inv
+        my = (A[1][None] + KV[:, 1:2] * B[None]) * inv
+        inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)  # NaN (behind the camera) compares False
+        s = _remap(g1f, mx, my, cv2.BORDER_CONSTANT)
         n_in = inside.sum(1)
-        c = d.sum(1) / np.maximum(n_in, 1)
+        c = np.where(inside, np.abs(s - ref[None]), 0.0).sum(1) / np.maximum(n_in, 1)
         return np.where(n_in >= self.min_inside * B.size, c, np.inf)
 
     def _pattern(self, g1f: np.ndarray, K: np.ndarray, v: np.ndarray, level, step0: float) -> tuple[np.ndarray, float]:
