@@ -195,21 +195,24 @@ def fit_exposure(g0: np.ndarray, g1: np.ndarray, max_gain: float = 4.0, min_gain
     x, y = g0.reshape(-1).astype(np.float64), g1.reshape(-1).astype(np.float64)
     if x.size == 0:
         return 1.0, 0.0
-    offset = float(np.median(y - x))
-    r = y - x - offset
-    mad0 = float(np.median(np.abs(r)))
+    d = y - x
+    offset = float(np.median(d))
+    # (medians of temporaries partition them in place: the same order statistics, no copy)
+    mad0 = float(np.median(np.abs(d - offset), overwrite_input=True))
     gain, off = 1.0, offset
     for _ in range(2):
-        r = y - (gain * x + off)
-        keep = np.abs(r) <= 3.0 * 1.4826 * float(np.median(np.abs(r))) + 1.0
-        if keep.sum() < 16 or float(np.std(x[keep])) < 1.0:  # too few samples or no contrast: offset only
+        a = np.abs(y - (gain * x + off))
+        keep = a <= 3.0 * 1.4826 * float(np.median(a)) + 1.0
+        n = int(keep.sum())
+        xk = x[keep]
+        if n < 16 or float(np.std(xk)) < 1.0:  # too few samples or no contrast: offset only
             return 1.0, offset
-        A = np.stack([x[keep], np.ones(int(keep.sum()))], 1)
+        A = np.stack([xk, np.ones(n)], 1)
         (g, o), *_ = np.linalg.lstsq(A, y[keep], rcond=None)
         if not (1.0 / max_gain <= g <= max_gain and np.isfinite(o)):
             return 1.0, offset
         gain, off = float(g), float(o)
-    mad1 = float(np.median(np.abs(y - (gain * x + off))))
+    mad1 = float(np.median(np.abs(y - (gain * x + off)), overwrite_input=True))
     if not mad1 < min_gain_gain * mad0:
         return 1.0, offset
     # a wrong flow pairs unrelated pixels, and a least-squares gain fitted to them shrinks towards 0 with a weak

@@ -21,6 +21,7 @@ Pixel conventions as flow_ops (centres at integer coordinates); ``K`` is at the 
 """
 from __future__ import annotations
 
+import functools
 from typing import Callable, Optional
 
 import cv2
@@ -54,6 +55,16 @@ def _remap(src: np.ndarray, mx: np.ndarray, my: np.ndarray, border: int) -> np.n
                                      np.ascontiguousarray(my[:, i:i + _REMAP_MAX]), cv2.INTER_LINEAR,
                                      borderMode=border, borderValue=0.0)
                            for i in range(0, mx.shape[1], _REMAP_MAX)], 1)
+
+
+@functools.lru_cache(maxsize=8)
+def _pixels64(h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read-only float64 pixel grids ``ys, xs [h, w]`` and ``(x, y, 1) [3, h, w]`` (plane_flow's, per frame size)."""
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    P = np.stack([xs, ys, np.ones_like(xs)])
+    for a in (ys, xs, P):
+        a.setflags(write=False)
+    return ys, xs, P
 
 
 def homography(K: np.ndarray, R: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -175,25 +186,42 @@ class RoadPlane:
         """Flow ``float32 [H, W, 2]`` of homography ``Hm`` and where it applies (rows ``r0:``, the target in front
         of the camera and in view)."""
         H, W = shape
-        ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-        q = np.einsum("ij,jhw->ihw", Hm, np.stack([xs, ys, np.ones_like(xs)]))
+        r = min(max(r0, 0), H)  # rows above r0 keep a zero flow: only the rows below are computed
+        ys, xs, P = _pixels64(H, W)
+        ys, xs, P = ys[r:], xs[r:], P[:, r:]
+        q = np.einsum("ij,jhw->ihw", Hm, P)
         with np.errstate(divide="ignore", invalid="ignore"):
             mx, my = q[0] / q[2], q[1] / q[2]
-        ok = (ys >= r0) & (q[2] > 1e-6) & (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
-        f = np.stack([np.where(ok, mx - xs, 0.0), np.where(ok, my - ys, 0.0)], -1).astype(np.float32)
+        ok = np.zeros((H, W), bool)
+        ok_r = ok[r:]
+        np.greater(q[2], 1e-6, out=ok_r)
+        ok_r &= mx >= 0
+        ok_r &= mx <= W - 1
+        ok_r &= my >= 0
+        ok_r &= my <= H - 1
+        out = ~ok_r
+        f = np.zeros((H, W, 2), np.float32)  # the float64 differences rounded to float32 on assignment
+        np.subtract(mx, xs, out=mx)
+        np.copyto(mx, 0.0, where=out)
+        f[r:, :, 0] = mx
+        np.subtract(my, ys, out=my)
+        np.copyto(my, 0.0, where=out)
+        f[r:, :, 1] = my
         return f, ok
 
-    def _local_residual(self, g0: np.ndarray, g1: np.ndarray, flow: np.ndarray) -> np.ndarray:
-        diff = np.abs(_warp(g1, flow).astype(np.float32) - g0.astype(np.float32))
+    def _local_residual(self, g0f: np.ndarray, g1: np.ndarray, flow: np.ndarray) -> np.ndarray:
+        """5x5 mean of ``|g1(x + f(x)) - g0(x)|`` (``g0f``: ``g0`` as float32)."""
+        diff = np.abs(_warp(g1, flow).astype(np.float32) - g0f)
         return cv2.blur(diff, (self.window, self.window))
 
     def merge(self, g0: np.ndarray, g1: np.ndarray, dis: np.ndarray, plane: np.ndarray,
               ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``dis`` with the plane's flow where it applies and explains ``g0`` in ``g1`` better (module docstring);
         also the bool mask of replaced pixels."""
-        use = ok & (self._local_residual(g0, g1, plane) < self.margin * self._local_residual(g0, g1, dis))
+        g0f = g0.astype(np.float32)
+        use = ok & (self._local_residual(g0f, g1, plane) < self.margin * self._local_residual(g0f, g1, dis))
         self.stats["replaced_px"] += int(use.sum())
-        return np.where(use[..., None], plane, dis).astype(np.float32), use
+        return np.where(use[..., None], plane, dis).astype(np.float32, copy=False), use
 
     @staticmethod
     def _dis_cost(g0: np.ndarray, g1: np.ndarray, dis: np.ndarray, rows: int) -> tuple[float, np.ndarray]:
