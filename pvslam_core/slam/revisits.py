@@ -127,7 +127,7 @@ class RevisitCulling:
             ok = g.has_id(r_id) and g.index_of(r_id) - 1 > st.fragment_start
             self._examined.append((r_id, self._examine(g.index_of(r_id)) if ok else None))
         culled = 0
-        while len(self._examined) > self.neighbours:
+        while len(self._examined) > self.neighbours + 1:  # the last neighbour's own next one decides its isolation
             r_id, verdict = self._examined.popleft()
             ahead = [v for _, v in list(self._examined)[: self.neighbours + 1]]
             stay = _stays(self._last_passed, verdict, ahead[0] if ahead else None)
