@@ -15,7 +15,10 @@ closes a loop every few keyframes (:mod:`.loop_closer`).  A keyframe ``r`` that 
    (a lap's junction, before the final BA reconciles it) and ``r`` stays;
 4. **cull**, once the ``neighbours`` keyframes on either side of ``r`` were examined too and none of them stays (a
    keyframe that stays keeps its odometry neighbours, so what stays is a connected stretch, not a perforated one
-   whose single keyframes a later BA would move on their loop edges alone): ``r``'s own pose and its frames are
+   whose single keyframes a later BA would move on their loop edges alone).  A keyframe whose gates failed stays,
+   unless the failure is *isolated* (the keyframes just before and after it passed): one bad relocalisation amid
+   agreeing ones says nothing about the map there, so it goes where the current estimate has it (scale 1) and keeps
+   no stretch (a lap's junction fails on a run of keyframes, which stays).  ``r``'s own pose and its frames are
    moved as the relocalisation moves ``r`` and held rigidly to ``j``
    (:meth:`.frame_poses.FramePoses.rehome`: they follow ``j`` through later loop BAs and the final BA); ``r`` and
    its edges go (every GraphListener hears of it).
@@ -165,9 +168,10 @@ class RevisitCulling:
         self.culled += len(island)
         return len(island)
 
-    def _examine(self, r: int) -> Optional[tuple[int, torch.Tensor, float]]:
-        """Whether keyframe ``r`` may go (steps 1-3 of the module docstring): ``(j's id, r's relocalised pose relative
-        to j [7], the relocalisation's scale)``, or None when it stays."""
+    def _examine(self, r: int) -> Optional[tuple[int, torch.Tensor, float, bool]]:
+        """Whether keyframe ``r`` may go (steps 1-3 of the module docstring): ``(j's id, r's pose relative to j [7],
+        scale, passed)``: relocalised when the gates passed, else the current estimate with scale 1 and ``passed``
+        False (step 4 decides); None when no candidate holds its view."""
         g = self.state.graph
         cands = self.candidates(r)
         if not cands:
