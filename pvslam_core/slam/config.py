@@ -33,7 +33,7 @@ class KeyframesConfig(PluginConfig):
         "never redundant (docs/decisions.md: graph.keyframes.max_gap_s)")
     revisit_thresh: float = Field(
         0.0, ge=0, description="frame distance (reference BA px) to an older keyframe near a loop under which a "
-        "keyframe leaving the window is culled; 0 keeps all. 4: fewer keyframes on repeated laps, at some accuracy")
+        "keyframe leaving the window is culled; 0 keeps all. 4: bounds the map on repeated laps (endless input)")
 
 
 class EdgesConfig(PluginConfig):

@@ -15,7 +15,10 @@ closes a loop every few keyframes (:mod:`.loop_closer`).  A keyframe ``r`` that 
    (a lap's junction, before the final BA reconciles it) and ``r`` stays;
 4. **cull**, once the ``neighbours`` keyframes on either side of ``r`` were examined too and none of them stays (a
    keyframe that stays keeps its odometry neighbours, so what stays is a connected stretch, not a perforated one
-   whose single keyframes a later BA would move on their loop edges alone): ``r``'s own pose and its frames are
+   whose single keyframes a later BA would move on their loop edges alone).  A keyframe whose gates failed stays,
+   unless the failure is *isolated* (the keyframes just before and after it passed): one bad relocalisation amid
+   agreeing ones says nothing about the map there, so it goes where the current estimate has it (scale 1) and keeps
+   no stretch (a lap's junction fails on a run of keyframes, which stays).  ``r``'s own pose and its frames are
    moved as the relocalisation moves ``r`` and held rigidly to ``j``
    (:meth:`.frame_poses.FramePoses.rehome`: they follow ``j`` through later loop BAs and the final BA); ``r`` and
    its edges go (every GraphListener hears of it).
@@ -61,6 +64,19 @@ MAX_SCALE_CHANGE = 1.1
 MAX_DISAGREEMENT = 0.1
 
 
+def _passed(verdict) -> bool:
+    return verdict is not None and verdict[3]
+
+
+def _stays(before: bool, verdict, after) -> bool:
+    """Whether a keyframe stays (and keeps its neighbours): it failed a gate, unless the failure is isolated (the
+    keyframes just before and after passed: one bad relocalisation amid agreeing ones), when it goes where the
+    current estimate has it."""
+    if _passed(verdict):
+        return False
+    return not (verdict is not None and before and _passed(after))
+
+
 class RevisitCulling:
     """Culls the keyframe leaving the window when an older keyframe near a loop it is near holds its view (see the
     module docstring).  ``thresh``: frame distance (BA px); 0 keeps every keyframe.  ``loops``: the accepted loop
@@ -79,6 +95,7 @@ class RevisitCulling:
         # examined keyframes waiting for their later neighbours' verdicts: (id, verdict of _examine)
         self._examined: deque[tuple[int, Optional[tuple]]] = deque()
         self._recent_stays: deque[bool] = deque(maxlen=self.neighbours)  # whether each last decided keyframe stayed
+        self._last_passed = False  # whether the last decided keyframe passed every gate
 
     def candidates(self, r: int) -> list[int]:
         """Graph indices of the older keyframes that may hold keyframe ``r``'s view: those near the partner of a loop
@@ -113,12 +130,16 @@ class RevisitCulling:
             ok = g.has_id(r_id) and g.index_of(r_id) - 1 > st.fragment_start
             self._examined.append((r_id, self._examine(g.index_of(r_id)) if ok else None))
         culled = 0
-        while len(self._examined) > self.neighbours:
+        while len(self._examined) > self.neighbours + 1:  # the last neighbour's own next one decides its isolation
             r_id, verdict = self._examined.popleft()
-            stays = [v is None for _, v in list(self._examined)[: self.neighbours]]
-            if verdict is not None and not any(self._recent_stays) and not any(stays):
-                culled += self._cull(r_id, *verdict)
-            self._recent_stays.append(verdict is None)
+            ahead = [v for _, v in list(self._examined)[: self.neighbours + 1]]
+            stay = _stays(self._last_passed, verdict, ahead[0] if ahead else None)
+            stays = [_stays(_passed(verdict) if i == 0 else _passed(ahead[i - 1]), v,
+                            ahead[i + 1] if i + 1 < len(ahead) else None) for i, v in enumerate(ahead[: self.neighbours])]
+            if not stay and not any(self._recent_stays) and not any(stays):
+                culled += self._cull(r_id, *verdict[:3])
+            self._recent_stays.append(stay)
+            self._last_passed = _passed(verdict)
         if culled:
             culled += self._cull_islands()
         return culled
@@ -147,9 +168,10 @@ class RevisitCulling:
         self.culled += len(island)
         return len(island)
 
-    def _examine(self, r: int) -> Optional[tuple[int, torch.Tensor, float]]:
-        """Whether keyframe ``r`` may go (steps 1-3 of the module docstring): ``(j's id, r's relocalised pose relative
-        to j [7], the relocalisation's scale)``, or None when it stays."""
+    def _examine(self, r: int) -> Optional[tuple[int, torch.Tensor, float, bool]]:
+        """Whether keyframe ``r`` may go (steps 1-3 of the module docstring): ``(j's id, r's pose relative to j [7],
+        scale, passed)``: relocalised when the gates passed, else the current estimate with scale 1 and ``passed``
+        False (step 4 decides); None when no candidate holds its view."""
         g = self.state.graph
         cands = self.candidates(r)
         if not cands:
@@ -161,17 +183,18 @@ class RevisitCulling:
         j = cands[best]
         obs = self.observer.observe_pair(j, r)  # j's pixels in r, measured now
         reloc = relocalise(g.poses[j], g.disps[j], g.disps[r], g.intrinsics, obs.target[0], obs.weight[0])
-        if reloc is None or not 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE:
-            return None
         pose_j, pose_r = g.poses[j].double().cpu(), g.poses[r].double().cpu()
+        here = (g.id_of(j), se3_mul(se3_inv(pose_j), pose_r), 1.0, False)  # a failed gate: the current estimate
+        if reloc is None or not 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE:
+            return here
         if median_error(pose_j, pose_r, g.disps[j], g.intrinsics, obs.target[0], obs.weight[0]) > MAX_DISAGREEMENT:
-            return None
+            return here
         if LOG.isEnabledFor(logging.DEBUG):
             LOG.debug("keyframe %d (frame %d) may go for keyframe %d (frame %d): frame distance %.2f, relocalised by "
                       "%.3f (median error %.2f BA px, scale %.3f)", g.id_of(r), int(g.frame_index[r]), g.id_of(j),
                       int(g.frame_index[j]), float(d[best]), float((reloc.pose[:3] - pose_r[:3]).norm()),
                       reloc.error, reloc.scale)
-        return g.id_of(j), se3_mul(se3_inv(pose_j), reloc.pose.double().cpu()), float(reloc.scale)
+        return g.id_of(j), se3_mul(se3_inv(pose_j), reloc.pose.double().cpu()), float(reloc.scale), True
 
     def _cull(self, r_id: int, j_id: int, rel_jr: torch.Tensor, scale: float) -> bool:
         """Cull keyframe ``r_id`` in favour of ``j_id`` (step 4): its frames are moved as its relocalisation moves it

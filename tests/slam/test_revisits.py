@@ -110,6 +110,48 @@ def test_keyframes_cut_off_from_the_map_are_culled_and_their_frames_stay():
     assert cull._cull_islands() == 0  # nothing left to cut off
 
 
+def _stream(n: int, failing: set[int]):
+    """Keyframes added one by one with a settled loop near the start; examination fails the gates of the ids in
+    ``failing`` (and passes the others).  Returns the ids kept."""
+    class _Fragments:
+        unmerged = 2  # no island pass: only the decision under test
+
+    class _State:
+        graph = _graph(0)
+        fragments = _Fragments()
+        fragment_start = 0
+        px_scale = 1.0
+
+    st = _State()
+    g = st.graph
+
+    class _Culling(RevisitCulling):
+        def _examine(self, r):
+            return g.id_of(r) - 1, None, 1.0, g.id_of(r) not in failing
+
+        def _cull(self, r_id, j_id, rel, scale):
+            g.remove_keyframe(g.index_of(r_id))
+            self.culled += 1
+            return True
+
+    loops = [LoopClosure(frame_i=120, frame_j=20, kf_i=12, kf_j=2, score=0.9, verified=True, loop_ba=True)]
+    cull = _Culling(4.0, st, observer=None, active_window=5, loops=loops, neighbours=3)
+    for k in range(n):
+        g.add_keyframe(10 * k, float(k), _pose(0.5 * k), torch.ones(3, 4))
+        cull.cull(g.n - 1)
+    return set(g.ids.tolist())
+
+
+def test_an_isolated_failed_gate_does_not_keep_a_stretch():
+    n = 60
+    settled = set(range(23, n - 10))  # examined once the loop settled, decided before the run ended
+    # one bad relocalisation amid agreeing ones: it goes too, and so do its neighbours
+    assert not _stream(n, failing={30}) & settled
+    # two in a row (a lap's junction): they stay, with their odometry neighbours on either side
+    kept = _stream(n, failing={30, 31})
+    assert set(range(27, 35)) <= kept and not kept & (settled - set(range(27, 35)))
+
+
 # ------------------------------------------------------------------------------- a loop driven again --
 LAPS = 2.6  # driving_block: about 210 frames a lap
 
