@@ -68,13 +68,11 @@ def _passed(verdict) -> bool:
     return verdict is not None and verdict[3]
 
 
-def _stays(before: bool, verdict, after) -> bool:
+def _stays(before: bool, verdict, after: bool) -> bool:
     """Whether a keyframe stays (and keeps its neighbours): it failed a gate, unless the failure is isolated (the
     keyframes just before and after passed: one bad relocalisation amid agreeing ones), when it goes where the
     current estimate has it."""
-    if _passed(verdict):
-        return False
-    return not (verdict is not None and before and _passed(after))
+    return not _passed(verdict) and not (verdict is not None and before and after)
 
 
 class RevisitCulling:
@@ -132,14 +130,15 @@ class RevisitCulling:
         culled = 0
         while len(self._examined) > self.neighbours + 1:  # the last neighbour's own next one decides its isolation
             r_id, verdict = self._examined.popleft()
-            ahead = [v for _, v in list(self._examined)[: self.neighbours + 1]]
-            stay = _stays(self._last_passed, verdict, ahead[0] if ahead else None)
-            stays = [_stays(_passed(verdict) if i == 0 else _passed(ahead[i - 1]), v,
-                            ahead[i + 1] if i + 1 < len(ahead) else None) for i, v in enumerate(ahead[: self.neighbours])]
+            # r and the keyframes after it: whether each stays needs whether the ones around it passed
+            seq = [verdict, *(v for _, v in list(self._examined)[: self.neighbours + 1])]
+            passed = [_passed(v) for v in seq]
+            before = [self._last_passed, *passed]
+            stay, *stays = (_stays(before[i], seq[i], passed[i + 1]) for i in range(self.neighbours + 1))
             if not stay and not any(self._recent_stays) and not any(stays):
                 culled += self._cull(r_id, *verdict[:3])
             self._recent_stays.append(stay)
-            self._last_passed = _passed(verdict)
+            self._last_passed = passed[0]
         if culled:
             culled += self._cull_islands()
         return culled
@@ -184,11 +183,10 @@ class RevisitCulling:
         obs = self.observer.observe_pair(j, r)  # j's pixels in r, measured now
         reloc = relocalise(g.poses[j], g.disps[j], g.disps[r], g.intrinsics, obs.target[0], obs.weight[0])
         pose_j, pose_r = g.poses[j].double().cpu(), g.poses[r].double().cpu()
-        here = (g.id_of(j), se3_mul(se3_inv(pose_j), pose_r), 1.0, False)  # a failed gate: the current estimate
-        if reloc is None or not 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE:
-            return here
-        if median_error(pose_j, pose_r, g.disps[j], g.intrinsics, obs.target[0], obs.weight[0]) > MAX_DISAGREEMENT:
-            return here
+        passed = (reloc is not None and 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE and median_error(
+            pose_j, pose_r, g.disps[j], g.intrinsics, obs.target[0], obs.weight[0]) <= MAX_DISAGREEMENT)
+        if not passed:  # a failed gate: the current estimate, for step 4 to decide
+            return g.id_of(j), se3_mul(se3_inv(pose_j), pose_r), 1.0, False
         if LOG.isEnabledFor(logging.DEBUG):
             LOG.debug("keyframe %d (frame %d) may go for keyframe %d (frame %d): frame distance %.2f, relocalised by "
                       "%.3f (median error %.2f BA px, scale %.3f)", g.id_of(r), int(g.frame_index[r]), g.id_of(j),
