@@ -4,6 +4,7 @@ trajectory stays as accurate as with every keyframe kept."""
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -64,14 +65,15 @@ def test_rehome_applies_a_move():
     assert torch.allclose(after[:2], before[:2], atol=1e-12)  # keyframes 0 and 1 are not touched
 
 
-def test_candidates_are_the_old_keyframes_near_a_nearby_loop_partner():
-    class _State:
-        graph = _graph(80)
-        fragment_start = 0
-        px_scale = 1.0
+def _state(n: int, unmerged: int = 1) -> SimpleNamespace:
+    """The map state culling reads: ``n`` keyframes in one fragment; ``unmerged`` > 1 skips the island pass."""
+    return SimpleNamespace(graph=_graph(n), fragments=SimpleNamespace(unmerged=unmerged), fragment_start=0,
+                           px_scale=1.0)
 
+
+def test_candidates_are_the_old_keyframes_near_a_nearby_loop_partner():
     loops = [LoopClosure(frame_i=600, frame_j=50, kf_i=60, kf_j=5, score=0.9, verified=True)]
-    cull = RevisitCulling(4.0, _State(), observer=None, active_window=10, loops=loops)
+    cull = RevisitCulling(4.0, _state(80), observer=None, active_window=10, loops=loops)
     assert cull.candidates(60 + LOOP_REACH + 1) == []  # no loop within reach of it
     near = cull.candidates(64)
     assert near == list(range(0, 5 + LOOP_REACH + 1))  # around the partner, keyframe 5
@@ -81,16 +83,7 @@ def test_candidates_are_the_old_keyframes_near_a_nearby_loop_partner():
 
 
 def test_keyframes_cut_off_from_the_map_are_culled_and_their_frames_stay():
-    class _Fragments:
-        unmerged = 1
-
-    class _State:
-        graph = _graph(30)
-        fragments = _Fragments()
-        fragment_start = 0
-        px_scale = 1.0
-
-    st = _State()
+    st = _state(30)
     g = st.graph
     st.frames = fp = FramePoses(g)
     for k in range(30):
@@ -113,16 +106,7 @@ def test_keyframes_cut_off_from_the_map_are_culled_and_their_frames_stay():
 def _stream(n: int, failing: set[int]):
     """Keyframes added one by one with a settled loop near the start; examination fails the gates of the ids in
     ``failing`` (and passes the others).  Returns the ids kept."""
-    class _Fragments:
-        unmerged = 2  # no island pass: only the decision under test
-
-    class _State:
-        graph = _graph(0)
-        fragments = _Fragments()
-        fragment_start = 0
-        px_scale = 1.0
-
-    st = _State()
+    st = _state(0, unmerged=2)  # no island pass: only the decision under test
     g = st.graph
 
     class _Culling(RevisitCulling):
