@@ -23,7 +23,7 @@ from . import textures
 from .scene import CATEGORIES, BoxSet, GroundSample, MovingObject, Scene
 
 __all__ = ["DOMAINS", "TEXTURE_FAMILIES", "HELD_OUT_FAMILIES", "TRAIN_FAMILIES", "SIZE_RANGE", "family_textures",
-           "randomise", "Look"]
+           "randomise", "check_domain", "Look"]
 
 DOMAINS = ("train", "heldout")
 
@@ -55,10 +55,15 @@ def family_textures(families) -> np.ndarray:
     return np.array([textures.tex_id(n) for f in families for n in TEXTURE_FAMILIES[f]], np.int64)
 
 
-def _split_families(domain: str) -> tuple[str, ...]:
+def check_domain(domain: str) -> str:
+    """``domain`` when it names a split of :data:`DOMAINS` (ValueError otherwise)."""
     if domain not in DOMAINS:
         raise ValueError(f"unknown domain {domain!r}; known: {', '.join(DOMAINS)}")
-    return HELD_OUT_FAMILIES if domain == "heldout" else TRAIN_FAMILIES
+    return domain
+
+
+def _split_families(domain: str) -> tuple[str, ...]:
+    return HELD_OUT_FAMILIES if check_domain(domain) == "heldout" else TRAIN_FAMILIES
 
 
 def _rng(domain: str, scenario: str, seed: int) -> np.random.Generator:

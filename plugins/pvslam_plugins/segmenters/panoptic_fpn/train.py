@@ -39,9 +39,9 @@ LOSS_TERMS = ("loss_sem_seg", "loss_rpn_cls", "loss_rpn_loc", "loss_cls", "loss_
 class TrainConfig(PluginConfig):
     scenarios: list[str] = Field(list(DEFAULT_SCENARIOS), description="synthetic scenarios to train and validate on")
     train_seeds: list[int] = Field([1, 2, 3, 4, 5, 6, 7, 8], description="generator seeds of the training frames")
-    val_seeds: list[int] = Field([100, 101], description="held-out generator seeds for validation")
     domain_seeds: list[int] = Field([], description="generator seeds rendered with domain randomisation (its "
                                     "training split: other textures, sizes, light, camera) as extra training frames")
+    val_seeds: list[int] = Field([100, 101], description="held-out generator seeds for validation")
     init_weights: Optional[str] = Field(None, description="start from these PanopticFPN weights (a pvslam "
                                         "checkpoint) instead of a random initialisation: fine-tuning")
     frames_per_sequence: int = Field(24, ge=1, description="training frames per (scenario, seed), evenly spaced")
