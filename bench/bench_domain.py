@@ -90,7 +90,7 @@ def load_models(specs: Sequence[str]) -> dict[str, torch.nn.Module]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", action="append", default=[], help="NAME=PATH of weights to compare (repeatable)")
-    ap.add_argument("--heldout-seeds", type=int, nargs="+", default=[300, 301])
+    ap.add_argument("--heldout-seeds", type=int, nargs="+", default=[400, 401])
     ap.add_argument("--plain-seeds", type=int, nargs="+", default=[100, 101],
                     help="the trainer's validation seeds by default")
     ap.add_argument("--frames", type=int, default=8, help="frames per scenario and seed")

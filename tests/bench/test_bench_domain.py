@@ -15,7 +15,7 @@ from bench import bench_domain as B  # noqa: E402
 
 
 def test_frame_sets_render_the_held_out_domain_and_refuse_training_seeds():
-    sets = B.frame_sets([300], [100], 1, scenarios=["indoor_handheld"], width=96, height=72)
+    sets = B.frame_sets([400], [100], 1, scenarios=["indoor_handheld"], width=96, height=72)
     (held,), (plain,) = sets[B.HELD_OUT], sets[B.PLAIN]
     assert held.name.endswith("/heldout") and not plain.name.endswith("/heldout")
     assert held.image.shape == plain.image.shape == (3, 72, 96)
@@ -29,7 +29,7 @@ def test_compare_scores_each_model_on_each_set_and_tables_name_them(single_torch
     from pvslam_plugins.segmenters.panoptic_fpn.data import synthetic_category_set
     from pvslam_plugins.segmenters.panoptic_fpn.model import PanopticFPN
 
-    sets = B.frame_sets([300], [100], 1, scenarios=["moving_vehicles"])
+    sets = B.frame_sets([400], [100], 1, scenarios=["moving_vehicles"])
     shipped = B.load_models([])["shipped"]
     torch.manual_seed(0)
     untrained = PanopticFPN(preset("reduced"), synthetic_category_set()).eval()
