@@ -43,8 +43,8 @@ TEXTURE_FAMILIES: dict[str, tuple[str, ...]] = {
 HELD_OUT_FAMILIES = ("cellular", "gabor")
 TRAIN_FAMILIES = tuple(f for f in TEXTURE_FAMILIES if f not in HELD_OUT_FAMILIES)
 
-#: thing size factors (length and height; width within 10 % of length): held-out things are larger than any in
-#: training, as a street from another renderer has buses and cars up to a third of the image
+#: thing size factors (length and height; the width follows the length closely): held-out things are larger than
+#: any in training, as a street from another renderer has buses and cars up to a third of the image
 SIZE_RANGE = {"train": (0.8, 1.25), "heldout": (1.3, 1.7)}
 _TINT_JITTER = 0.3  # per-channel tint factor in [1 - j, 1 + j]: other paints, other leaves
 _THINGS = {c.id for c in CATEGORIES if c.isthing}

@@ -7,10 +7,10 @@ synthetic scenarios' panoptic labels.
 Data: ``frames_per_sequence`` frames spread over every scenario in ``scenarios`` for each of ``train_seeds``;
 validation on ``val_seeds`` (held out: no training frame comes from them).  ``domain_seeds`` add frames rendered
 with the generator's domain randomisation (its ``"train"`` split; the held-out texture families and thing sizes
-never reach training); ``init_weights`` starts from a checkpoint instead of a random initialisation.  AdamW with a linear warm-up and a
-cosine decay over the run's progress, ``max(iteration / iterations, minutes / time_budget_min)``: on a shared
-machine of unknown speed the run ends on whichever limit comes first with its learning rate fully decayed (the
-summary says which).  Written into the output folder: ``last.pt`` (model + optimiser + generator state, every
+never reach training); ``init_weights`` starts from a checkpoint instead of a random initialisation.  AdamW with a
+linear warm-up and a cosine decay over the run's progress, ``max(iteration / iterations, minutes /
+time_budget_min)``: on a shared machine of unknown speed the run ends on whichever limit comes first with its
+learning rate fully decayed (the summary says which).  Written into the output folder: ``last.pt`` (model + optimiser + generator state, every
 ``checkpoint_every`` iterations and on Ctrl-C; ``--resume`` continues from it), ``loss.csv`` (one row per
 iteration), ``loss.png``, ``model_final.pth`` (pvslam's PanopticFPN format, loadable as ``weights``),
 ``eval.json`` and ``eval.md`` (PQ/SQ/RQ on the validation seeds, per class).
