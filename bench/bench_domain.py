@@ -1,6 +1,6 @@
 """Panoptic quality of ``panoptic_fpn`` weights off their training renderer: frames of the generator's held-out
 domain (texture families, thing sizes no training frame shows; see the synthetic plugin's ``domain.py``) against
-frames of the plain generator's validation seeds.
+frames of the plain generator's validation seeds (and, between them, frames of its training domain on unseen seeds).
 
     python bench/bench_domain.py --model old=runs/old_reduced_synthetic.pth --model new=runs/pfpn_dr/model_final.pth
     python bench/bench_domain.py                      # the shipped weights only
@@ -25,14 +25,16 @@ if str(ROOT) not in sys.path:
 from bench import provenance  # noqa: E402
 
 HELD_OUT = "heldout"
+SEEN = "train_split"
 PLAIN = "plain"
 
 
 def frame_sets(heldout_seeds: Sequence[int], plain_seeds: Sequence[int], frames: int,
                scenarios: Optional[Sequence[str]] = None, width: int = 320, height: int = 240) -> dict[str, list]:
-    """``{"heldout": samples, "plain": samples}``: ``frames`` evenly spaced frames of every scenario per seed, the
-    first set rendered in the generator's held-out domain, the second by the plain generator.  Seeds the trainer's
-    defaults train on are refused for either set."""
+    """``{"heldout": samples, "train_split": samples, "plain": samples}``: ``frames`` evenly spaced frames of every
+    scenario per seed, rendered in the generator's held-out domain, in its training domain (seen families, unseen
+    seeds: how much of the gap is the families') with ``heldout_seeds``, and by the plain generator with
+    ``plain_seeds``.  Seeds the trainer's defaults train on are refused for every set."""
     from pvslam_plugins.segmenters.panoptic_fpn.data import render_samples
     from pvslam_plugins.segmenters.panoptic_fpn.train import TrainConfig
 
@@ -41,8 +43,9 @@ def frame_sets(heldout_seeds: Sequence[int], plain_seeds: Sequence[int], frames:
     if trained & (set(heldout_seeds) | set(plain_seeds)):
         raise ValueError(f"seeds {sorted(trained & (set(heldout_seeds) | set(plain_seeds)))} are training seeds")
     scenarios = list(scenarios or cfg.scenarios)
-    out: dict[str, list] = {HELD_OUT: [], PLAIN: []}
-    for name, seeds, domain in ((HELD_OUT, heldout_seeds, "heldout"), (PLAIN, plain_seeds, None)):
+    out: dict[str, list] = {HELD_OUT: [], SEEN: [], PLAIN: []}
+    for name, seeds, domain in ((HELD_OUT, heldout_seeds, "heldout"), (SEEN, heldout_seeds, "train"),
+                                (PLAIN, plain_seeds, None)):
         for scen in scenarios:
             for seed in seeds:
                 out[name] += render_samples(scen, seed, frames, width, height, domain=domain)

@@ -16,10 +16,11 @@ from bench import bench_domain as B  # noqa: E402
 
 def test_frame_sets_render_the_held_out_domain_and_refuse_training_seeds():
     sets = B.frame_sets([400], [100], 1, scenarios=["indoor_handheld"], width=96, height=72)
-    (held,), (plain,) = sets[B.HELD_OUT], sets[B.PLAIN]
-    assert held.name.endswith("/heldout") and not plain.name.endswith("/heldout")
+    (held,), (seen,), (plain,) = sets[B.HELD_OUT], sets[B.SEEN], sets[B.PLAIN]
+    assert held.name.endswith("/heldout") and seen.name.endswith("/train")
+    assert "/heldout" not in plain.name and "/train" not in plain.name
     assert held.image.shape == plain.image.shape == (3, 72, 96)
-    assert not torch.equal(held.image, plain.image)
+    assert not torch.equal(held.image, plain.image) and not torch.equal(held.image, seen.image)
     with pytest.raises(ValueError, match=r"\[1\] are training seeds"):
         B.frame_sets([1], [100], 1, scenarios=["indoor_handheld"])
 
@@ -34,11 +35,11 @@ def test_compare_scores_each_model_on_each_set_and_tables_name_them(single_torch
     torch.manual_seed(0)
     untrained = PanopticFPN(preset("reduced"), synthetic_category_set()).eval()
     res = B.compare({"shipped": shipped, "again": shipped, "untrained": untrained}, sets)
-    assert set(res) == {B.HELD_OUT, B.PLAIN}
+    assert set(res) == {B.HELD_OUT, B.SEEN, B.PLAIN}
     for by_model in res.values():
         assert by_model["shipped"]["pq"]["pq"] == by_model["again"]["pq"]["pq"]
     assert res[B.PLAIN]["shipped"]["pq"]["pq"] > res[B.PLAIN]["untrained"]["pq"]["pq"] + 0.2
     table = B.format_tables(res)
-    assert table.count("| shipped |") == 2 and "### heldout (1 frames)" in table and "### plain (1 frames)" in table
+    assert table.count("| shipped |") == 3 and "### heldout (1 frames)" in table and "### plain (1 frames)" in table
     with pytest.raises(SystemExit, match="NAME=PATH"):
         B.load_models(["no-equals-sign"])
