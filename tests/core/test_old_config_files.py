@@ -22,7 +22,7 @@ RETIRED = {
             "warp_max_side": None},
 }
 # table -> keys added since (a 320x240 input is under the default max_pixels: the old run's frames are unchanged)
-NEW_KEYS = {"dataset": ("max_pixels",)}
+NEW_KEYS = {"dataset": ("max_pixels", "domain")}
 OTHER = {"ply_edge_ratio": 2.0, "ply_neighbours": 3, "ply_consistency": 0.1, "orb_features": 1000,
          "store_max_side": 320, "jpeg_quality": 80, "feature_cache": 16, "ratio": 0.7, "cross_check": False,
          "ransac_threshold_px": 1.0, "adaptive_neighbours": 0, "adaptive_floor": 0.4, "adaptive_min_spread": 0.8,

@@ -28,6 +28,9 @@ class SyntheticConfig(ReaderOptions):
         None, ge=HFOV_RANGE[0], le=HFOV_RANGE[1],
         description="another camera: its horizontal field of view in degrees (same scene and trajectory); None = the "
         "default, about 61")
+    domain: Optional[Literal["train", "heldout"]] = Field(
+        None, description="restyle the scene (textures, thing sizes, light, camera noise/blur, haze; from the seed): "
+        "to test a segmenter on looks it never trained on ('heldout'); None = the plain scene")
     progress: bool = Field(True, description="progress bar while generating (only on a terminal)")
     gt_maps: list[Literal["depth", "panoptic", "dynamic"]] = Field(
         default_factory=lambda: ["panoptic"],

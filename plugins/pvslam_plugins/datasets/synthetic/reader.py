@@ -175,7 +175,8 @@ class SyntheticReader(BaseReader):
                 from .generator import ensure_cached
 
                 root = ensure_cached(o.scenario, num_frames=o.num_frames, width=o.width, height=o.height,
-                                     seed=o.seed, progress=o.progress, laps=o.laps, hfov_deg=o.hfov_deg)
+                                     seed=o.seed, progress=o.progress, laps=o.laps, hfov_deg=o.hfov_deg,
+                                     domain=o.domain)
             self._seq = SyntheticSequence(root)
         return self._seq
 

@@ -232,6 +232,8 @@ def render(scene: Scene, frame: int, T_wc: np.ndarray, cam: Camera) -> RenderOut
     col, pid, dyn = shade(scene, boxes, c, dw.reshape(-1, 3), t.reshape(-1), prim.reshape(-1), 1.0 / cam.fx)
     depth = np.where(np.isfinite(t), t, 0.0).astype(np.float32)
     col = col.reshape(H, W, 3)
+    if scene.look is not None:
+        col = scene.look(col, depth, frame)
     rgb = np.round(col * 255.0).astype(np.uint8)
     return RenderOutput(rgb=rgb, depth=depth, panoptic=pid.reshape(H, W), dynamic=dyn.reshape(H, W), color=col)
 

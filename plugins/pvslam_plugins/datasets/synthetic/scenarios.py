@@ -80,10 +80,11 @@ def _builders() -> dict[str, Callable[..., Scenario]]:
 
 
 def build(name: str, num_frames: Optional[int] = None, width: int = 320, height: int = 240, seed: int = 0,
-          laps: Optional[float] = None, hfov_deg: Optional[float] = None) -> Scenario:
+          laps: Optional[float] = None, hfov_deg: Optional[float] = None, domain: Optional[str] = None) -> Scenario:
     """Build scenario ``name``.  ``num_frames`` None = the scenario's default length (``laps`` may set it);
     ``hfov_deg`` None = the default camera (:meth:`.render.Camera.default`).  The scene and the trajectory do not
-    depend on the camera: another field of view sees the same sequence through another lens."""
+    depend on the camera: another field of view sees the same sequence through another lens.  ``domain`` (see
+    :mod:`.domain`) restyles the scene: other textures, thing sizes, light and camera; None = the plain scene."""
     check_name(name)
     if width < 16 or height < 16:
         raise ValueError(f"image size must be at least 16x16, got {width}x{height}")
@@ -95,6 +96,11 @@ def build(name: str, num_frames: Optional[int] = None, width: int = 320, height:
         sc.params["hfov_deg"] = float(hfov_deg)
     if revision(name, seed):
         sc.params["revision"] = revision(name, seed)
+    if domain is not None:
+        from .domain import randomise
+
+        sc.scene = randomise(sc.scene, domain, name, seed)
+        sc.params["domain"] = domain
     return sc
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -162,6 +162,7 @@ class Scene:
     sky: bool = True
     light: tuple[float, float, float] = (0.35, -0.5, 0.79)  # direction towards the sun (world, z up)
     ambient: float = 0.5
+    look: Optional[Callable[[np.ndarray, np.ndarray, int], np.ndarray]] = None  # camera rendition (domain.Look)
 
     def boxes_at(self, i: int) -> BoxSet:
         if not self.movers:

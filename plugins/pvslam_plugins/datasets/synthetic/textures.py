@@ -20,6 +20,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from . import texture_families
+
 SIZE = 256  # texels per side
 LEVELS = 8  # mip levels: 256, 128, ..., 2 texels a side
 
@@ -28,7 +30,9 @@ _GRAY = ("brick", "grass", "gravel", "camera", "moon", "coins", "text", "page", 
 _RGB = ("rocket", "coffee", "chelsea", "astronaut", "hubble_deep_field", "immunohistochemistry", "retina",
         "colorwheel")
 PROCEDURAL = ("noise", "fine_noise", "wood", "plaster")
-NAMES: tuple[str, ...] = _GRAY + _RGB + PROCEDURAL
+# families only domain randomisation draws (:mod:`.texture_families`); appended, so every other index stays
+EXTRA: tuple[str, ...] = tuple(texture_families.MAKERS)
+NAMES: tuple[str, ...] = _GRAY + _RGB + PROCEDURAL + EXTRA
 INDEX = {n: i for i, n in enumerate(NAMES)}
 
 
@@ -123,6 +127,8 @@ def texture_atlas(size: int = SIZE, levels: int = LEVELS) -> "Atlas":
     for t, name in enumerate(NAMES):
         if name in PROCEDURAL:
             base = _procedural(name, size)
+        elif name in EXTRA:
+            base = _normalise(texture_families.make(name, size), gray=True)
         else:
             try:
                 base = _normalise(_square(_load_picture(name), size), gray=name in _GRAY)

@@ -51,13 +51,15 @@ def _segments_of(ids: np.ndarray, thing_cats: set[int]) -> list[Segment]:
     return [Segment(int(s), int(s) // 1000, (int(s) // 1000) in thing_cats) for s in np.unique(ids) if s != 0]
 
 
-def render_samples(scenario: str, seed: int, frames: int, width: int = 320, height: int = 240) -> list[Sample]:
-    """Render ``frames`` evenly spaced frames of ``scenario`` (default length) with ``seed``."""
+def render_samples(scenario: str, seed: int, frames: int, width: int = 320, height: int = 240,
+                   domain: Optional[str] = None) -> list[Sample]:
+    """Render ``frames`` evenly spaced frames of ``scenario`` (default length) with ``seed``; ``domain``: the
+    generator's domain randomisation split (None = the plain generator)."""
     from pvslam_plugins.datasets.synthetic.render import render
     from pvslam_plugins.datasets.synthetic.scenarios import build
     from pvslam_plugins.datasets.synthetic.scene import CATEGORIES
 
-    sc = build(scenario, width=width, height=height, seed=seed)
+    sc = build(scenario, width=width, height=height, seed=seed, domain=domain)
     things = {c.id for c in CATEGORIES if c.isthing}
     n = sc.num_frames
     # a seed-dependent offset so that different seeds do not all sample the same trajectory positions
@@ -65,27 +67,29 @@ def render_samples(scenario: str, seed: int, frames: int, width: int = 320, heig
     offset = (seed * 0.618034 % 1.0) * step
     idx = sorted({min(n - 1, int(offset + k * step)) for k in range(frames)})
     out = []
+    tag = f"/{domain}" if domain else ""
     for i in idx:
         r = render(sc.scene, i, sc.poses[i], sc.camera)
         ids = np.asarray(r.panoptic, np.int64)
         out.append(Sample(torch.from_numpy(np.ascontiguousarray(r.rgb.transpose(2, 0, 1))), torch.from_numpy(ids),
-                          _segments_of(ids, things), f"{scenario}/seed{seed}/{i:06d}"))
+                          _segments_of(ids, things), f"{scenario}/seed{seed}/{i:06d}{tag}"))
     return out
 
 
 def load_samples(cache_dir: Path, scenario: str, seed: int, frames: int, width: int = 320,
-                 height: int = 240) -> list[Sample]:
+                 height: int = 240, domain: Optional[str] = None) -> list[Sample]:
     """:func:`render_samples` through an ``.npz`` cache in ``cache_dir``."""
     from pvslam_plugins.datasets.synthetic.scene import CATEGORIES
 
-    path = Path(cache_dir) / f"{scenario}-seed{seed}-n{frames}-{width}x{height}.npz"
+    style = f"-{domain}" if domain else ""
+    path = Path(cache_dir) / f"{scenario}-seed{seed}-n{frames}-{width}x{height}{style}.npz"
     things = {c.id for c in CATEGORIES if c.isthing}
     if path.is_file():
         z = np.load(path)
         names = json.loads(str(z["names"]))
         return [Sample(torch.from_numpy(img), torch.from_numpy(ids.astype(np.int64)),
                        _segments_of(ids, things), name) for img, ids, name in zip(z["images"], z["ids"], names)]
-    samples = render_samples(scenario, seed, frames, width, height)
+    samples = render_samples(scenario, seed, frames, width, height, domain)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez_compressed(tmp, images=np.stack([s.image.numpy() for s in samples]),

@@ -5,10 +5,12 @@ synthetic scenarios' panoptic labels.
     pvslam train segmenter --plugin panoptic_fpn --out runs/pfpn --resume   # continue after an interruption
 
 Data: ``frames_per_sequence`` frames spread over every scenario in ``scenarios`` for each of ``train_seeds``;
-validation on ``val_seeds`` (held out: no training frame comes from them).  AdamW with a linear warm-up and a
-cosine decay over the run's progress, ``max(iteration / iterations, minutes / time_budget_min)``: on a shared
-machine of unknown speed the run ends on whichever limit comes first with its learning rate fully decayed (the
-summary says which).  Written into the output folder: ``last.pt`` (model + optimiser + generator state, every
+validation on ``val_seeds`` (held out: no training frame comes from them).  ``domain_seeds`` add frames rendered
+with the generator's domain randomisation (its ``"train"`` split; the held-out texture families and thing sizes
+never reach training); ``init_weights`` starts from a checkpoint instead of a random initialisation.  AdamW with a
+linear warm-up and a cosine decay over the run's progress, ``max(iteration / iterations, minutes /
+time_budget_min)``: on a shared machine of unknown speed the run ends on whichever limit comes first with its
+learning rate fully decayed (the summary says which).  Written into the output folder: ``last.pt`` (model + optimiser + generator state, every
 ``checkpoint_every`` iterations and on Ctrl-C; ``--resume`` continues from it), ``loss.csv`` (one row per
 iteration), ``loss.png``, ``model_final.pth`` (pvslam's PanopticFPN format, loadable as ``weights``),
 ``eval.json`` and ``eval.md`` (PQ/SQ/RQ on the validation seeds, per class).
@@ -32,13 +34,18 @@ __all__ = ["TrainConfig", "run", "DEFAULT_SCENARIOS"]
 
 DEFAULT_SCENARIOS = ("driving_loop", "moving_vehicles", "indoor_handheld", "handheld_fast", "indoor_textureless",
                      "busy_street", "forward_low_parallax", "driving_city")
+TRAINING_DOMAIN = "train"  # the generator's domain split of the domain_seeds frames; its held-out split never trains
 LOSS_TERMS = ("loss_sem_seg", "loss_rpn_cls", "loss_rpn_loc", "loss_cls", "loss_box_reg", "loss_mask")
 
 
 class TrainConfig(PluginConfig):
     scenarios: list[str] = Field(list(DEFAULT_SCENARIOS), description="synthetic scenarios to train and validate on")
     train_seeds: list[int] = Field([1, 2, 3, 4, 5, 6, 7, 8], description="generator seeds of the training frames")
+    domain_seeds: list[int] = Field([], description="generator seeds rendered with domain randomisation (its "
+                                    "training split: other textures, sizes, light, camera) as extra training frames")
     val_seeds: list[int] = Field([100, 101], description="held-out generator seeds for validation")
+    init_weights: Optional[str] = Field(None, description="start from these PanopticFPN weights (a pvslam "
+                                        "checkpoint) instead of a random initialisation: fine-tuning")
     frames_per_sequence: int = Field(24, ge=1, description="training frames per (scenario, seed), evenly spaced")
     val_frames_per_sequence: int = Field(8, ge=1, description="validation frames per (scenario, seed)")
     width: int = Field(320, ge=32, description="rendered frame width (px)")
@@ -76,9 +83,9 @@ class TrainConfig(PluginConfig):
     @field_validator("val_seeds")
     @classmethod
     def _held_out(cls, v: list[int], info) -> list[int]:
-        common = set(v) & set(info.data.get("train_seeds", []))
+        common = set(v) & (set(info.data.get("train_seeds", [])) | set(info.data.get("domain_seeds", [])))
         if common:
-            raise ValueError(f"val_seeds {sorted(common)} are also train_seeds; validation seeds must be held out")
+            raise ValueError(f"val_seeds {sorted(common)} are also training seeds; validation seeds must be held out")
         return v
 
 
@@ -98,7 +105,8 @@ def lr_at(cfg: TrainConfig, it: int, progress: float) -> float:
     return cfg.lr * (lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * min(max(t, 0.0), 1.0))))
 
 
-def _samples(cfg: TrainConfig, cache: Path, seeds: list[int], frames: int, progress: bool, desc: str):
+def _samples(cfg: TrainConfig, cache: Path, seeds: list[int], frames: int, progress: bool, desc: str,
+             domain: Optional[str] = None):
     from tqdm import tqdm
 
     from .data import load_samples
@@ -106,7 +114,7 @@ def _samples(cfg: TrainConfig, cache: Path, seeds: list[int], frames: int, progr
     out = []
     jobs = [(s, seed) for seed in seeds for s in cfg.scenarios]
     for scen, seed in tqdm(jobs, desc=desc, disable=not progress, leave=False):
-        out += load_samples(cache, scen, seed, frames, cfg.width, cfg.height)
+        out += load_samples(cache, scen, seed, frames, cfg.width, cfg.height, domain)
     return out
 
 
@@ -213,10 +221,17 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
     out, cache = prepare_run(cfg, out)
     cats = synthetic_category_set()
     model = PanopticFPN(preset("reduced"), cats)
+    if cfg.init_weights is not None:
+        from .checkpoint import load_weights
+
+        load_weights(model, cfg.init_weights, strict=True)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     gen = torch.Generator().manual_seed(cfg.seed)
     t_data = time.perf_counter()
     train = _samples(cfg, cache, cfg.train_seeds, cfg.frames_per_sequence, cfg.progress, "render train frames")
+    if cfg.domain_seeds:
+        train += _samples(cfg, cache, cfg.domain_seeds, cfg.frames_per_sequence, cfg.progress,
+                          "render randomised train frames", TRAINING_DOMAIN)
     val = _samples(cfg, cache, cfg.val_seeds, cfg.val_frames_per_sequence, cfg.progress, "render val frames")
     data_s = time.perf_counter() - t_data
     loop = PanopticFPNLoop(cfg, out, model, cats, train, resume, opt, gen)

@@ -9,7 +9,7 @@ from pvslam_plugins.segmenters.panoptic_fpn import segmenter as seg_mod
 from pvslam_plugins.segmenters.panoptic_fpn.checkpoint import CheckpointError, UnsafeCheckpoint
 from pvslam_plugins.segmenters.panoptic_fpn.segmenter import SHIPPED_WEIGHTS, PanopticFPNSegmenterConfig, build_model
 
-LFS = "version https://git-lfs.github.com/spec/v1\noid sha256:a8d56a2b\nsize 8519935\n"
+LFS = "version https://git-lfs.github.com/spec/v1\noid sha256:1d02f92e\nsize 8520508\n"
 
 
 def test_a_zeroed_shipped_checkpoint_is_refused(tmp_path, monkeypatch):

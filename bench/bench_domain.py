@@ -1,0 +1,124 @@
+"""Panoptic quality of ``panoptic_fpn`` weights off their training renderer: frames of the generator's held-out
+domain (texture families, thing sizes no training frame shows; see the synthetic plugin's ``domain.py``) against
+frames of the plain generator's validation seeds (and, between them, frames of its training domain on unseen seeds).
+
+    python bench/bench_domain.py --model old=runs/old_reduced_synthetic.pth --model new=runs/pfpn_dr/model_final.pth
+    python bench/bench_domain.py                      # the shipped weights only
+
+Prints one table per frame set (a row per model: PQ, SQ, RQ, things, stuff, PQ with ground-truth segments under
+64 px as void) and writes them with the commit of the measured code (:mod:`bench.provenance`) to ``--json`` (default
+``runs/bench/domain_pq.json``) and the Markdown beside it.  Torch runs with one thread (``--threads``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Mapping, Optional, Sequence
+
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+from bench import provenance  # noqa: E402
+
+HELD_OUT = "heldout"
+SEEN = "train_split"
+PLAIN = "plain"
+
+
+def frame_sets(heldout_seeds: Sequence[int], plain_seeds: Sequence[int], frames: int,
+               scenarios: Optional[Sequence[str]] = None, width: int = 320, height: int = 240) -> dict[str, list]:
+    """``{"heldout": samples, "train_split": samples, "plain": samples}``: ``frames`` evenly spaced frames of every
+    scenario per seed, rendered in the generator's held-out domain, in its training domain (seen families, unseen
+    seeds: how much of the gap is the families') with ``heldout_seeds``, and by the plain generator with
+    ``plain_seeds``.  Seeds the trainer's defaults train on are refused for every set."""
+    from pvslam_plugins.segmenters.panoptic_fpn.data import render_samples
+    from pvslam_plugins.segmenters.panoptic_fpn.train import TrainConfig
+
+    cfg = TrainConfig()
+    trained = set(cfg.train_seeds) | set(cfg.domain_seeds)
+    if trained & (set(heldout_seeds) | set(plain_seeds)):
+        raise ValueError(f"seeds {sorted(trained & (set(heldout_seeds) | set(plain_seeds)))} are training seeds")
+    scenarios = list(scenarios or cfg.scenarios)
+    out: dict[str, list] = {HELD_OUT: [], SEEN: [], PLAIN: []}
+    for name, seeds, domain in ((HELD_OUT, heldout_seeds, "heldout"), (SEEN, heldout_seeds, "train"),
+                                (PLAIN, plain_seeds, None)):
+        for scen in scenarios:
+            for seed in seeds:
+                out[name] += render_samples(scen, seed, frames, width, height, domain=domain)
+    return out
+
+
+def compare(models: Mapping[str, torch.nn.Module], sets: Mapping[str, list], min_gt_area: int = 64) -> dict:
+    """``{set: {model: evaluate(...) result}}`` of every model on every frame set."""
+    from pvslam_plugins.segmenters.panoptic_fpn.evaluate import evaluate
+
+    return {s: {m: evaluate(model, samples, min_gt_area) for m, model in models.items()} for s, samples in sets.items()}
+
+
+def format_tables(results: Mapping[str, Mapping[str, dict]]) -> str:
+    """One Markdown table per frame set, one row per model."""
+    blocks = []
+    for s, by_model in results.items():
+        n = next(iter(by_model.values()))["num_frames"] if by_model else 0
+        lines = [f"### {s} ({n} frames)", "",
+                 "| weights | PQ | SQ | RQ | PQ things | PQ stuff | PQ, GT >= 64 px |", "|---|---|---|---|---|---|---|"]
+        for m, r in by_model.items():
+            p = r["pq"]
+            small = f"{100 * r['pq_min_area']['pq']:.1f}" if "pq_min_area" in r else "-"
+            lines.append(f"| {m} | {100 * p['pq']:.1f} | {100 * p['sq']:.1f} | {100 * p['rq']:.1f} | "
+                         f"{100 * p['things']['pq']:.1f} | {100 * p['stuff']['pq']:.1f} | {small} |")
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
+
+
+def load_models(specs: Sequence[str]) -> dict[str, torch.nn.Module]:
+    """``NAME=PATH`` specs -> models built as the segmenter builds them (its thresholds); none: the shipped file."""
+    from pvslam_plugins.segmenters.panoptic_fpn.segmenter import PanopticFPNSegmenterConfig, build_model
+
+    if not specs:
+        return {"shipped": build_model(PanopticFPNSegmenterConfig())}
+    out = {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep or not name or not path:
+            raise SystemExit(f"pvslam: error: --model {spec!r}: expected NAME=PATH")
+        out[name] = build_model(PanopticFPNSegmenterConfig(weights=path))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", action="append", default=[], help="NAME=PATH of weights to compare (repeatable)")
+    ap.add_argument("--heldout-seeds", type=int, nargs="+", default=[400, 401])
+    ap.add_argument("--plain-seeds", type=int, nargs="+", default=[100, 101],
+                    help="the trainer's validation seeds by default")
+    ap.add_argument("--frames", type=int, default=8, help="frames per scenario and seed")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--json", default=str(provenance.RESULTS_DIR / "domain_pq.json"), help="result file")
+    args = ap.parse_args(argv)
+    try:
+        prov = provenance.check(args.json)
+    except provenance.ProvenanceError as exc:
+        return provenance.fail(exc)
+    torch.set_num_threads(args.threads)
+    t0 = time.perf_counter()
+    models = load_models(args.model)
+    sets = frame_sets(args.heldout_seeds, args.plain_seeds, args.frames)
+    results = compare(models, sets)
+    table = format_tables(results)
+    print(table)
+    payload = {"models": args.model or ["shipped"], "heldout_seeds": args.heldout_seeds,
+               "plain_seeds": args.plain_seeds, "frames_per_sequence": args.frames, "results": results,
+               "seconds": time.perf_counter() - t0}
+    provenance.write_json(args.json, payload, prov)
+    provenance.write_text(Path(args.json).with_suffix(".md"), table + "\n", prov)
+    print(f"results: {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
