@@ -16,15 +16,92 @@ counted once):
 """
 from __future__ import annotations
 
+import json
 import math
+import re
+from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
 
-__all__ = ["loop_precision_recall", "revisit_events"]
+__all__ = ["loop_precision_recall", "revisit_events", "pair_array", "read_pairs_json", "pairs_json_text"]
+
+# the "pairs" list of a revisit file, [[i, j], ...] of integers, is read without a Python object per pair: its opening,
+# its end (the last pair's bracket and the list's) and the characters allowed between
+_PAIRS_OPEN = re.compile(r'"pairs"\s*:\s*\[')
+_PAIRS_END = re.compile(r"\]\s*\]")
+_PAIRS_BODY = re.compile(r"[0-9\s,\[\]-]*")
+_BRACKETS = str.maketrans("[],", "   ")
+_WRITE_ROWS = 65536  # pairs formatted at once when writing
+
+
+def pair_array(pairs: Any) -> np.ndarray:
+    """Revisit pairs as one int64 ``[M, 2]`` array (as given, no normalisation): a long run's ground truth holds
+    millions of pairs, which as Python tuples cost ~100 bytes each."""
+    arr = np.asarray(pairs if len(pairs) else np.zeros((0, 2)), dtype=np.int64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"revisit pairs must be [i, j] rows, got an array of shape {arr.shape}")
+    return arr
+
+
+def read_pairs_json(path: str | Path) -> np.ndarray:
+    """The ``pairs`` of a revisit file (``{"pairs": [[i, j], ...], ...}``) as an int64 ``[M, 2]`` array;
+    :class:`ValueError` naming the file when it holds anything else."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a UTF-8 text file ({e})") from None
+    fast = _fast_pairs(text)
+    if fast is not None:
+        return fast
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, found a JSON {type(data).__name__}")
+    pairs = data.get("pairs")
+    ok = isinstance(pairs, list) and all(
+        isinstance(p, list) and len(p) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in p)
+        for p in pairs)
+    if not ok:
+        raise ValueError(f"{path}: expected {{\"pairs\": [[i, j], ...]}} with integer frame indices")
+    return pair_array(pairs)
+
+
+def _fast_pairs(text: str):
+    """The pairs of a well-formed, non-empty revisit file's text as an array, or None to let the JSON parser
+    decide."""
+    m = _PAIRS_OPEN.search(text) if text.lstrip().startswith("{") else None
+    end = _PAIRS_END.search(text, m.end()) if m is not None else None
+    if end is None:
+        return None
+    body = text[m.end():end.start() + 1]  # [i, j], ... up to the last pair's bracket
+    if not _PAIRS_BODY.fullmatch(body):
+        return None
+    nums = np.fromstring(body.translate(_BRACKETS), dtype=np.int64, sep=" ")
+    n = body.count("[")
+    if body.count("]") != n or len(nums) != 2 * n:
+        return None
+    return nums.reshape(-1, 2)
+
+
+def pairs_json_text(pairs: Any, **extra: Any) -> str:
+    """``{"pairs": [[i, j], ...], **extra}`` as one line of JSON, formatted in blocks of rows (no Python list per
+    pair)."""
+    arr = pair_array(pairs)
+    blocks = (", ".join(f"[{i}, {j}]" for i, j in arr[k:k + _WRITE_ROWS].tolist())
+              for k in range(0, len(arr), _WRITE_ROWS))
+    rest = json.dumps(extra, allow_nan=False)[1:-1]
+    return '{"pairs": [' + ", ".join(blocks) + "]" + (", " + rest if rest else "") + "}\n"
 
 
 def _pairs(pairs: Iterable[Any]) -> np.ndarray:
+    if isinstance(pairs, np.ndarray):
+        arr = pair_array(pairs)
+        if not len(arr):
+            return arr
+        return np.unique(np.stack([arr.max(1), arr.min(1)], 1), axis=0)
     out = []
     for p in pairs:
         if hasattr(p, "frame_i") and hasattr(p, "frame_j"):  # LoopClosure (input-frame indices)
