@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from .config import PipelineConfig, ResolvedConfig
+from .evaluation.loops import pair_array, read_pairs_json
 from .outputs.trajectory_io import TrajectoryWriter, write_tum
 from .types import Category, Frame, PanopticSegmentation, SequenceInfo
 
@@ -62,8 +63,8 @@ class RunOutputs:
         self.names: dict[int, str] = {}  # input-frame index -> source name (keyframes.json, exports)
         self.write_errors: dict[str, str] = {}  # path -> error, of every write that failed
         if info.loop_pairs is not None:  # archived runs re-evaluate loops without the dataset
-            self._write("groundtruth_loops.json", _write_json, self.dir / "groundtruth_loops.json",
-                        {"pairs": [[int(i), int(j)] for i, j in info.loop_pairs], "source": info.source or info.name})
+            self._write("groundtruth_loops.json", _write_pairs, self.dir / "groundtruth_loops.json", info.loop_pairs,
+                        info.source or info.name)
         self.pan_writer = None
         if pcfg.outputs.panoptic_png:
             from .outputs.panoptic_png import PanopticWriter
@@ -207,6 +208,13 @@ def _write_json(path: Path, obj: Any) -> None:
     write_json_atomic(path, obj)
 
 
+def _write_pairs(path: Path, pairs, source: str) -> None:
+    from .evaluation.loops import pairs_json_text
+    from .outputs._atomic import atomic_write_text
+
+    atomic_write_text(path, pairs_json_text(pairs, source=source))
+
+
 def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing: dict, registry=None,
                        dataset=None, pcfg: Optional[PipelineConfig] = None,
                        dataset_error: Optional[str] = None) -> dict[str, Any]:
@@ -232,7 +240,7 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     loop_gt = None
     loops_file = run_dir / "groundtruth_loops.json"
     if loops_file.is_file():
-        loop_gt = _read_loop_pairs(loops_file)
+        loop_gt = read_pairs_json(loops_file)
         sources["loops"] = "groundtruth_loops.json (run directory)"
     from .outputs.panoptic_png import has_segments
 
@@ -277,7 +285,7 @@ def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing
     return {"timing": timing, **out, "evaluation_sources": sources}
 
 
-def _revisits_run(pairs, run_dir: Path) -> list:
+def _revisits_run(pairs, run_dir: Path) -> np.ndarray:
     """The ground-truth revisit pairs among the frames the run processed (``trajectory.txt``'s rows): a run stopped
     early (``run.max_frames``, an error) has no true loop at the frames it never reached, so its recall is not 0."""
     from .outputs.trajectory_io import read_tum
@@ -285,8 +293,9 @@ def _revisits_run(pairs, run_dir: Path) -> list:
     try:
         n = len(read_tum(run_dir / "trajectory.txt")[0])
     except (OSError, ValueError):
-        return list(pairs)
-    return [p for p in pairs if max(int(p[0]), int(p[1])) < n]
+        return pair_array(pairs)
+    pairs = pair_array(pairs)
+    return pairs[pairs.max(1) < n] if len(pairs) else pairs
 
 
 def _open_dataset(resolved: ResolvedConfig, registry=None):
@@ -299,17 +308,3 @@ def _open_dataset(resolved: ResolvedConfig, registry=None):
         return spec.factory(resolved.models["dataset"], BuildContext(device=torch.device("cpu"))), None
     except Exception as exc:  # noqa: BLE001 - any failure to open it means: evaluate from the run directory
         return None, f"{type(exc).__name__}: {exc}"
-
-
-def _read_loop_pairs(path: Path) -> list[tuple[int, int]]:
-    """The revisit pairs of ``groundtruth_loops.json`` (``{"pairs": [[i, j], ...]}``); :class:`ValueError` naming
-    the file when it holds anything else."""
-    from .evaluation.run_eval import read_json_object
-
-    pairs = read_json_object(path).get("pairs")
-    ok = isinstance(pairs, list) and all(
-        isinstance(p, list) and len(p) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in p)
-        for p in pairs)
-    if not ok:
-        raise ValueError(f"{path}: expected {{\"pairs\": [[i, j], ...]}} with integer frame indices")
-    return [tuple(p) for p in pairs]

@@ -31,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Optional, Sequence
 
+import numpy as np
 import torch
 
 POSE_LAYOUT = "[tx, ty, tz, qx, qy, qz, qw], camera-to-world (T_wc)"
@@ -221,7 +222,7 @@ class SequenceInfo:
     has_gt_pose: bool = False
     has_gt_depth: bool = False
     has_gt_panoptic: bool = False
-    loop_pairs: Optional[list[tuple[int, int]]] = None  # ground-truth revisits (frame indices), if known
+    loop_pairs: Optional[np.ndarray] = None  # int64 [M, 2]: ground-truth revisits (frame indices), if known
     source: str = ""
 
 

@@ -33,6 +33,7 @@ import torch
 from pydantic import Field, field_validator, model_validator
 
 from ..config_base import PluginConfig
+from ..evaluation.loops import pair_array
 from ..interfaces import DatasetReader
 from ..types import Category, Frame, Intrinsics, PanopticSegmentation, SequenceInfo
 
@@ -252,8 +253,8 @@ class BaseReader(DatasetReader):
     def _categories(self) -> list[Category]:
         return []
 
-    def _loop_pairs(self) -> Optional[list[tuple[int, int]]]:
-        """Ground-truth revisit pairs in raw indices, if known."""
+    def _loop_pairs(self) -> Optional[np.ndarray | list[tuple[int, int]]]:
+        """Ground-truth revisit pairs in raw indices (``[M, 2]`` rows), if known."""
         return None
 
     def _stream(self, start: int, stride: int) -> Iterator[Frame]:
@@ -312,21 +313,28 @@ class BaseReader(DatasetReader):
         k = int(round((raw_index - r.start) / r.step))
         return min(max(k, 0), len(r) - 1)
 
+    def _output_pairs(self, raw: np.ndarray) -> np.ndarray:
+        """Revisit pairs ``[M, 2]`` in raw indices -> the distinct pairs of distinct output indices (first
+        occurrences, in order), as :meth:`output_index` maps each index."""
+        if self._count() is None or not len(raw):
+            return np.zeros((0, 2), dtype=np.int64)
+        r = self.frame_range()
+        ok = ((raw >= r.start) & (raw < r.stop)).all(1)
+        k = raw - r.start
+        if r.step != 1:
+            k = np.rint(k / r.step).astype(np.int64)  # half to even, as round()
+        np.clip(k, 0, len(r) - 1, out=k)
+        ok &= k[:, 0] != k[:, 1]
+        k = k[ok]
+        _, first = np.unique(k[:, 0] * len(r) + k[:, 1], return_index=True)  # one key per pair
+        return k[np.sort(first)]
+
     def info(self) -> SequenceInfo:
         if self._info is None:
             num = None if self._count() is None else len(self.frame_range())
             pose, depth, pan = self._has_gt()
             loops = self._loop_pairs()
-            mapped: Optional[list[tuple[int, int]]] = None
-            if loops is not None:
-                seen: set[tuple[int, int]] = set()
-                mapped = []
-                for i, j in loops:
-                    a, b = self.output_index(int(i)), self.output_index(int(j))
-                    if a is None or b is None or a == b or (a, b) in seen:
-                        continue
-                    seen.add((a, b))
-                    mapped.append((a, b))
+            mapped = None if loops is None else self._output_pairs(pair_array(loops))
             geo = self.geometry()
             self._info = SequenceInfo(
                 name=self._sequence_name(),

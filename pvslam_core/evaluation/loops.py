@@ -16,15 +16,97 @@ counted once):
 """
 from __future__ import annotations
 
+import json
 import math
+import re
+from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
 
-__all__ = ["loop_precision_recall", "revisit_events"]
+__all__ = ["loop_precision_recall", "revisit_events", "pair_array", "read_pairs_json", "pairs_json_text"]
+
+# the "pairs" list of a revisit file, [[i, j], ...] of integers, is read without a Python object per pair: its opening,
+# its end (the last pair's bracket and the list's) and the characters allowed between
+_PAIRS_OPEN = re.compile(r'"pairs"\s*:\s*\[')
+_PAIRS_END = re.compile(r"\]\s*\]")
+_PAIRS_BODY = re.compile(r"[0-9\s,\[\]-]*")
+_BRACKETS = str.maketrans("[],", "   ")
+_WRITE_ROWS = 65536  # pairs formatted at once when writing
+_LINK_CHUNK = 1 << 17  # pairs whose links to the next rows are looked up at once (revisit_events)
+
+
+def pair_array(pairs: Any) -> np.ndarray:
+    """Revisit pairs as one int64 ``[M, 2]`` array (as given, no normalisation): a long run's ground truth holds
+    millions of pairs, which as Python tuples cost ~100 bytes each."""
+    arr = np.asarray(pairs if len(pairs) else np.zeros((0, 2)), dtype=np.int64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"revisit pairs must be [i, j] rows, got an array of shape {arr.shape}")
+    return arr
+
+
+def read_pairs_json(path: str | Path) -> np.ndarray:
+    """The ``pairs`` of a revisit file (``{"pairs": [[i, j], ...], ...}``) as an int64 ``[M, 2]`` array;
+    :class:`ValueError` naming the file when it holds anything else."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a UTF-8 text file ({e})") from None
+    fast = _fast_pairs(text)
+    if fast is not None:
+        return fast
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, found a JSON {type(data).__name__}")
+    pairs = data.get("pairs")
+    ok = isinstance(pairs, list) and all(
+        isinstance(p, list) and len(p) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in p)
+        for p in pairs)
+    if not ok:
+        raise ValueError(f"{path}: expected {{\"pairs\": [[i, j], ...]}} with integer frame indices")
+    return pair_array(pairs)
+
+
+def _fast_pairs(text: str):
+    """The pairs of a well-formed, non-empty revisit file's text as an array, or None to let the JSON parser
+    decide."""
+    m = _PAIRS_OPEN.search(text) if text.lstrip().startswith("{") else None
+    end = _PAIRS_END.search(text, m.end()) if m is not None else None
+    if end is None:
+        return None
+    body = text[m.end():end.start() + 1]  # [i, j], ... up to the last pair's bracket
+    if not _PAIRS_BODY.fullmatch(body):
+        return None
+    nums = np.fromstring(body.translate(_BRACKETS), dtype=np.int64, sep=" ")
+    n = body.count("[")
+    if body.count("]") != n or len(nums) != 2 * n:
+        return None
+    return nums.reshape(-1, 2)
+
+
+def pairs_json_text(pairs: Any, **extra: Any) -> str:
+    """``{"pairs": [[i, j], ...], **extra}`` as one line of JSON, formatted in blocks of rows (no Python list per
+    pair)."""
+    arr = pair_array(pairs)
+    blocks = (", ".join(f"[{i}, {j}]" for i, j in arr[k:k + _WRITE_ROWS].tolist())
+              for k in range(0, len(arr), _WRITE_ROWS))
+    rest = json.dumps(extra, allow_nan=False)[1:-1]
+    return '{"pairs": [' + ", ".join(blocks) + "]" + (", " + rest if rest else "") + "}\n"
 
 
 def _pairs(pairs: Iterable[Any]) -> np.ndarray:
+    if isinstance(pairs, np.ndarray):  # sorted unique (newer, older) rows through one int64 key per pair
+        arr = pair_array(pairs)
+        if not len(arr):
+            return arr
+        lo = arr.min()
+        newer, older = arr.max(1) - lo, arr.min(1) - lo
+        width = int(older.max()) + 1
+        key = np.unique(newer * width + older)
+        return np.stack([key // width + lo, key % width + lo], 1)
     out = []
     for p in pairs:
         if hasattr(p, "frame_i") and hasattr(p, "frame_j"):  # LoopClosure (input-frame indices)
@@ -40,20 +122,55 @@ def _pairs(pairs: Iterable[Any]) -> np.ndarray:
 
 
 def revisit_events(gt_pairs: Iterable[Any], tolerance: int = 5) -> list[np.ndarray]:
-    """Group GT pairs into revisit events (connected components, linked within ``tolerance`` in both indices)."""
+    """Group GT pairs into revisit events (connected components, linked within ``tolerance`` in both indices), in
+    the order of their first pair.
+
+    The links are not listed (a repeated loop's millions of pairs have ~(2 tolerance + 1)^2 neighbours each): within
+    one newer frame ``i`` consecutive older frames link when at most ``tolerance`` apart, and each pair links to the
+    first and the last pair within ``tolerance`` of it in each of the next ``tolerance`` rows.  That is exact: in a
+    window of ``2 tolerance + 1`` frames a row holds at most two runs of linked pairs, and those two cover them."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
 
-    gt = _pairs(gt_pairs)
-    if len(gt) == 0:
-        return []
-    links = cKDTree(gt.astype(np.float64)).query_pairs(r=float(tolerance), p=np.inf, output_type="ndarray")
+    gt = _pairs(gt_pairs)  # unique, sorted by (i, j)
     n = len(gt)
-    graph = coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n)) if len(links) else coo_matrix((n, n))
-    _, labels = connected_components(graph, directed=False)
-    order = np.argsort([gt[labels == c][:, 0].min() for c in range(labels.max() + 1)], kind="stable")
-    return [gt[labels == c] for c in order]
+    if n == 0:
+        return []
+    tol = int(tolerance)
+    i, j = gt[:, 0] - gt[:, 0].min(), gt[:, 1] - gt[:, 1].min() + tol
+    width = int(j.max()) + tol + 1
+    key = i * width + j  # sorted, as gt
+    same = np.flatnonzero((i[1:] == i[:-1]) & (j[1:] - j[:-1] <= tol))
+    labels = _merge_labels(np.arange(n), same, same + 1, connected_components, coo_matrix)  # runs within a row
+    for di in range(1, tol + 1):
+        a, b = [], []
+        for c0 in range(0, n, _LINK_CHUNK):  # in chunks of pairs: the temporaries stay small
+            ic, jc = i[c0:c0 + _LINK_CHUNK] + di, j[c0:c0 + _LINK_CHUNK]
+            for m in (np.searchsorted(key, ic * width + jc - tol, side="left"),
+                      np.searchsorted(key, ic * width + jc + tol, side="right") - 1):
+                mc = np.clip(m, 0, n - 1)
+                ok = (m >= 0) & (m < n) & (i[mc] == ic) & (np.abs(j[mc] - jc) <= tol)
+                la, lb = labels[np.flatnonzero(ok) + c0], labels[mc[ok]]
+                pair = np.unique(la[la != lb] * n + lb[la != lb])  # links between components, once each
+                a.append(pair // n)
+                b.append(pair % n)
+        labels = _merge_labels(labels, np.concatenate(a), np.concatenate(b), connected_components, coo_matrix)
+    # events in the order of their first pair (gt is sorted by i, so that is also the order of their smallest i)
+    first = np.full(labels.max() + 1, n, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(n))
+    rank = np.argsort(np.argsort(first[np.unique(labels)]))[np.searchsorted(np.unique(labels), labels)]
+    order = np.argsort(rank, kind="stable")
+    return np.split(gt[order], np.flatnonzero(np.diff(rank[order])) + 1)
+
+
+def _merge_labels(labels: np.ndarray, a: np.ndarray, b: np.ndarray, components, coo) -> np.ndarray:
+    """Component labels ``[n]`` after also linking the components ``a[k]`` and ``b[k]``."""
+    if len(a) == 0:
+        return labels
+    m = int(labels.max()) + 1
+    graph = coo((np.ones(len(a), dtype=np.int8), (a, b)), shape=(m, m))
+    _, merged = components(graph, directed=False)
+    return merged[labels].astype(np.int64)
 
 
 def loop_precision_recall(detected: Iterable[Any], gt_pairs: Iterable[Any], tolerance: int = 5) -> dict:

@@ -5,7 +5,7 @@ uses it (each retired key below names its value; docs/decisions.md says how the 
 """
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Optional
 
 from pydantic import Field
 
@@ -31,9 +31,10 @@ class KeyframesConfig(PluginConfig):
     max_gap_s: float = Field(
         0.5, gt=0, description="seconds: a keyframe whose removal would leave a longer gap between its neighbours is "
         "never redundant (docs/decisions.md: graph.keyframes.max_gap_s)")
-    revisit_thresh: float = Field(
-        0.0, ge=0, description="frame distance (reference BA px) to an older keyframe near a loop under which a "
-        "keyframe leaving the window is culled; 0 keeps all. 4: bounds the map on repeated laps (endless input)")
+    revisit_thresh: Optional[float] = Field(
+        None, ge=0, description="frame distance (reference BA px) to an older keyframe near a loop under which a "
+        "keyframe leaving the window is culled; 0 keeps all; None: 4 for a live source, else 0. Bounds the map on "
+        "repeated laps")
 
 
 class EdgesConfig(PluginConfig):

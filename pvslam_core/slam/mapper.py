@@ -38,7 +38,7 @@ from .edges import connect_keyframe, retirement_mask
 from .frame_poses import FrameEntry
 from .graph import FrameGraph
 from .keyframes import KeyframePolicy
-from .revisits import RevisitCulling
+from .revisits import RevisitCulling, revisit_thresh
 from .loop_closer import LoopCloser
 from .map_state import KeyframeSnapshot, MapSnapshot, MapState
 from .observe import EdgeObserver
@@ -69,8 +69,8 @@ class Mapper:
         self.keyframe_policy = KeyframePolicy(self.cfg.keyframes, st, self._connect)
         self.loop_closer = LoopCloser(pcfg.loop_closure, st, observer, optimizer, loop_detector,
                                       self.cfg.edges.active_window)
-        self.revisits = RevisitCulling(self.cfg.keyframes.revisit_thresh, st, observer, self.cfg.edges.active_window,
-                                       self.loop_closer.loops, self.cfg.edges.neighbours)
+        self.revisits = RevisitCulling(revisit_thresh(self.cfg.keyframes.revisit_thresh, info), st, observer,
+                                       self.cfg.edges.active_window, self.loop_closer.loops, self.cfg.edges.neighbours)
         self.optimizer = optimizer
         self.observer = observer
         self.failures = 0

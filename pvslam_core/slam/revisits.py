@@ -7,12 +7,15 @@ closes a loop every few keyframes (:mod:`.loop_closer`).  A keyframe ``r`` that 
 ``active_window`` keyframes behind the newest) is examined once the map has settled after the newest loop BA:
 
 1. **candidates**: the older keyframes near the partner of a loop closed near ``r`` (:data:`LOOP_REACH`);
-2. **view**: the nearest candidate ``j`` by frame distance under the current estimate must be under
-   ``revisit_thresh``;
-3. **agreement**: ``r`` is relocalised against ``j`` from their flow, measured now, and ``j``'s depth
-   (:func:`.fragments.relocalise`); the two must agree on the local scale (:data:`MAX_SCALE_CHANGE`) and the current
-   estimate must explain that flow (:data:`MAX_DISAGREEMENT`).  Where they disagree the map has not settled there
-   (a lap's junction, before the final BA reconciles it) and ``r`` stays;
+2. **view**: the candidates under ``revisit_thresh`` of frame distance from ``r`` under the current estimate, the
+   nearest first (at most :data:`MAX_TRIES`);
+3. **agreement**: ``r`` is relocalised against each view ``j`` in turn from their flow, measured now, and ``j``'s
+   depth (:func:`.fragments.relocalise`) until one agrees: the two must agree on the local scale
+   (:data:`MAX_SCALE_CHANGE`) and the current estimate must explain that flow (:data:`MAX_DISAGREEMENT`).  Where no
+   view agrees the map has not settled there (a lap's junction, before the final BA reconciles it) and ``r`` stays;
+   but where one of the views is a keyframe that stayed so on an earlier revisit and agrees on the scale, the final
+   BA has that place's disagreement to work on already: ``r`` goes, where its relocalisation puts it (a lap's
+   junction keeps one revisit's stretch, not one per lap);
 4. **cull**, once the ``neighbours`` keyframes on either side of ``r`` were examined too and none of them stays (a
    keyframe that stays keeps its odometry neighbours, so what stays is a connected stretch, not a perforated one
    whose single keyframes a later BA would move on their loop edges alone).  A keyframe whose gates failed stays,
@@ -49,6 +52,9 @@ from .observe import EdgeObserver
 LOG = logging.getLogger("pvslam")
 
 
+# frame distance (reference BA px) under which a live source's revisit keyframes are culled: a keyframe is culled
+# where the map holds its view from a few pixels away
+LIVE_THRESH = 4.0
 # a keyframe is a revisit candidate when a loop was closed within this many keyframe ids of it, and its candidate
 # views are the older keyframes within this many graph indices of that loop's partner: along a revisit the loop
 # policy closes a loop every few keyframes, and the stretch between two loops is the same stretch of the old map
@@ -62,6 +68,20 @@ MAX_SCALE_CHANGE = 1.1
 # nor when the current estimate explains the measured flow between the two worse than this median reprojection error
 # (BA px): the map around them has not settled (it does after a revisit's first loops, at the final BA at the latest)
 MAX_DISAGREEMENT = 0.1
+# the nearest views a keyframe is relocalised against, in order, until one agrees: where earlier revisits left a
+# stretch that had not settled, its keyframes are often the nearest views, and an older one holds the same view
+MAX_TRIES = 3
+
+
+def revisit_thresh(configured: Optional[float], info) -> float:
+    """The culling threshold of a run: as configured, or where it is not set, :data:`LIVE_THRESH` for a live source
+    (``info.num_frames`` None: it may run for hours over the same places) and 0 (no culling) otherwise."""
+    if configured is not None:
+        return float(configured)
+    if info.num_frames is None:
+        LOG.info("live source: keyframes are culled on revisits (graph.keyframes.revisit_thresh=%g)", LIVE_THRESH)
+        return LIVE_THRESH
+    return 0.0
 
 
 def _passed(verdict) -> bool:
@@ -94,6 +114,7 @@ class RevisitCulling:
         self._examined: deque[tuple[int, Optional[tuple]]] = deque()
         self._recent_stays: deque[bool] = deque(maxlen=self.neighbours)  # whether each last decided keyframe stayed
         self._last_passed = False  # whether the last decided keyframe passed every gate
+        self._stayed: set[int] = set()  # ids of examined keyframes that stayed (a revisit's stretch)
 
     def candidates(self, r: int) -> list[int]:
         """Graph indices of the older keyframes that may hold keyframe ``r``'s view: those near the partner of a loop
@@ -138,6 +159,8 @@ class RevisitCulling:
             if not stay and not any(self._recent_stays) and not any(stays):
                 culled += self._cull(r_id, *verdict[:3])
             self._recent_stays.append(stay)
+            if stay and verdict is not None:
+                self._stayed.add(r_id)
             self._last_passed = passed[0]
         if culled:
             culled += self._cull_islands()
@@ -176,21 +199,33 @@ class RevisitCulling:
         if not cands:
             return None
         d = g.mutual_distance(r, cands)  # [C] BA px
-        best = int(torch.argmin(d))
-        if float(d[best]) >= self.thresh:
+        order = [int(c) for c in torch.argsort(d)[:MAX_TRIES] if float(d[c]) < self.thresh]
+        if not order:
             return None
-        j = cands[best]
-        obs = self.observer.observe_pair(j, r)  # j's pixels in r, measured now
-        reloc = relocalise(g.poses[j], g.disps[j], g.disps[r], g.intrinsics, obs.target[0], obs.weight[0])
-        pose_j, pose_r = g.poses[j].double().cpu(), g.poses[r].double().cpu()
-        passed = (reloc is not None and 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE and median_error(
-            pose_j, pose_r, g.disps[j], g.intrinsics, obs.target[0], obs.weight[0]) <= MAX_DISAGREEMENT)
-        if not passed:  # a failed gate: the current estimate, for step 4 to decide
-            return g.id_of(j), se3_mul(se3_inv(pose_j), pose_r), 1.0, False
+        pose_r = g.poses[r].double().cpu()
+        scaled = None  # the first relocalisation against a stayed keyframe whose scale agrees
+        for c in order:  # the nearest views first; the first one that agrees decides
+            j = cands[c]
+            obs = self.observer.observe_pair(j, r)  # j's pixels in r, measured now
+            reloc = relocalise(g.poses[j], g.disps[j], g.disps[r], g.intrinsics, obs.target[0], obs.weight[0])
+            pose_j = g.poses[j].double().cpu()
+            scale_ok = reloc is not None and 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE
+            if scale_ok and median_error(pose_j, pose_r, g.disps[j], g.intrinsics, obs.target[0],
+                                         obs.weight[0]) <= MAX_DISAGREEMENT:
+                break
+            if scale_ok and scaled is None and g.id_of(j) in self._stayed:
+                scaled = (j, reloc, pose_j)
+        else:
+            if scaled is not None:  # the place holds a revisit's stretch already: r goes where its flow puts it
+                j, reloc, pose_j = scaled
+                return g.id_of(j), se3_mul(se3_inv(pose_j), reloc.pose.double().cpu()), float(reloc.scale), True
+            # every gate failed: the current estimate against the nearest view, for step 4 to decide
+            j = cands[order[0]]
+            return g.id_of(j), se3_mul(se3_inv(g.poses[j].double().cpu()), pose_r), 1.0, False
         if LOG.isEnabledFor(logging.DEBUG):
             LOG.debug("keyframe %d (frame %d) may go for keyframe %d (frame %d): frame distance %.2f, relocalised by "
                       "%.3f (median error %.2f BA px, scale %.3f)", g.id_of(r), int(g.frame_index[r]), g.id_of(j),
-                      int(g.frame_index[j]), float(d[best]), float((reloc.pose[:3] - pose_r[:3]).norm()),
+                      int(g.frame_index[j]), float(d[c]), float((reloc.pose[:3] - pose_r[:3]).norm()),
                       reloc.error, reloc.scale)
         return g.id_of(j), se3_mul(se3_inv(pose_j), reloc.pose.double().cpu()), float(reloc.scale), True
 

@@ -54,26 +54,41 @@ def test_long_child_gets_the_overrides(monkeypatch, tmp_path, extra):
     assert sets == ["optimizer.iters=5", "loop.plugin=none"]
 
 
-def test_the_endless_input_run_compares_its_peak_memory_with_the_long_run(monkeypatch, tmp_path, capsys):
+def test_the_endless_input_runs_compare_peak_memory_as_a_live_source(monkeypatch, tmp_path, capsys):
+    from pvslam_core.slam.revisits import LIVE_THRESH
+
     def child(frames, peak, peak_run):
-        return {"frames": frames, "keyframes": frames // 2, "peak_mb": peak, "peak_run_mb": peak_run,
-                "first_cpu": 0.1, "last_cpu": 0.1, "ate_pct": 0.01, "path_m": 1.0, "loops": 3, "unmerged": 1}
+        return {"frames": frames, "keyframes": frames // 20, "culled": frames // 5, "peak_mb": peak,
+                "peak_run_mb": peak_run, "first_cpu": 0.1, "last_cpu": 0.1, "ate_pct": 0.01, "path_m": 1.0,
+                "loops": 3, "unmerged": 1, "samples": [{"frame": 1000 * k, "keyframes": 100 + k} for k in (1, 2)]}
+
+    results = {3000: child(3000, 1000.0, 650.0), 10000: child(10000, 1300.0, 700.0)}
 
     class Done:
         returncode, stderr = 0, ""
-        stdout = "log line\n" + __import__("json").dumps(child(10000, 1300.0, 700.0))
+
+        def __init__(self, cmd):
+            self.stdout = "log line\n" + __import__("json").dumps(results[int(cmd[cmd.index("--long-child") + 1])])
 
     calls = []
     monkeypatch.setattr(bench_pipeline, "generate", lambda *a, **k: tmp_path)
-    monkeypatch.setattr(bench_pipeline.subprocess, "run", lambda cmd, **k: calls.append(cmd) or Done())
+    monkeypatch.setattr(bench_pipeline.subprocess, "run", lambda cmd, **k: calls.append(cmd) or Done(cmd))
     monkeypatch.setattr(bench_pipeline, "RESULTS", {})
-    bench_pipeline.section_flat(tmp_path, child(3000, 1000.0, 650.0), 10000)
-    assert calls[0][calls[0].index("--long-child") + 1] == "10000"  # its own process
+    monkeypatch.setattr(bench_pipeline, "EXTRA", ["optimizer.iters=5"])
+    bench_pipeline.section_flat(tmp_path, 10000)
+    assert [c[c.index("--long-child") + 1] for c in calls] == ["3000", "10000"]  # each in its own process
+    for cmd in calls:  # culling as a live source gets it, then the user's overrides
+        assert [cmd[i + 1] for i, a in enumerate(cmd) if a == "--set"] == [
+            f"graph.keyframes.revisit_thresh={LIVE_THRESH}", "optimizer.iters=5"]
     out = capsys.readouterr().out
-    assert "1000 MB at 3000 frames" in out and "1300 MB at 10000 frames" in out and "ratio 1.30" in out
+    assert "3000 frames: 150 keyframes (600 culled on revisits), peak RSS 1000 MB" in out
+    assert "10000 frames: 500 keyframes (2000 culled on revisits), peak RSS 1300 MB" in out
     assert "[MISS] peak RSS 10000 / 3000 frames: 1.30" in out and "<= 1.10" in out
-    assert bench_pipeline.RESULTS["flat"]["peak_mb"] == 1300.0
+    assert "keyframes every 1000 frames: 101, 102" in out
+    assert bench_pipeline.RESULTS["flat"]["long"]["peak_mb"] == 1300.0
+    results[10000] = child(10000, 1080.0, 700.0)
+    bench_pipeline.section_flat(tmp_path, 10000)
+    assert "[PASS] peak RSS 10000 / 3000 frames: 1.08" in capsys.readouterr().out
     calls.clear()
-    bench_pipeline.section_flat(tmp_path, child(3000, 1000.0, 650.0), 0)  # --flat-frames 0: skipped
-    bench_pipeline.section_flat(tmp_path, None, 10000)  # the long run crashed: nothing to compare with
+    bench_pipeline.section_flat(tmp_path, 0)  # --flat-frames 0: skipped
     assert calls == []

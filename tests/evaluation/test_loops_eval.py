@@ -61,3 +61,60 @@ def test_empty_cases():
     assert math.isnan(r["precision"]) and r["recall"] == 0.0 and math.isnan(r["f1"])
     r = loop_precision_recall([(50, 1)], [])
     assert r["precision"] == 0.0 and math.isnan(r["recall"]) and r["num_fp"] == 1
+
+
+def _events_by_brute_force(pairs, tol):
+    """Connected components of the Chebyshev-within-tol relation, listed in the order of their first pair."""
+    import numpy as np
+
+    gt = np.unique(np.array([(max(a, b), min(a, b)) for a, b in pairs]), axis=0)
+    label = list(range(len(gt)))
+
+    def find(x):
+        while label[x] != x:
+            x = label[x]
+        return x
+
+    for a in range(len(gt)):
+        for b in range(a + 1, len(gt)):
+            if np.abs(gt[a] - gt[b]).max() <= tol:
+                label[find(b)] = find(a)
+    roots = [find(a) for a in range(len(gt))]
+    order = list(dict.fromkeys(roots))  # first appearance in sorted order
+    return [gt[[r == c for r in roots]] for c in order]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_events_equal_the_components_of_every_link(seed):
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    for _ in range(20):
+        n, tol, span = int(rng.integers(1, 120)), int(rng.integers(0, 7)), int(rng.integers(5, 120))
+        pairs = [tuple(p) for p in rng.integers(0, span, (n, 2))]
+        want = _events_by_brute_force(pairs, tol)
+        got = revisit_events(np.array(pairs), tol)
+        assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
+        assert all(np.array_equal(a, b) for a, b in zip(revisit_events(pairs, tol), want))  # tuples as arrays
+
+
+def test_events_of_a_long_loops_ground_truth_do_not_list_every_link():
+    """A repeated loop: every frame of laps 2..n revisits ~30 frames of each earlier lap (hundreds of thousands of
+    pairs, each within the tolerance of ~100 others): the events come out without a Python object or an array row
+    per link."""
+    import tracemalloc
+
+    import numpy as np
+
+    lap, laps = 400, 12
+    i = np.arange(lap, lap * laps)
+    rows = [np.stack([i, i - k * lap + d], 1) for k in range(1, laps) for d in range(-15, 15)]
+    pairs = np.concatenate(rows)
+    pairs = pairs[(pairs[:, 1] >= 0) & (pairs[:, 1] < pairs[:, 0] - 50)]
+    tracemalloc.start()
+    events = revisit_events(pairs, 5)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    # one event per lap difference: frame i revisits i - k lap for every k, a diagonal band through all laps
+    assert len(events) == laps - 1 and sum(len(e) for e in events) == len(np.unique(pairs, axis=0))
+    assert peak < 160 * len(pairs), (peak, len(pairs))  # listing the links costs ~2 KB per pair

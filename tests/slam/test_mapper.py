@@ -1,6 +1,7 @@
 """The mapper (Algorithm 1's per-frame driver) with the framework's exact fake plugins: per-frame results,
 initialisation, online BA accuracy, loop handling, keyframe removal, the motion cue for the VPS head, and the
 measured / guessed depth pixels (pvslam_core/slam/observed.py) in a keyframe's pose guess."""
+import dataclasses
 import math
 
 import pytest
@@ -14,7 +15,7 @@ from pvslam_core.geometry.projective import edge_transforms, project_points
 from pvslam_core.geometry.testing import umeyama_ate
 from pvslam_core.interfaces import BuildContext
 from pvslam_core.registry import get_registry
-from pvslam_core.slam import keyframes, loops, new_keyframe, observed
+from pvslam_core.slam import keyframes, loops, new_keyframe, observed, revisits
 from pvslam_core.slam.graph import EDGE_LOOP
 from pvslam_core.slam.mapper import Mapper
 from pvslam_core.slam.motion_cue import motion_cue
@@ -354,3 +355,18 @@ def test_the_window_ba_marks_the_pixels_its_edges_measure(monkeypatch):
     assert at_add and max(at_add) < 1.0  # each new keyframe had guessed columns ...
     fracs = [float(m.state.observed.masks[i].float().mean()) for i in m.graph.ids.tolist()]
     assert min(fracs) == 1.0, fracs  # ... which the window BA's edges measured
+
+
+@pytest.mark.parametrize("configured,live,expected", [(None, True, revisits.LIVE_THRESH), (None, False, 0.0),
+                                                      (0.0, True, 0.0), (2.5, False, 2.5)])
+def test_a_live_source_culls_its_revisits_unless_told_otherwise(configured, live, expected):
+    """A live camera may drive the same places for hours: where the threshold is not set, its map culls revisit
+    keyframes; a sequence of known length keeps every keyframe; a set threshold is kept either way."""
+    pcfg = validate_pipeline({"graph": {"keyframes": {"revisit_thresh": configured}}})
+    ds = fakes.FakeDataset(fakes.FakeDatasetConfig(frames=8, speed=SPEED))
+    info = dataclasses.replace(ds.info(), num_frames=None) if live else ds.info()
+    fe = fakes.ExactFrontend(fakes.ExactFrontendConfig(keyframe_every=2), ds=4)
+    spec = get_registry().get("optimizer", "online_ba")
+    m = Mapper(pcfg, info, fe, spec.factory(spec.config_model(), BuildContext(device=torch.device("cpu"))), None, "cpu")
+    assert m.revisits.thresh == pytest.approx(expected * m.state.px_scale)
+    assert (m.revisits.thresh > 0) == (expected > 0)

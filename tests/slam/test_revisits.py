@@ -183,3 +183,45 @@ def test_the_bound_fails_without_culling(laps_runs):
     _, (_, t_off) = laps_runs
     assert t_off["keyframes_culled_on_revisits"] == 0
     assert not _bounded(t_off), t_off
+
+
+def _examiner(monkeypatch, scales: dict, agree: set, stayed: set, dist: dict):
+    """A culling whose keyframe 20 has the candidates in ``dist`` (graph index -> frame distance, BA px); the
+    relocalisation against candidate j gives scale ``scales[j]`` and the current estimate explains the flow for the
+    candidates in ``agree``; ``stayed``: candidates that stayed on an earlier revisit."""
+    st = _state(30)
+    g = st.graph
+    cands = sorted(dist)
+    monkeypatch.setattr(g, "mutual_distance", lambda r, cs: torch.tensor([dist[c] for c in cs]))
+    monkeypatch.setattr("pvslam_core.slam.revisits.relocalise", lambda pose_j, disp_j, *a: SimpleNamespace(
+        pose=_pose(float(pose_j[0]) + 0.1), scale=scales[int(round(float(pose_j[0]) / 0.5))], error=0.0))
+    monkeypatch.setattr("pvslam_core.slam.revisits.median_error", lambda pose_j, *a: (
+        0.0 if int(round(float(pose_j[0]) / 0.5)) in agree else 1.0))
+    observer = SimpleNamespace(observe_pair=lambda j, r: SimpleNamespace(target=[None], weight=[None]))
+    cull = RevisitCulling(4.0, st, observer=observer, active_window=5, loops=[])
+    monkeypatch.setattr(cull, "candidates", lambda r: cands)
+    cull._stayed = {g.id_of(j) for j in stayed}
+    return cull, g
+
+
+def test_a_revisit_keyframe_tries_the_nearest_views_and_a_place_keeps_one_stretch(monkeypatch):
+    # the nearest view disagrees, the second agrees: r goes for the second, where its relocalisation puts it
+    cull, g = _examiner(monkeypatch, {3: 1.0, 5: 1.0, 7: 1.0}, agree={5}, stayed=set(), dist={3: 0.5, 5: 1.0, 7: 2.0})
+    j_id, rel, scale, passed = cull._examine(20)
+    assert passed and j_id == g.id_of(5) and torch.allclose(rel[:3], torch.tensor([0.1, 0.0, 0.0], dtype=torch.float64))
+    # no view agrees and none stayed before: r fails (and stays with its neighbours, step 4)
+    cull, g = _examiner(monkeypatch, {3: 1.0, 5: 1.0}, agree=set(), stayed=set(), dist={3: 0.5, 5: 1.0})
+    assert cull._examine(20)[3] is False
+    # no view agrees, but one of them stayed on an earlier revisit and agrees on the scale: r goes for it
+    cull, g = _examiner(monkeypatch, {3: 1.0, 5: 1.02}, agree=set(), stayed={5}, dist={3: 0.5, 5: 1.0})
+    j_id, rel, scale, passed = cull._examine(20)
+    assert passed and j_id == g.id_of(5) and scale == 1.02
+    # ... unless its scale disagrees too: r stays
+    cull, g = _examiner(monkeypatch, {3: 1.0, 5: 1.3}, agree=set(), stayed={5}, dist={3: 0.5, 5: 1.0})
+    assert cull._examine(20)[3] is False
+    # views beyond the threshold or past MAX_TRIES are not tried
+    cull, g = _examiner(monkeypatch, {3: 1.0, 5: 1.0, 7: 1.0, 9: 1.0}, agree={9}, stayed=set(),
+                        dist={3: 0.5, 5: 1.0, 7: 2.0, 9: 3.0})
+    assert cull._examine(20)[3] is False  # 9 is the fourth nearest
+    cull, g = _examiner(monkeypatch, {3: 1.0}, agree={3}, stayed=set(), dist={3: 4.5})
+    assert cull._examine(20) is None

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from pvslam_core.datasets.base import BaseReader, DatasetError
+from pvslam_core.evaluation.loops import read_pairs_json
 from pvslam_core.types import Category, Frame, Intrinsics, PanopticSegmentation, Segment
 
 from .config import SyntheticConfig
@@ -104,12 +105,12 @@ class SyntheticSequence:
         return [Category(int(c["id"]), str(c["name"]), bool(c["isthing"]), tuple(int(x) for x in c["color"]))
                 for c in self.panoptic_json["categories"]]
 
-    @cached_property
-    def loop_pairs(self) -> list[tuple[int, int]]:
+    @property
+    def loop_pairs(self) -> np.ndarray:
+        """Ground-truth revisits, int64 ``[M, 2]`` (``loops.json``, read on each call: the reader keeps only the
+        pairs mapped to its frames; none when the folder has no such file)."""
         p = self.root / "loops.json"
-        if not p.is_file():
-            return []
-        return [(int(i), int(j)) for i, j in json.loads(p.read_text())["pairs"]]
+        return read_pairs_json(p) if p.is_file() else np.zeros((0, 2), dtype=np.int64)
 
     def segments(self, i: int) -> list[Segment]:
         info = self.panoptic_json["frames"][i]["segments_info"]
@@ -196,7 +197,7 @@ class SyntheticReader(BaseReader):
     def _categories(self) -> list[Category]:
         return self.sequence.categories
 
-    def _loop_pairs(self) -> Optional[list[tuple[int, int]]]:
+    def _loop_pairs(self) -> Optional[np.ndarray]:
         return self.sequence.loop_pairs
 
     def _has_gt(self) -> tuple[bool, bool, bool]:

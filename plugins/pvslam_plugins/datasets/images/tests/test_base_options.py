@@ -111,7 +111,7 @@ def test_start_end_out_of_range(kwargs, msg):
 def test_loop_pairs_are_remapped_to_output_indices():
     r = MemReader(ReaderOptions(start=2, stride=3), loops=[(17, 2), (18, 5), (1, 0), (14, 13)])
     # output k <-> raw 2 + 3k: 17 -> 5, 2 -> 0, 18 -> 5 (nearest), 5 -> 1; (1, 0) is before start; 14/13 collapse
-    assert r.info().loop_pairs == [(5, 0), (5, 1)]
+    assert r.info().loop_pairs.tolist() == [[5, 0], [5, 1]]
 
 
 # ----------------------------------------------------------------------------------------------- geometry ----
@@ -207,3 +207,37 @@ def test_frame_size_mismatch_names_the_frame():
 
     with pytest.raises(DatasetError, match="0000.png.*123"):
         Bad(ReaderOptions())[0]
+
+
+
+def test_a_long_runs_revisit_pairs_cost_bytes_per_pair_not_python_objects(tmp_path):
+    """A repeated loop's ground truth grows with the square of the laps (millions of pairs at 10 000 frames): the
+    revisit file is written and read, and the reader maps it to output frames, without a Python object per pair."""
+    import json
+    import tracemalloc
+
+    import numpy as np
+
+    from pvslam_core.evaluation.loops import pairs_json_text, read_pairs_json
+
+    rng = np.random.default_rng(0)
+    n = 300_000
+    pairs = np.stack([rng.integers(1000, 9000, n), rng.integers(0, 900, n)], 1)
+    path = tmp_path / "loops.json"
+    tracemalloc.start()
+
+    def peak_of(fn):  # bytes allocated at the peak of fn() beyond what was held before
+        tracemalloc.reset_peak()
+        before = tracemalloc.get_traced_memory()[0]
+        out = fn()
+        return out, tracemalloc.get_traced_memory()[1] - before
+
+    _, write_peak = peak_of(lambda: path.write_text(pairs_json_text(pairs, source="synthetic")))
+    back, read_peak = peak_of(lambda: read_pairs_json(path))
+    mapped, map_peak = peak_of(lambda: MemReader(ReaderOptions(start=0, stride=1), loops=back, n=9000).info().loop_pairs)
+    tracemalloc.stop()
+    assert json.loads(path.read_text())["pairs"][:3] == pairs[:3].tolist()
+    assert back.dtype == np.int64 and np.array_equal(back, pairs)
+    assert len(mapped) == len(np.unique(pairs, axis=0))
+    # as a list of tuples (or JSON's list of lists) the pairs cost 150-250 bytes each
+    assert max(write_peak, read_peak, map_peak) < 100 * n, (write_peak, read_peak, map_peak)
