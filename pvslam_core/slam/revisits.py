@@ -114,7 +114,7 @@ class RevisitCulling:
         self._examined: deque[tuple[int, Optional[tuple]]] = deque()
         self._recent_stays: deque[bool] = deque(maxlen=self.neighbours)  # whether each last decided keyframe stayed
         self._last_passed = False  # whether the last decided keyframe passed every gate
-        self._stayed: set[int] = set()  # ids of examined keyframes that stayed (a revisit's stretch)
+        self._stayed: set[int] = set()  # ids of the revisit keyframes that stayed (a revisit's stretch)
 
     def candidates(self, r: int) -> list[int]:
         """Graph indices of the older keyframes that may hold keyframe ``r``'s view: those near the partner of a loop
@@ -158,9 +158,9 @@ class RevisitCulling:
             stay, *stays = (_stays(before[i], seq[i], passed[i + 1]) for i in range(self.neighbours + 1))
             if not stay and not any(self._recent_stays) and not any(stays):
                 culled += self._cull(r_id, *verdict[:3])
-            self._recent_stays.append(stay)
-            if stay and verdict is not None:
+            elif verdict is not None:  # a revisit's keyframe the map keeps (its own gates or a neighbour's)
                 self._stayed.add(r_id)
+            self._recent_stays.append(stay)
             self._last_passed = passed[0]
         if culled:
             culled += self._cull_islands()

@@ -103,9 +103,10 @@ def test_keyframes_cut_off_from_the_map_are_culled_and_their_frames_stay():
     assert cull._cull_islands() == 0  # nothing left to cut off
 
 
-def _stream(n: int, failing: set[int]):
+def _stream(n: int, failing: set[int], stayed: bool = False):
     """Keyframes added one by one with a settled loop near the start; examination fails the gates of the ids in
-    ``failing`` (and passes the others).  Returns the ids kept."""
+    ``failing`` (and passes the others).  Returns the ids kept (with ``stayed``: and the ids culling remembers as a
+    revisit's stretch)."""
     st = _state(0, unmerged=2)  # no island pass: only the decision under test
     g = st.graph
 
@@ -123,7 +124,7 @@ def _stream(n: int, failing: set[int]):
     for k in range(n):
         g.add_keyframe(10 * k, float(k), _pose(0.5 * k), torch.ones(3, 4))
         cull.cull(g.n - 1)
-    return set(g.ids.tolist())
+    return (set(g.ids.tolist()), cull._stayed) if stayed else set(g.ids.tolist())
 
 
 def test_an_isolated_failed_gate_does_not_keep_a_stretch():
@@ -132,8 +133,10 @@ def test_an_isolated_failed_gate_does_not_keep_a_stretch():
     # one bad relocalisation amid agreeing ones: it goes too, and so do its neighbours
     assert not _stream(n, failing={30}) & settled
     # two in a row (a lap's junction): they stay, with their odometry neighbours on either side
-    kept = _stream(n, failing={30, 31})
+    kept, stayed = _stream(n, failing={30, 31}, stayed=True)
     assert set(range(27, 35)) <= kept and not kept & (settled - set(range(27, 35)))
+    # the whole stretch, its failed keyframes and the neighbours they kept, is what a later revisit may go for
+    assert stayed == set(range(27, 35))
 
 
 # ------------------------------------------------------------------------------- a loop driven again --
