@@ -48,20 +48,15 @@ def pair_array(pairs: Any) -> np.ndarray:
 def read_pairs_json(path: str | Path) -> np.ndarray:
     """The ``pairs`` of a revisit file (``{"pairs": [[i, j], ...], ...}``) as an int64 ``[M, 2]`` array;
     :class:`ValueError` naming the file when it holds anything else."""
+    from .run_eval import read_json_object
+
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{path}: not a UTF-8 text file ({e})") from None
-    fast = _fast_pairs(text)
+        fast = _fast_pairs(Path(path).read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        fast = None  # read_json_object names it
     if fast is not None:
         return fast
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object, found a JSON {type(data).__name__}")
-    pairs = data.get("pairs")
+    pairs = read_json_object(path).get("pairs")  # an empty list, or a file to refuse with its reason
     ok = isinstance(pairs, list) and all(
         isinstance(p, list) and len(p) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in p)
         for p in pairs)
@@ -129,9 +124,6 @@ def revisit_events(gt_pairs: Iterable[Any], tolerance: int = 5) -> list[np.ndarr
     one newer frame ``i`` consecutive older frames link when at most ``tolerance`` apart, and each pair links to the
     first and the last pair within ``tolerance`` of it in each of the next ``tolerance`` rows.  That is exact: in a
     window of ``2 tolerance + 1`` frames a row holds at most two runs of linked pairs, and those two cover them."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     gt = _pairs(gt_pairs)  # unique, sorted by (i, j)
     n = len(gt)
     if n == 0:
@@ -141,7 +133,7 @@ def revisit_events(gt_pairs: Iterable[Any], tolerance: int = 5) -> list[np.ndarr
     width = int(j.max()) + tol + 1
     key = i * width + j  # sorted, as gt
     same = np.flatnonzero((i[1:] == i[:-1]) & (j[1:] - j[:-1] <= tol))
-    labels = _merge_labels(np.arange(n), same, same + 1, connected_components, coo_matrix)  # runs within a row
+    labels = _merge_labels(np.arange(n), same, same + 1)  # runs within a row
     for di in range(1, tol + 1):
         a, b = [], []
         for c0 in range(0, n, _LINK_CHUNK):  # in chunks of pairs: the temporaries stay small
@@ -154,22 +146,25 @@ def revisit_events(gt_pairs: Iterable[Any], tolerance: int = 5) -> list[np.ndarr
                 pair = np.unique(la[la != lb] * n + lb[la != lb])  # links between components, once each
                 a.append(pair // n)
                 b.append(pair % n)
-        labels = _merge_labels(labels, np.concatenate(a), np.concatenate(b), connected_components, coo_matrix)
+        labels = _merge_labels(labels, np.concatenate(a), np.concatenate(b))
     # events in the order of their first pair (gt is sorted by i, so that is also the order of their smallest i)
     first = np.full(labels.max() + 1, n, dtype=np.int64)
     np.minimum.at(first, labels, np.arange(n))
-    rank = np.argsort(np.argsort(first[np.unique(labels)]))[np.searchsorted(np.unique(labels), labels)]
-    order = np.argsort(rank, kind="stable")
-    return np.split(gt[order], np.flatnonzero(np.diff(rank[order])) + 1)
+    event = first[labels]  # [n] each pair's event, named by its first pair
+    order = np.argsort(event, kind="stable")  # within an event, the pairs in order
+    return np.split(gt[order], np.flatnonzero(np.diff(event[order])) + 1)
 
 
-def _merge_labels(labels: np.ndarray, a: np.ndarray, b: np.ndarray, components, coo) -> np.ndarray:
+def _merge_labels(labels: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Component labels ``[n]`` after also linking the components ``a[k]`` and ``b[k]``."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     if len(a) == 0:
         return labels
     m = int(labels.max()) + 1
-    graph = coo((np.ones(len(a), dtype=np.int8), (a, b)), shape=(m, m))
-    _, merged = components(graph, directed=False)
+    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(m, m))
+    _, merged = connected_components(graph, directed=False)
     return merged[labels].astype(np.int64)
 
 
