@@ -290,11 +290,11 @@ def _revisits_run(pairs, run_dir: Path) -> np.ndarray:
     early (``run.max_frames``, an error) has no true loop at the frames it never reached, so its recall is not 0."""
     from .outputs.trajectory_io import read_tum
 
+    pairs = pair_array(pairs)
     try:
         n = len(read_tum(run_dir / "trajectory.txt")[0])
     except (OSError, ValueError):
-        return pair_array(pairs)
-    pairs = pair_array(pairs)
+        return pairs
     return pairs[pairs.max(1) < n] if len(pairs) else pairs
 
 

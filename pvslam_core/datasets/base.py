@@ -303,29 +303,18 @@ class BaseReader(DatasetReader):
             self._geo = compute_geometry(self._raw_intrinsics(), self.options)
         return self._geo
 
-    def output_index(self, raw_index: int) -> Optional[int]:
-        """The output index of the selected frame nearest to ``raw_index`` (None outside start..end)."""
-        if self._count() is None:
-            return None
-        r = self.frame_range()
-        if raw_index < r.start or raw_index >= r.stop:
-            return None
-        k = int(round((raw_index - r.start) / r.step))
-        return min(max(k, 0), len(r) - 1)
-
     def _output_pairs(self, raw: np.ndarray) -> np.ndarray:
         """Revisit pairs ``[M, 2]`` in raw indices -> the distinct pairs of distinct output indices (first
-        occurrences, in order), as :meth:`output_index` maps each index."""
+        occurrences, in order); each index goes to the selected frame nearest to it, pairs with an index outside
+        start..end are dropped."""
         if self._count() is None or not len(raw):
             return np.zeros((0, 2), dtype=np.int64)
         r = self.frame_range()
-        ok = ((raw >= r.start) & (raw < r.stop)).all(1)
         k = raw - r.start
         if r.step != 1:
-            k = np.rint(k / r.step).astype(np.int64)  # half to even, as round()
+            k = np.rint(k / r.step).astype(np.int64)  # the nearest; half to even
         np.clip(k, 0, len(r) - 1, out=k)
-        ok &= k[:, 0] != k[:, 1]
-        k = k[ok]
+        k = k[((raw >= r.start) & (raw < r.stop)).all(1) & (k[:, 0] != k[:, 1])]
         _, first = np.unique(k[:, 0] * len(r) + k[:, 1], return_index=True)  # one key per pair
         return k[np.sort(first)]
 
