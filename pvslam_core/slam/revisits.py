@@ -203,7 +203,7 @@ class RevisitCulling:
         if not order:
             return None
         pose_r = g.poses[r].double().cpu()
-        scaled = None  # the first relocalisation against a stayed keyframe whose scale agrees
+        agreed = scaled = None  # (c, j, relocalisation, j's pose) of the view that agrees / of a stayed one
         for c in order:  # the nearest views first; the first one that agrees decides
             j = cands[c]
             obs = self.observer.observe_pair(j, r)  # j's pixels in r, measured now
@@ -212,16 +212,16 @@ class RevisitCulling:
             scale_ok = reloc is not None and 1 / MAX_SCALE_CHANGE <= reloc.scale <= MAX_SCALE_CHANGE
             if scale_ok and median_error(pose_j, pose_r, g.disps[j], g.intrinsics, obs.target[0],
                                          obs.weight[0]) <= MAX_DISAGREEMENT:
+                agreed = (c, j, reloc, pose_j)
                 break
             if scale_ok and scaled is None and g.id_of(j) in self._stayed:
-                scaled = (j, reloc, pose_j)
-        else:
-            if scaled is not None:  # the place holds a revisit's stretch already: r goes where its flow puts it
-                j, reloc, pose_j = scaled
-                return g.id_of(j), se3_mul(se3_inv(pose_j), reloc.pose.double().cpu()), float(reloc.scale), True
-            # every gate failed: the current estimate against the nearest view, for step 4 to decide
+                scaled = (c, j, reloc, pose_j)
+        # where no view agrees but the place holds a revisit's stretch already, r goes where its flow puts it
+        chosen = agreed or scaled
+        if chosen is None:  # every gate failed: the current estimate against the nearest view, for step 4 to decide
             j = cands[order[0]]
             return g.id_of(j), se3_mul(se3_inv(g.poses[j].double().cpu()), pose_r), 1.0, False
+        c, j, reloc, pose_j = chosen
         if LOG.isEnabledFor(logging.DEBUG):
             LOG.debug("keyframe %d (frame %d) may go for keyframe %d (frame %d): frame distance %.2f, relocalised by "
                       "%.3f (median error %.2f BA px, scale %.3f)", g.id_of(r), int(g.frame_index[r]), g.id_of(j),
