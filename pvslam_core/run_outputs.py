@@ -209,10 +209,11 @@ def _write_json(path: Path, obj: Any) -> None:
 
 
 def _write_pairs(path: Path, pairs, source: str) -> None:
-    from .evaluation.loops import pairs_json_text
-    from .outputs._atomic import atomic_write_text
+    from .evaluation.loops import write_pairs_json
+    from .outputs._atomic import atomic_open
 
-    atomic_write_text(path, pairs_json_text(pairs, source=source))
+    with atomic_open(path, "w", encoding="utf-8", newline="\n") as f:
+        write_pairs_json(f, pairs, source=source)
 
 
 def evaluate_saved_run(run_dir: Path, resolved: Optional[ResolvedConfig], timing: dict, registry=None,

@@ -20,11 +20,11 @@ import json
 import math
 import re
 from pathlib import Path
-from typing import Any, Iterable
+from typing import IO, Any, Iterable
 
 import numpy as np
 
-__all__ = ["loop_precision_recall", "revisit_events", "pair_array", "read_pairs_json", "pairs_json_text"]
+__all__ = ["loop_precision_recall", "revisit_events", "pair_array", "read_pairs_json", "write_pairs_json"]
 
 # the "pairs" list of a revisit file, [[i, j], ...] of integers, is read without a Python object per pair: its opening,
 # its end (the last pair's bracket and the list's) and the characters allowed between
@@ -32,7 +32,7 @@ _PAIRS_OPEN = re.compile(r'"pairs"\s*:\s*\[')
 _PAIRS_END = re.compile(r"\]\s*\]")
 _PAIRS_BODY = re.compile(r"[0-9\s,\[\]-]*")
 _BRACKETS = str.maketrans("[],", "   ")
-_WRITE_ROWS = 65536  # pairs formatted at once when writing
+_WRITE_ROWS = 8192  # pairs formatted at once when writing
 _LINK_CHUNK = 1 << 17  # pairs whose links to the next rows are looked up at once (revisit_events)
 
 
@@ -82,20 +82,21 @@ def _fast_pairs(text: str):
     return nums.reshape(-1, 2)
 
 
-def pairs_json_text(pairs: Any, **extra: Any) -> str:
-    """``{"pairs": [[i, j], ...], **extra}`` as one line of JSON, formatted in blocks of rows (no Python list per
-    pair)."""
+def write_pairs_json(f: IO[str], pairs: Any, **extra: Any) -> None:
+    """Write ``{"pairs": [[i, j], ...], **extra}`` as one line of JSON to the text file ``f``, a block of rows at a
+    time (no Python object per pair, and not the whole text at once)."""
     arr = pair_array(pairs)
-    blocks = (", ".join(f"[{i}, {j}]" for i, j in arr[k:k + _WRITE_ROWS].tolist())
-              for k in range(0, len(arr), _WRITE_ROWS))
+    f.write('{"pairs": [')
+    for k in range(0, len(arr), _WRITE_ROWS):
+        f.write((", " if k else "") + ", ".join(f"[{i}, {j}]" for i, j in arr[k:k + _WRITE_ROWS].tolist()))
     rest = json.dumps(extra, allow_nan=False)[1:-1]
-    return '{"pairs": [' + ", ".join(blocks) + "]" + (", " + rest if rest else "") + "}\n"
+    f.write("]" + (", " + rest if rest else "") + "}\n")
 
 
 def _pairs(pairs: Iterable[Any]) -> np.ndarray:
     if isinstance(pairs, np.ndarray):  # sorted unique (newer, older) rows through one int64 key per pair
         arr = pair_array(pairs)
-        if not len(arr):
+        if not len(arr) or _normalised(arr):
             return arr
         lo = arr.min()
         newer, older = arr.max(1) - lo, arr.min(1) - lo
@@ -116,19 +117,32 @@ def _pairs(pairs: Iterable[Any]) -> np.ndarray:
     return np.unique(np.array(out, dtype=np.int64), axis=0)
 
 
+def _normalised(arr: np.ndarray) -> bool:
+    """True when the rows are already ``(newer, older)``, unique and sorted (a run's ground truth as written)."""
+    di = np.diff(arr[:, 0])
+    return bool((arr[:, 0] >= arr[:, 1]).all() and (di >= 0).all() and ((di > 0) | (np.diff(arr[:, 1]) > 0)).all())
+
+
 def revisit_events(gt_pairs: Iterable[Any], tolerance: int = 5) -> list[np.ndarray]:
     """Group GT pairs into revisit events (connected components, linked within ``tolerance`` in both indices), in
-    the order of their first pair.
+    the order of their first pair (:func:`_event_labels`)."""
+    gt = _pairs(gt_pairs)  # unique, sorted by (i, j)
+    if len(gt) == 0:
+        return []
+    event = _event_labels(gt, int(tolerance))
+    order = np.argsort(event, kind="stable")  # within an event, the pairs in order
+    return np.split(gt[order], np.flatnonzero(np.diff(event[order])) + 1)
+
+
+def _event_labels(gt: np.ndarray, tol: int) -> np.ndarray:
+    """The revisit event of each pair of ``gt`` (unique, sorted by (i, j); see :func:`_pairs`) ``[n]``, numbered
+    0, 1, ... in the order of each event's first pair.
 
     The links are not listed (a repeated loop's millions of pairs have ~(2 tolerance + 1)^2 neighbours each): within
     one newer frame ``i`` consecutive older frames link when at most ``tolerance`` apart, and each pair links to the
     first and the last pair within ``tolerance`` of it in each of the next ``tolerance`` rows.  That is exact: in a
     window of ``2 tolerance + 1`` frames a row holds at most two runs of linked pairs, and those two cover them."""
-    gt = _pairs(gt_pairs)  # unique, sorted by (i, j)
     n = len(gt)
-    if n == 0:
-        return []
-    tol = int(tolerance)
     i, j = gt[:, 0] - gt[:, 0].min(), gt[:, 1] - gt[:, 1].min() + tol
     width = int(j.max()) + tol + 1
     key = i * width + j  # sorted, as gt
@@ -147,12 +161,30 @@ def revisit_events(gt_pairs: Iterable[Any], tolerance: int = 5) -> list[np.ndarr
                 a.append(pair // n)
                 b.append(pair % n)
         labels = _merge_labels(labels, np.concatenate(a), np.concatenate(b))
-    # events in the order of their first pair (gt is sorted by i, so that is also the order of their smallest i)
+    # gt is sorted by i: the order of each event's first pair is also that of its smallest i
     first = np.full(labels.max() + 1, n, dtype=np.int64)
     np.minimum.at(first, labels, np.arange(n))
-    event = first[labels]  # [n] each pair's event, named by its first pair
-    order = np.argsort(event, kind="stable")  # within an event, the pairs in order
-    return np.split(gt[order], np.flatnonzero(np.diff(event[order])) + 1)
+    _, event = np.unique(first[labels], return_inverse=True)
+    return event.reshape(-1)
+
+
+def _near(a: np.ndarray, b: np.ndarray, tol: int) -> np.ndarray:
+    """bool ``[len(a)]``: the pairs of ``a`` within ``tol`` of some pair of ``b`` in both indices (``b`` unique,
+    sorted by (i, j)); one key lookup per row offset, in chunks of ``a``."""
+    out = np.zeros(len(a), dtype=bool)
+    if len(a) == 0 or len(b) == 0:
+        return out
+    i0 = min(int(a[:, 0].min()), int(b[:, 0].min()))
+    j0 = min(int(a[:, 1].min()), int(b[:, 1].min()))
+    width = max(int(a[:, 1].max()), int(b[:, 1].max())) - j0 + 2 * tol + 1  # j +- tol stays inside its row
+    key = (b[:, 0] - i0) * width + (b[:, 1] - j0 + tol)  # sorted, as b
+    for c0 in range(0, len(a), _LINK_CHUNK):
+        ia, ja = a[c0:c0 + _LINK_CHUNK, 0] - i0, a[c0:c0 + _LINK_CHUNK, 1] - j0 + tol
+        hit = out[c0:c0 + _LINK_CHUNK]
+        for di in range(-tol, tol + 1):
+            k = (ia + di) * width + ja
+            hit |= np.searchsorted(key, k + tol, side="right") > np.searchsorted(key, k - tol)
+    return out
 
 
 def _merge_labels(labels: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -175,34 +207,21 @@ def loop_precision_recall(detected: Iterable[Any], gt_pairs: Iterable[Any], tole
     Returns ``precision, recall, pair_recall, f1, num_detected, num_tp, num_fp, num_gt_pairs, num_gt_events,
     num_events_detected, tolerance, false_positives`` (up to 100 unmatched detections, for debugging).
     """
-    from scipy.spatial import cKDTree
-
     if tolerance < 0:
         raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+    tol = int(tolerance)
     det = _pairs(detected)
     gt = _pairs(gt_pairs)
-    events = revisit_events(gt, tolerance)
-    tol = float(tolerance) + 1e-9
-
-    if len(det) and len(gt):
-        tree_gt = cKDTree(gt.astype(np.float64))
-        d, _ = tree_gt.query(det.astype(np.float64), k=1, p=np.inf, distance_upper_bound=tol)
-        det_ok = np.isfinite(d)
-        tree_det = cKDTree(det.astype(np.float64))
-        d2, _ = tree_det.query(gt.astype(np.float64), k=1, p=np.inf, distance_upper_bound=tol)
-        gt_ok = np.isfinite(d2)
-        ev_ok = []
-        for ev in events:
-            de, _ = tree_det.query(ev.astype(np.float64), k=1, p=np.inf, distance_upper_bound=tol)
-            ev_ok.append(bool(np.isfinite(de).any()))
-    else:
-        det_ok = np.zeros(len(det), bool)
-        gt_ok = np.zeros(len(gt), bool)
-        ev_ok = [False] * len(events)
+    event = _event_labels(gt, tol) if len(gt) else np.zeros(0, dtype=np.int64)
+    n_events = int(event.max()) + 1 if len(gt) else 0
+    det_ok = _near(det, gt, tol)
+    gt_ok = _near(gt, det, tol)
+    ev_ok = np.zeros(n_events, dtype=bool)
+    ev_ok[event[gt_ok]] = True  # an event is detected when one of its pairs is
 
     num_tp = int(det_ok.sum())
     precision = num_tp / len(det) if len(det) else float("nan")
-    recall = sum(ev_ok) / len(events) if events else float("nan")
+    recall = float(ev_ok.sum()) / n_events if n_events else float("nan")
     pair_recall = float(gt_ok.sum()) / len(gt) if len(gt) else float("nan")
     if math.isnan(precision) or math.isnan(recall):
         f1 = float("nan")
@@ -219,8 +238,8 @@ def loop_precision_recall(detected: Iterable[Any], gt_pairs: Iterable[Any], tole
         "num_tp": num_tp,
         "num_fp": int(len(det) - num_tp),
         "num_gt_pairs": int(len(gt)),
-        "num_gt_events": len(events),
-        "num_events_detected": int(sum(ev_ok)),
+        "num_gt_events": n_events,
+        "num_events_detected": int(ev_ok.sum()),
         "tolerance": int(tolerance),
         "false_positives": [tuple(int(v) for v in p) for p in det[~det_ok][:100]],
     }

@@ -198,7 +198,7 @@ def _loop_metrics(run_dir: Path, loop_gt: Optional[Sequence[tuple[int, int]]], t
 
     try:
         detected = loop_frame_pairs(read_loops(loops_path))
-        return {"loops": loop_precision_recall(detected, list(loop_gt), tolerance=tolerance)}
+        return {"loops": loop_precision_recall(detected, loop_gt, tolerance=tolerance)}
     except (ValueError, KeyError) as e:
         return {"loops": {"error": str(e)}}
 

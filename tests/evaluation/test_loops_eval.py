@@ -118,3 +118,31 @@ def test_events_of_a_long_loops_ground_truth_do_not_list_every_link():
     # one event per lap difference: frame i revisits i - k lap for every k, a diagonal band through all laps
     assert len(events) == laps - 1 and sum(len(e) for e in events) == len(np.unique(pairs, axis=0))
     assert peak < 160 * len(pairs), (peak, len(pairs))  # listing the links costs ~2 KB per pair
+
+
+def test_a_long_runs_loop_metrics_cost_bytes_per_pair(tmp_path):
+    """A run's loop metrics against a repeated loop's ground truth (an int64 array of hundreds of thousands of
+    pairs, as the run directory holds it): no Python object per pair (a list of rows cost ~280 bytes a pair and
+    most of a 10 000-frame run's peak memory), the same figures as for the pairs given as tuples."""
+    import json
+    import tracemalloc
+
+    import numpy as np
+
+    from pvslam_core.evaluation.run_eval import _loop_metrics
+
+    lap, laps = 400, 12
+    i = np.arange(lap, lap * laps)
+    pairs = np.concatenate([np.stack([i, i - k * lap + d], 1) for k in range(1, laps) for d in range(-15, 15)])
+    pairs = pairs[(pairs[:, 1] >= 0) & (pairs[:, 1] < pairs[:, 0] - 50)]
+    detected = [(int(a), int(b)) for a, b in pairs[::5000]] + [(1000, 990), (3000, 2000)]
+    (tmp_path / "loops.json").write_text(json.dumps({"loops": [
+        {"kf_i": n, "kf_j": n + 1, "frame_i": a, "frame_j": b, "score": 1.0} for n, (a, b) in enumerate(detected)]}))
+    tracemalloc.start()
+    got = _loop_metrics(tmp_path, pairs, 5)["loops"]
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    want = loop_precision_recall(detected, [tuple(p) for p in pairs.tolist()], 5)
+    assert got == want
+    assert got["num_fp"] == 2 and got["num_gt_events"] == laps - 1
+    assert peak < 150 * len(pairs), (peak, len(pairs))

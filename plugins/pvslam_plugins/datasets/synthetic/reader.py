@@ -97,13 +97,28 @@ class SyntheticSequence:
         return len(self.rgb_files)
 
     @cached_property
-    def panoptic_json(self) -> dict:
-        return json.loads((self.root / "panoptic.json").read_text())
+    def _panoptic(self) -> tuple[list[Category], np.ndarray, np.ndarray]:
+        """``panoptic.json`` read once: the categories, every frame's segments as rows ``(id, category id,
+        isthing)`` int64 ``[S, 3]``, and the first row of each frame ``[n + 1]`` (a dict per segment would cost
+        ~2 kB a frame for the whole run)."""
+        path = self.root / "panoptic.json"
+        try:
+            doc = json.loads(path.read_text())
+            cats = [Category(int(c["id"]), str(c["name"]), bool(c["isthing"]), tuple(int(x) for x in c["color"]))
+                    for c in doc["categories"]]
+            infos = [f["segments_info"] for f in doc["frames"]]
+            rows = np.array([(int(s["id"]), int(s["category_id"]), bool(s["isthing"])) for info in infos
+                             for s in info], dtype=np.int64).reshape(-1, 3)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise DatasetError(f"{path}: unreadable or not a pvslam panoptic.json ({exc!r})") from exc
+        if len(infos) != len(self):
+            raise DatasetError(f"{path}: {len(infos)} frames but rgb.txt lists {len(self)}")
+        first = np.concatenate([[0], np.cumsum([len(info) for info in infos])]).astype(np.int64)
+        return cats, rows, first
 
-    @cached_property
+    @property
     def categories(self) -> list[Category]:
-        return [Category(int(c["id"]), str(c["name"]), bool(c["isthing"]), tuple(int(x) for x in c["color"]))
-                for c in self.panoptic_json["categories"]]
+        return self._panoptic[0]
 
     @property
     def loop_pairs(self) -> np.ndarray:
@@ -113,8 +128,8 @@ class SyntheticSequence:
         return read_pairs_json(p) if p.is_file() else np.zeros((0, 2), dtype=np.int64)
 
     def segments(self, i: int) -> list[Segment]:
-        info = self.panoptic_json["frames"][i]["segments_info"]
-        return [Segment(int(s["id"]), int(s["category_id"]), bool(s["isthing"])) for s in info]
+        _, rows, first = self._panoptic
+        return [Segment(int(sid), int(cat), bool(thing)) for sid, cat, thing in rows[first[i]:first[i + 1]].tolist()]
 
     def arrays(self, i: int, maps: Iterable[str] = GT_MAPS) -> dict[str, np.ndarray]:
         """``rgb`` uint8 [H,W,3], ``pose`` [7], and of the ground-truth ``maps`` asked for: ``depth`` float32

@@ -235,3 +235,40 @@ def test_invalid_calibration_names_the_file(tmp_path):
     with pytest.raises(DatasetError) as err:
         SyntheticSequence(root)
     assert str(root / "calib.txt") in str(err.value) and "cx=nan" in str(err.value)
+
+
+def test_a_long_sequences_segments_are_held_as_arrays_not_dicts(moving_seq, tmp_path):
+    """The reader keeps every frame's ground-truth segment list for the whole run: as one int64 array (a few bytes a
+    segment), not as panoptic.json's dict per segment (a 10 000-frame loop held ~23 MB that way).  The segments
+    read back equal the file's, and a panoptic.json that does not fit the frame list is refused by name."""
+    import shutil
+    import tracemalloc
+
+    from pvslam_core.datasets.base import DatasetError
+
+    root = tmp_path / "long"
+    shutil.copytree(moving_seq, root)
+    n = 4000  # frames listed (the lists and panoptic.json only: the reader opens images when a frame is read)
+    doc = json.loads((root / "panoptic.json").read_text())
+    frames = [doc["frames"][i % len(doc["frames"])] for i in range(n)]
+    (root / "panoptic.json").write_text(json.dumps({**doc, "frames": frames}))
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        rows = [r for r in (root / name).read_text().splitlines() if r and not r.startswith("#")]
+        stamp = [float(r.split()[0]) for r in rows]
+        step = stamp[1] - stamp[0]
+        (root / name).write_text("".join(f"{k * step:.6f} {' '.join(rows[k % len(rows)].split()[1:])}\n"
+                                         for k in range(n)))
+    seq = SyntheticSequence(root)
+    tracemalloc.start()
+    seq.segments(0)  # panoptic.json is read on first use
+    held = tracemalloc.get_traced_memory()[0]
+    tracemalloc.stop()
+    per_segment = held / sum(len(f["segments_info"]) for f in frames)
+    assert per_segment < 40, per_segment  # a dict per segment: ~250 bytes
+    for i in (0, 1, n - 1):
+        want = frames[i]["segments_info"]
+        assert [(s.id, s.category_id, s.isthing) for s in seq.segments(i)] == \
+            [(w["id"], w["category_id"], w["isthing"]) for w in want]
+    (root / "panoptic.json").write_text(json.dumps({**doc, "frames": frames[:-1]}))
+    with pytest.raises(DatasetError, match="panoptic.json.*3999 frames"):
+        SyntheticSequence(root).segments(0)
