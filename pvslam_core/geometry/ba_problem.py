@@ -195,13 +195,16 @@ class DenseBAProblem:
             diag = torch.from_numpy(Hs.diagonal()).to(self.dev, torch.float64)
         else:
             S = sysm.H.reshape(F, F, 6, 6).permute(0, 2, 1, 3).reshape(6 * F, 6 * F)
-            S = 0.5 * (S + S.T)
             sysm.H = None
+            S.add_(S.T.clone()).mul_(0.5)  # 0.5 (S + S^T) in place: two [6F, 6F] matrices at a time, not four
             diag = torch.diagonal(S).clone()
         for boost in (1.0, 10.0, 100.0):
             damp = opt.ep * boost + opt.lm * boost * diag
-            x = sparse_solve(Hs, damp.cpu().numpy(), b) if self.sparse \
-                else ba_linalg.solve_spd(S + torch.diag(damp), b)
+            if self.sparse:
+                x = sparse_solve(Hs, damp.cpu().numpy(), b)
+            else:
+                torch.diagonal(S).copy_(diag + damp)  # S + diag(damp), in place (the diagonal is set anew each try)
+                x = ba_linalg.solve_spd(S, b)
             if x is not None:
                 return x.reshape(F, 6), boost
         return None, 0.0
