@@ -4,6 +4,7 @@
     python bench/bench_vps.py                                         # report seeds 200 201 202, 80 frames each
     python bench/bench_vps.py --seeds 101 --frames 60 --out runs/bench/results_vps_tune.json   # the tuning seed
     python bench/bench_vps.py --timing 15                             # CPU ms per update, one frame pair
+    python bench/bench_vps.py --domain heldout --out runs/bench/results_vps_heldout.json   # looks never trained on
 
 One pipeline run per (scenario, seed) (synthetic reader, panoptic_fpn segmenter, the default VO, no loop closure):
 its VPS head is a recorder that hands every frame's segmentation and motion cue to the three heads side by side,
@@ -91,7 +92,7 @@ def _plugin(fusion_cfg: dict):
     return _Module()
 
 
-def run_sequence(scenario: str, seed: int, frames: int, fusion_cfg: dict) -> dict:
+def run_sequence(scenario: str, seed: int, frames: int, fusion_cfg: dict, domain: Optional[str] = None) -> dict:
     from pvslam_core.config import load_config
     from pvslam_core.evaluation.panoptic import pq, vpq
     from pvslam_core.pipeline import Pipeline
@@ -106,7 +107,8 @@ def run_sequence(scenario: str, seed: int, frames: int, fusion_cfg: dict) -> dic
     cfg = load_config(str(ROOT / "configs" / "moving_vehicles.toml"), overrides=[
         f'dataset.scenario="{scenario}"', f"dataset.seed={seed}", f"dataset.num_frames={frames}",
         "dataset.progress=false", 'segmenter.plugin="panoptic_fpn"', 'vps.plugin="bench_recorder"',
-        'loop.plugin="none"', "run.progress=false", "run.threads=1"], registry=reg)
+        'loop.plugin="none"', "run.progress=false", "run.threads=1",
+        *([f'dataset.domain="{domain}"'] if domain else [])], registry=reg)
     pipe = Pipeline(cfg, None, reg)
     pipe.start()
     t0 = time.perf_counter()
@@ -114,7 +116,8 @@ def run_sequence(scenario: str, seed: int, frames: int, fusion_cfg: dict) -> dic
         pipe.step(frame)
     rec = mod.recorder
     cats = pipe.categories()
-    out = {"scenario": scenario, "seed": seed, "frames": len(rec.gts), "fused_frames": rec.fused_frames,
+    out = {"scenario": scenario, "seed": seed, "domain": domain, "frames": len(rec.gts),
+           "fused_frames": rec.fused_frames,
            "seconds": time.perf_counter() - t0, "load": os.getloadavg()[0], "heads": {}}
     for name in HEADS:
         p = pq(rec.preds[name], rec.gts, cats)
@@ -206,6 +209,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenarios", nargs="+", default=["moving_vehicles", "busy_street"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[200, 201, 202])
     ap.add_argument("--frames", type=int, default=80)
+    ap.add_argument("--domain", choices=["train", "heldout"],
+                    help="render the scenes in the generator's training or held-out look (texture families and "
+                         "thing sizes no training frame has: dataset.domain); default: the plain generator")
     ap.add_argument("--fusion", nargs="*", default=[], help="FusionConfig overrides KEY=JSON (e.g. z_order=false)")
     ap.add_argument("--out", type=Path, default=provenance.RESULTS_DIR / "results_vps.json",
                     help="result file (not into bench/)")
@@ -224,14 +230,15 @@ def main(argv=None) -> int:
     rows = []
     for scenario in a.scenarios:
         for seed in a.seeds:
-            r = run_sequence(scenario, seed, a.frames, fusion_cfg)
+            r = run_sequence(scenario, seed, a.frames, fusion_cfg, a.domain)
             rows.append(r)
             h = r["heads"]
             print(f"{scenario:16s} seed {seed}: " + "  ".join(
                 f"{n} VPQ {100 * h[n]['vpq']:.1f} PQ {100 * h[n]['pq']:.1f}" for n in HEADS)
                 + f"  | fusion {h['fusion']['ms_cpu_median']:.0f} ms CPU, warp_iou {h['warp_iou']['ms_cpu_median']:.0f}"
                 f" ms CPU  ({r['seconds']:.0f} s, load {r['load']:.1f})", flush=True)
-            provenance.write_json(a.out, {"fusion_config": fusion_cfg, "frames": a.frames, "runs": rows}, prov)
+            provenance.write_json(a.out, {"fusion_config": fusion_cfg, "frames": a.frames, "domain": a.domain,
+                                          "runs": rows}, prov)
     print("\nmean over seeds (VPQ / PQ, x100):")
     ok = True
     for scenario in a.scenarios:
