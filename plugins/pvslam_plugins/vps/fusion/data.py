@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -40,15 +41,16 @@ def _segments_of(ids: np.ndarray) -> list[Segment]:
 
 
 def render_pairs(scenario: str, seed: int, pairs: int, width: int = 320, height: int = 240,
-                 downsample: int = 8) -> list[Pair]:
-    """``pairs`` evenly spaced consecutive-frame pairs of ``scenario`` (default length) with ``seed``."""
+                 downsample: int = 8, domain: Optional[str] = None) -> list[Pair]:
+    """``pairs`` evenly spaced consecutive-frame pairs of ``scenario`` (default length) with ``seed``; ``domain``:
+    the generator's domain randomisation split (None = the plain generator)."""
     import cv2
 
     from pvslam_plugins.datasets.synthetic.render import render
     from pvslam_plugins.datasets.synthetic.scenarios import build
     from pvslam_plugins.vps.warp_iou.warp import dis_flow
 
-    sc = build(scenario, width=width, height=height, seed=seed)
+    sc = build(scenario, width=width, height=height, seed=seed, domain=domain)
     n = sc.num_frames
     step = (n - 1) / pairs
     idx = sorted({1 + int(k * step + (seed * 0.618034 % 1.0) * step) for k in range(pairs)} - {n})
@@ -65,21 +67,22 @@ def render_pairs(scenario: str, seed: int, pairs: int, width: int = 320, height:
         ids = np.asarray(r1.panoptic, np.int64)
         out.append(Pair(im0, im1, torch.from_numpy(ids), _segments_of(ids),
                         torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))), torch.from_numpy(d.copy()),
-                        f"{scenario}/seed{seed}/{i:06d}"))
+                        f"{scenario}/seed{seed}/{i:06d}" + (f"/{domain}" if domain else "")))
     return out
 
 
-def load_pairs(cache_dir: Path, scenario: str, seed: int, pairs: int, width: int = 320, height: int = 240
-               ) -> list[Pair]:
+def load_pairs(cache_dir: Path, scenario: str, seed: int, pairs: int, width: int = 320, height: int = 240,
+               domain: Optional[str] = None) -> list[Pair]:
     """:func:`render_pairs` through an ``.npz`` cache in ``cache_dir``."""
-    path = Path(cache_dir) / f"pairs-{scenario}-seed{seed}-n{pairs}-{width}x{height}.npz"
+    look = f"-{domain}" if domain else ""
+    path = Path(cache_dir) / f"pairs-{scenario}-seed{seed}{look}-n{pairs}-{width}x{height}.npz"
     if path.is_file():
         z = np.load(path)
         names = json.loads(str(z["names"]))
         return [Pair(torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(i.astype(np.int64)),
                      _segments_of(i), torch.from_numpy(f), torch.from_numpy(d), nm)
                 for a, b, i, f, d, nm in zip(z["image0"], z["image1"], z["ids1"], z["flow"], z["depth0"], names)]
-    out = render_pairs(scenario, seed, pairs, width, height)
+    out = render_pairs(scenario, seed, pairs, width, height, domain=domain)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez_compressed(tmp, image0=np.stack([p.image0.numpy() for p in out]),

@@ -36,6 +36,9 @@ class TrainConfig(PluginConfig):
     train_seeds: list[int] = Field([10, 11, 12, 13, 14], description="generator seeds of the training pairs (apart "
                                    "from the segmenter's training and validation seeds)")
     val_seeds: list[int] = Field([100], description="held-out seeds for validation")
+    domain_seeds: list[int] = Field([], description="generator seeds whose pairs are rendered in the generator's "
+                                    "training look (texture families, thing sizes, light, camera; dataset.domain = "
+                                    "\"train\"), added to the training pairs so that the layer does not learn one look")
     pairs_per_sequence: int = Field(10, ge=1, description="consecutive-frame pairs per training (scenario, seed)")
     val_pairs_per_sequence: int = Field(6, ge=1, description="pairs per validation (scenario, seed)")
     segmenter_weights: Optional[str] = Field(None, description="frozen segmenter (default: the shipped reduced)")
@@ -169,8 +172,9 @@ def run(cfg: TrainConfig, out: Path, resume: bool) -> dict:
         q.requires_grad_(False)
     layer = FeatureFusion(model.cfg.fpn.out_channels)
     t0 = time.perf_counter()
-    train = [p for seed in cfg.train_seeds for s in cfg.scenarios
-             for p in load_pairs(cache, s, seed, cfg.pairs_per_sequence)]
+    looks = [(seed, None) for seed in cfg.train_seeds] + [(seed, "train") for seed in cfg.domain_seeds]
+    train = [p for seed, look in looks for s in cfg.scenarios
+             for p in load_pairs(cache, s, seed, cfg.pairs_per_sequence, domain=look)]
     val = [p for seed in cfg.val_seeds for s in cfg.scenarios
            for p in load_pairs(cache, s, seed, cfg.val_pairs_per_sequence)]
     tf, vf = _features(model, train, cfg.z_order), _features(model, val, cfg.z_order)

@@ -33,7 +33,7 @@ def _pair(shift: int) -> fusion_data.Pair:
 
 
 def test_trainer_updates_only_the_fusion_layer(tmp_path, monkeypatch):
-    monkeypatch.setattr(fusion_data, "load_pairs", lambda cache, scen, seed, n, *a: [_pair(2 + seed % 3)])
+    monkeypatch.setattr(fusion_data, "load_pairs", lambda cache, scen, seed, n, *a, **k: [_pair(2 + seed % 3)])
     cfg = TrainConfig(scenarios=["moving_vehicles"], train_seeds=[10, 11], val_seeds=[100], iterations=4,
                       pairs_per_sequence=1, val_pairs_per_sequence=1, progress=False, lr=1e-2)
     summary = run(cfg, tmp_path, False)
@@ -44,3 +44,28 @@ def test_trainer_updates_only_the_fusion_layer(tmp_path, monkeypatch):
     ev = json.loads((tmp_path / "eval.json").read_text())
     # before training the fused decode is the plain one exactly (identity initialisation)
     assert ev["identity_init"]["pq_fused"] == ev["identity_init"]["pq_plain"]
+
+
+def test_domain_seeds_add_restyled_training_pairs(tmp_path, monkeypatch):
+    """``domain_seeds``: pairs of the generator's training look join the plain ones; validation stays plain."""
+    calls = []
+
+    def fake(cache, scen, seed, n, *a, domain=None):
+        calls.append((seed, domain))
+        return [_pair(2 + seed % 3)]
+
+    monkeypatch.setattr(fusion_data, "load_pairs", fake)
+    cfg = TrainConfig(scenarios=["moving_vehicles"], train_seeds=[10], domain_seeds=[15, 16], val_seeds=[100],
+                      iterations=2, pairs_per_sequence=1, val_pairs_per_sequence=1, progress=False)
+    summary = run(cfg, tmp_path, False)
+    assert summary["train_pairs"] == 3
+    assert calls == [(10, None), (15, "train"), (16, "train"), (100, None)]
+
+
+def test_restyled_pairs_are_the_same_scene_in_another_look(tmp_path):
+    plain = fusion_data.load_pairs(tmp_path, "moving_vehicles", 15, 1, 96, 72)
+    styled = fusion_data.load_pairs(tmp_path, "moving_vehicles", 15, 1, 96, 72, domain="train")
+    again = fusion_data.load_pairs(tmp_path, "moving_vehicles", 15, 1, 96, 72, domain="train")  # from the cache
+    assert len(list(tmp_path.glob("*.npz"))) == 2 and styled[0].name.endswith("/train")
+    assert not torch.equal(plain[0].image1, styled[0].image1)
+    assert torch.equal(styled[0].image1, again[0].image1) and torch.equal(styled[0].ids1, again[0].ids1)
