@@ -36,9 +36,8 @@ class TrainConfig(PluginConfig):
     train_seeds: list[int] = Field([10, 11, 12, 13, 14], description="generator seeds of the training pairs (apart "
                                    "from the segmenter's training and validation seeds)")
     val_seeds: list[int] = Field([100], description="held-out seeds for validation")
-    domain_seeds: list[int] = Field([], description="generator seeds whose pairs are rendered in the generator's "
-                                    "training look (texture families, thing sizes, light, camera; dataset.domain = "
-                                    "\"train\"), added to the training pairs so that the layer does not learn one look")
+    domain_seeds: list[int] = Field([], description="more training seeds, rendered in the generator's training look "
+                                    "(dataset.domain = \"train\"), so that the layer does not learn one look")
     pairs_per_sequence: int = Field(10, ge=1, description="consecutive-frame pairs per training (scenario, seed)")
     val_pairs_per_sequence: int = Field(6, ge=1, description="pairs per validation (scenario, seed)")
     segmenter_weights: Optional[str] = Field(None, description="frozen segmenter (default: the shipped reduced)")
