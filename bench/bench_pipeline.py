@@ -1,6 +1,6 @@
 """End-to-end benchmark of the default pipeline, with its targets and two peers.
 
-    python bench/bench_pipeline.py                 # everything (about 70-80 minutes on 2 cores: the 10 000-frame run alone ~35)
+    python bench/bench_pipeline.py                 # everything (70-80 minutes on 2 cores; the 10 000-frame run ~35)
     python bench/bench_pipeline.py --only accuracy throughput
     python bench/bench_pipeline.py --quick         # shorter sequences, a smoke run of the script
     python bench/bench_pipeline.py --only throughput long --set optimizer.iters=5   # a variant, measured the same way

@@ -12,8 +12,9 @@ so all three see identical inputs.  Per head: PQ and VPQ (VPSNet's k = 0, 5, 10,
 labels, and ms per frame of its ``update`` (wall and thread CPU time; the machine is shared, CPU time is the
 figure to read).  ``none`` is the segmenter's own per-frame ids (no temporal consistency).  The fusion head's
 weights were trained on seeds 10-14 and, in the generator's training look, 15-19, and validated on seed 100
-(``pvslam train vps --plugin fusion``); the segmenter was trained on seeds 1-8 and, restyled, 11-18.  Results: JSON (``--out``, default runs/bench/results_vps.json, with the
-commit of the measured code: :mod:`bench.provenance`) and a printed table.
+(``pvslam train vps --plugin fusion``); the segmenter was trained on seeds 1-8 and, restyled, 11-18.  Results:
+JSON (``--out``, default runs/bench/results_vps.json, with the commit of the measured code:
+:mod:`bench.provenance`) and a printed table.
 """
 from __future__ import annotations
 

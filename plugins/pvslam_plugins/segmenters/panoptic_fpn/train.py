@@ -10,10 +10,10 @@ with the generator's domain randomisation (its ``"train"`` split; the held-out t
 never reach training); ``init_weights`` starts from a checkpoint instead of a random initialisation.  AdamW with a
 linear warm-up and a cosine decay over the run's progress, ``max(iteration / iterations, minutes /
 time_budget_min)``: on a shared machine of unknown speed the run ends on whichever limit comes first with its
-learning rate fully decayed (the summary says which).  Written into the output folder: ``last.pt`` (model + optimiser + generator state, every
-``checkpoint_every`` iterations and on Ctrl-C; ``--resume`` continues from it), ``loss.csv`` (one row per
-iteration), ``loss.png``, ``model_final.pth`` (pvslam's PanopticFPN format, loadable as ``weights``),
-``eval.json`` and ``eval.md`` (PQ/SQ/RQ on the validation seeds, per class).
+learning rate fully decayed (the summary says which).  Written into the output folder: ``last.pt`` (model +
+optimiser + generator state, every ``checkpoint_every`` iterations and on Ctrl-C; ``--resume`` continues from it),
+``loss.csv`` (one row per iteration), ``loss.png``, ``model_final.pth`` (pvslam's PanopticFPN format, loadable as
+``weights``), ``eval.json`` and ``eval.md`` (PQ/SQ/RQ on the validation seeds, per class).
 """
 from __future__ import annotations
 
