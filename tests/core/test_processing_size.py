@@ -235,3 +235,22 @@ def test_the_streaming_tracker_chooses_the_size_too():
         out, info = tracker.geometry.out, tracker.pipeline.info
         assert (out.width, out.height) == (72, 48)
         assert (info.input_intrinsics.width, info.input_intrinsics.height) == (W, H)
+
+
+@pytest.mark.parametrize("gray", [True, False])
+def test_a_resized_frame_is_the_same_per_plane_whether_the_source_is_gray_or_colour(gray):
+    """A gray source (KITTI, EuRoC: three equal planes) is resized once and replicated; the pixels must be those of
+    resizing every plane, and a colour frame must keep its own planes."""
+    from pvslam_core.datasets.base import _apply, _apply_planes
+
+    class Geo:
+        undist_maps, resize, crop = None, (61, 45), (2, 1, 56, 40)
+
+    rng = np.random.default_rng(0)
+    plane = cv2.GaussianBlur(rng.integers(0, 256, (H, W), dtype=np.uint8), (5, 5), 1.5)
+    chw = np.stack([plane] * 3) if gray else np.stack([plane, plane[::-1], 255 - plane])
+    want = np.stack([_apply(np.ascontiguousarray(c), Geo, nearest=False) for c in chw])
+    got = _apply_planes(chw, Geo)
+    assert got.shape == (3, 40, 56) and got.dtype == np.uint8
+    assert np.array_equal(got, want)
+    assert gray == bool(np.array_equal(got[0], got[2]))
