@@ -67,6 +67,21 @@ def test_frames_that_are_not_posed_count_and_too_few_poses_give_no_score():
     assert bench_real.score(ts, est, ts, gt, total=len(ts), posed=7)["posed"] == 7  # pvslam's count less failures
 
 
+def test_pvslam_is_scored_on_the_frames_another_method_posed():
+    """An estimate that is exact on frames 20-39 and off by a growing drift before: scored over every frame it has an
+    error, over the frames a peer posed (20-39, within the timestamp tolerance) none; frames outside it do not count."""
+    ts, gt = _gt()
+    est = _similar(gt, 0.5, [0.0, 0.3, 0.0], [1.0, 0.0, 0.0])
+    est[:20, :3] += np.linspace(2.0, 0.0, 20)[:, None] * np.array([0.0, 0.0, 1.0])
+    res = {"ts": ts, "poses": est}
+    assert bench_real.score(ts, est, ts, gt, total=len(ts))["ate_m"] > 0.1
+    peer_ts = ts[20:] + 0.004  # a peer's timestamps, slightly off (times.txt against frame / fps)
+    s = bench_real.on_frames(res, peer_ts, ts, gt, total=len(ts))
+    assert s["ate_m"] < 1e-6 and (s["posed"], s["total"]) == (20, len(ts))
+    assert s["path_m"] == pytest.approx(np.linalg.norm(np.diff(gt[20:, :3], axis=0), axis=1).sum())
+    assert math.isnan(bench_real.on_frames(res, ts[:2], ts, gt, total=len(ts))["ate_m"])  # too few to align
+
+
 def test_orb_timestamps_map_to_the_sequence_timestamps():
     seq_ts = np.array([0.0, 0.1036, 0.2072, 0.3108])  # times.txt, not exactly 10 Hz
     assert np.allclose(bench_real.orb_timestamps(np.array([0.1, 0.3]), seq_ts), [0.1036, 0.3108])
