@@ -2,6 +2,7 @@
 
     python bench/bench_real.py --orb-python /work/venv-orb/bin/python --orb-vocab runs/orbvoc/voc.txt
     python bench/bench_real.py --orb-vocab 00=runs/orbvoc/voc_06_01.txt --orb-vocab runs/orbvoc/voc_00.txt
+    PVSLAM_ORB_PYTHON=... PVSLAM_ORB_VOCAB=00=VOC_A:VOC_B python bench/bench_real.py   # as bench/figures.py runs it
 
 Per KITTI excerpt in ``../shared/data/kitti-odometry`` (00, 06, 01; ``--sequences``):
 
@@ -292,10 +293,11 @@ def vocab_for(specs: list[str], seq: str) -> Optional[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), help="KITTI excerpts (default: 00 06 01)")
-    ap.add_argument("--orb-python", help="python of the venv with pyorbslam3 (skipped without it)")
+    ap.add_argument("--orb-python", help="python of the venv with pyorbslam3 (default: $PVSLAM_ORB_PYTHON; "
+                    "skipped without it)")
     ap.add_argument("--orb-vocab", action="append", default=[], metavar="[SEQ=]PATH",
                     help="ORB vocabulary trained on other images: PATH for every sequence, SEQ=PATH for one "
-                    "(repeatable)")
+                    f"(repeatable; default: $PVSLAM_ORB_VOCAB, the same separated by '{os.pathsep}')")
     ap.add_argument("--orb-runs", type=int, default=3, help="ORB-SLAM3 runs per sequence (default 3)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per child process (default 1800)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench" / "real"), help="folder for run directories, "
@@ -304,6 +306,9 @@ def main(argv=None) -> int:
                     help="result file with provenance (default runs/bench/real.json; not into bench/)")
     ap.add_argument("--reprint", metavar="JSON", help="print the table of a saved result file and stop")
     args = ap.parse_args(argv)
+    # where ORB-SLAM3 lives is the machine's business: figures.py runs this tool without options
+    args.orb_python = args.orb_python or os.environ.get("PVSLAM_ORB_PYTHON") or None
+    args.orb_vocab = args.orb_vocab or [v for v in os.environ.get("PVSLAM_ORB_VOCAB", "").split(os.pathsep) if v]
     if args.reprint:
         saved = provenance.read_json(args.reprint)
         print(f"commit {saved['provenance']['commit']} (dirty: {saved['provenance'].get('dirty')})")
@@ -330,7 +335,7 @@ def main(argv=None) -> int:
         if r["method"] == "orbslam3" and r.get("note"):
             print(f"note: {r['sequence']} ORB-SLAM3: {r['note']}")
     path = provenance.write_json(args.json, {"sequences": args.sequences, "orb_runs": args.orb_runs,
-                                             "orb_vocab": args.orb_vocab, "rows": rows, "table": lines}, prov)
+                                             "orb_vocab": args.orb_vocab, "orb_python": args.orb_python, "rows": rows, "table": lines}, prov)
     print(f"wrote {path}")
     return 0
 

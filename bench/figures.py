@@ -73,6 +73,13 @@ def _pipeline_check(*sections: str) -> Callable[[dict], Optional[str]]:
     return check
 
 
+def _real_check(r: dict) -> Optional[str]:
+    missing = [q for q in ("00", "06", "01") if q not in (r.get("sequences") or [])]
+    if missing:
+        return f"KITTI excerpts {missing} not measured"
+    return "fewer than 3 ORB-SLAM3 runs per excerpt" if r.get("orb_runs", 0) < 3 else None
+
+
 BENCHES = {b.key: b for b in (
     Bench("report", ("bench/bench_matrix.py", "--set", "report", "--jobs", "{jobs}", "--json", "{json}"),
           check=_matrix_check("report")),
@@ -85,6 +92,7 @@ BENCHES = {b.key: b for b in (
           same_as="long", check=_pipeline_check("long")),
     Bench("throughput", ("bench/bench_pipeline.py", "--only", "throughput", "--json", "{json}"), speed=True,
           check=_pipeline_check("throughput")),
+    Bench("real", ("bench/bench_real.py", "--json", "{json}"), check=_real_check),
 )}
 
 
@@ -193,6 +201,38 @@ def throughput(r: dict) -> tuple[str, str]:
     return "frames/s: " + ", ".join(parts), "targets 30 frames/s at 320x240, 10 on KITTI, 2 cores"
 
 
+def _real_rows(r: dict) -> dict[tuple[str, str], list[dict]]:
+    return {(row["sequence"], row["method"]): row.get("runs") or [] for row in r["rows"]}
+
+
+def _span(vals: list, fmt: str) -> str:
+    vals = [v for v in vals if v is not None and v == v]
+    if not vals:
+        return "-"
+    lo, hi = format(min(vals), fmt), format(max(vals), fmt)
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def real_peers(r: dict) -> tuple[str, str]:
+    """The real excerpts beside ORB-SLAM3 (bench_real.py): ATE m per excerpt, over all frames and over ORB-SLAM3's."""
+    from bench.bench_real import SAME_FRAMES
+
+    runs, seqs = _real_rows(r), ("00", "06", "01")
+
+    def each(method: str, key: str, fmt: str) -> str:
+        return " / ".join(_span([x.get(key) for x in runs.get((q, method), [])], fmt) for q in seqs)
+
+    value = (f"pvslam {each('pvslam', 'ate_m', '.3f')} m; on ORB-SLAM3's frames {each(SAME_FRAMES, 'ate_m', '.3f')}"
+             f" m; CPU {each('pvslam', 'cpu_ms_per_frame', '.0f')} ms per frame")
+    if not any(runs.get((q, "orbslam3")) for q in seqs):
+        orb = "ORB-SLAM3 not run (" + next((row.get("note") or "?" for row in r["rows"]
+                                            if row["method"] == "orbslam3"), "?") + ")"
+    else:
+        orb = (f"ORB-SLAM3, {r['orb_runs']} runs each: {each('orbslam3', 'ate_m', '.3f')} m on "
+               f"{each('orbslam3', 'posed', 'd')} frames, {each('orbslam3', 'cpu_ms_per_frame', '.0f')} ms")
+    return value, f"{orb}; textbook VO {each('textbook_vo', 'ate_m', '.2f')} m"
+
+
 @dataclass(frozen=True)
 class Figure:
     key: str
@@ -223,6 +263,8 @@ FIGURES = (
            "long", endless),
     Figure("throughput", "throughput end to end (outputs written, evaluation excluded)", "tuned on", "throughput",
            throughput),
+    Figure("real", "KITTI 00 / 06 / 01 excerpts (real; 160 / 51 / 51 frames) as a user runs them, ATE Sim(3)",
+           "00 chosen on, 06 / 01 seen while tuning", "real", real_peers),
 )
 
 
@@ -322,6 +364,14 @@ def page(rows: list[Row], got: dict[str, dict]) -> str:
             lines.append(f"| {name} | {_pct(m['ate']['rmse_percent_of_path'])} | {lp.get('num_detected', 0)} | "
                          f"{_pct(lp.get('precision'), 2)} / {_pct(lp.get('recall'), 2)} | "
                          f"{m['timing']['keyframes']} |")
+    if "real" in got:
+        table = [t for t in got["real"].get("table", []) if t.startswith("|")]
+        details = [t for t in got["real"].get("table", []) if not t.startswith("|")]
+        lines += ["", "## Real sequences beside ORB-SLAM3 and the textbook VO (`bench/bench_real.py`)", "",
+                  "pvslam is run as `pvslam run SEQUENCE --calib SEQUENCE/calib.txt`; ORB-SLAM3 with a vocabulary "
+                  "trained on the other excerpts; ATE and RPE after Sim(3) alignment over the frames each posed "
+                  "(ORB-SLAM3: its largest map); CPU per frame with start-up.", "", *table, "",
+                  *(f"- {t}" for t in details)]
     lines += ["", "## Results", "",
               "| result | command | commit | dirty | machine | started | finished |", "|---|---|---|---|---|---|---|"]
     for key, r in got.items():

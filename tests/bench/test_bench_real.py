@@ -116,3 +116,22 @@ def test_vocabulary_options_per_sequence_and_the_note_when_orb_slam3_cannot_run(
     # this test's own python lacks pyorbslam3: said plainly, not a traceback
     note = bench_real.orb_missing(sys.executable, "/v/a.txt", runner)
     assert note is not None and "cannot run the ORB-SLAM3 runner" in note and "pyorbslam3" in note
+
+
+def test_where_orb_slam3_lives_comes_from_the_environment_when_not_given(tmp_path, monkeypatch, capsys):
+    """figures.py runs the tool without options: the ORB-SLAM3 python and vocabularies come from the environment,
+    and options given on the command line win."""
+    seen = {}
+
+    def fake_bench(seq, out, args, vocab):
+        seen[seq] = (args.orb_python, vocab)
+        return []
+
+    monkeypatch.setattr(bench_real, "bench_sequence", fake_bench)
+    monkeypatch.setenv("PVSLAM_ORB_PYTHON", "/orb/bin/python")
+    monkeypatch.setenv("PVSLAM_ORB_VOCAB", "00=/v/a.txt" + __import__("os").pathsep + "/v/b.txt")
+    out = tmp_path / "real.json"
+    assert bench_real.main(["--sequences", "00", "06", "--json", str(out)]) == 0
+    assert seen == {"00": ("/orb/bin/python", "/v/a.txt"), "06": ("/orb/bin/python", "/v/b.txt")}
+    assert bench_real.main(["--sequences", "06", "--orb-vocab", "/v/c.txt", "--json", str(out)]) == 0
+    assert seen["06"] == ("/orb/bin/python", "/v/c.txt")

@@ -161,3 +161,42 @@ def test_a_benchmark_run_twice_by_two_figures_is_measured_once(tmp_path, monkeyp
 def test_the_speed_benchmarks_are_the_ones_skipped():
     assert {k for k, b in figures.BENCHES.items() if b.speed} == {"long_speed", "throughput"}
     assert all(f.bench in figures.BENCHES for f in figures.FIGURES)
+
+
+def _real(orb=True, orb_runs=3):
+    def run(ate, posed, cpu=None):
+        return {"ate_m": ate, "posed": posed, "cpu_ms_per_frame": cpu}
+    rows = []
+    for q, pv, same, o, vo in (("00", 0.436, [0.416] * 3, [0.364, 0.457, 0.380], 3.436),
+                               ("06", 0.024, [0.023] * 3, [0.057, 0.089, 0.087], 1.537),
+                               ("01", 0.173, [0.019, 0.159], [0.031, 0.276], 3.348)):
+        rows += [{"sequence": q, "method": "pvslam", "runs": [run(pv, 160, 190.0)]},
+                 {"sequence": q, "method": "orbslam3", "runs": [run(a, 50, 110.0) for a in o] if orb else [],
+                  "note": "" if orb else "no --orb-python (the python of a venv with pyorbslam3)"},
+                 {"sequence": q, "method": "pvslam on ORB-SLAM3's frames", "runs": [run(a, 50) for a in same]},
+                 {"sequence": q, "method": "textbook_vo", "runs": [run(vo, 160, 25.0)]}]
+    return {"provenance": _prov(), "sequences": ["00", "06", "01"], "orb_runs": orb_runs, "rows": rows,
+            "table": ["| sequence | method |", "|---|---|", "| 00 | pvslam |", "00 orbslam3, each run: ..."]}
+
+
+def test_the_real_excerpts_beside_orb_slam3_are_a_figure_with_the_full_table(results):
+    (results / "real.json").write_text(json.dumps(_real()))
+    rows, got = figures.load(results)
+    row = {r.figure.key: r for r in rows}["real"]
+    assert row.value == ("pvslam 0.436 / 0.024 / 0.173 m; on ORB-SLAM3's frames 0.416 / 0.023 / 0.019-0.159 m; "
+                         "CPU 190 / 190 / 190 ms per frame")
+    assert row.compared == ("ORB-SLAM3, 3 runs each: 0.364-0.457 / 0.057-0.089 / 0.031-0.276 m on 50 / 50 / 50 "
+                            "frames, 110 / 110 / 110 ms; textbook VO 3.44 / 1.54 / 3.35 m")
+    page = figures.page(rows, got)
+    assert "## Real sequences beside ORB-SLAM3" in page and "| 00 | pvslam |" in page
+    assert "- 00 orbslam3, each run: ..." in page  # the per-run lines below the table, not inside it
+    assert figures.BENCHES["real"].shown() == "python bench/bench_real.py --json runs/bench/figures/real.json"
+
+
+def test_the_real_figure_says_why_orb_slam3_is_missing_and_refuses_too_few_runs(results):
+    (results / "real.json").write_text(json.dumps(_real(orb=False)))
+    rows, _ = figures.load(results)
+    assert {r.figure.key: r for r in rows}["real"].compared.startswith("ORB-SLAM3 not run (no --orb-python")
+    (results / "real.json").write_text(json.dumps(_real(orb_runs=1)))
+    with pytest.raises(ValueError, match="fewer than 3 ORB-SLAM3 runs"):
+        figures.load(results)
