@@ -335,7 +335,8 @@ def main(argv=None) -> int:
         if r["method"] == "orbslam3" and r.get("note"):
             print(f"note: {r['sequence']} ORB-SLAM3: {r['note']}")
     path = provenance.write_json(args.json, {"sequences": args.sequences, "orb_runs": args.orb_runs,
-                                             "orb_vocab": args.orb_vocab, "orb_python": args.orb_python, "rows": rows, "table": lines}, prov)
+                                             "orb_vocab": args.orb_vocab, "orb_python": args.orb_python,
+                                             "rows": rows, "table": lines}, prov)
     print(f"wrote {path}")
     return 0
 

@@ -205,17 +205,9 @@ def _real_rows(r: dict) -> dict[tuple[str, str], list[dict]]:
     return {(row["sequence"], row["method"]): row.get("runs") or [] for row in r["rows"]}
 
 
-def _span(vals: list, fmt: str) -> str:
-    vals = [v for v in vals if v is not None and v == v]
-    if not vals:
-        return "-"
-    lo, hi = format(min(vals), fmt), format(max(vals), fmt)
-    return lo if lo == hi else f"{lo}-{hi}"
-
-
 def real_peers(r: dict) -> tuple[str, str]:
     """The real excerpts beside ORB-SLAM3 (bench_real.py): ATE m per excerpt, over all frames and over ORB-SLAM3's."""
-    from bench.bench_real import SAME_FRAMES
+    from bench.bench_real import SAME_FRAMES, _span
 
     runs, seqs = _real_rows(r), ("00", "06", "01")
 
