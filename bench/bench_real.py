@@ -21,7 +21,9 @@ rows less its tracking failures; ORB-SLAM3: the frames of its largest map), and 
 child process's rusage, start-up included: python imports, ORB-SLAM3's vocabulary load; the textbook VO: the
 process time of its loop).  ORB-SLAM3's ATE covers only the frames of its largest map, and an ATE over part of a
 sequence is not comparable with one over all of it: the row *pvslam on ORB-SLAM3's frames* scores pvslam's trajectory
-over each ORB-SLAM3 run's posed frames alone (aligned on those).  The result file (``--json``, default
+over each ORB-SLAM3 run's posed frames alone (aligned on those).  pvslam repeats exactly but moves with the input's
+size, so it also runs with the processing area 2 % per side smaller and larger (``--size-spread``): its rows show
+that range as ORB-SLAM3's show its run-to-run spread.  The result file (``--json``, default
 ``runs/bench/real.json``) records the provenance.
 """
 from __future__ import annotations
@@ -104,8 +106,9 @@ def _ms(cpu_s: float, frames: int) -> float:
 
 
 # ------------------------------------------------------------------------------------------------ methods
-def run_pvslam(seq: str, out: Path, timeout: float, extra: Sequence[str] = ()) -> dict:
-    """``pvslam run`` on excerpt ``seq`` in a child process (``extra``: more command-line arguments)."""
+def run_pvslam(seq: str, out: Path, timeout: float, extra: Sequence[str] = (), tag: str = "") -> dict:
+    """``pvslam run`` on excerpt ``seq`` in a child process (``extra``: more command-line arguments; ``tag``: a
+    suffix of the run's name and log)."""
     from pvslam_core.outputs.trajectory_io import read_tum
 
     src = KITTI / "sequences" / seq
@@ -113,8 +116,8 @@ def run_pvslam(seq: str, out: Path, timeout: float, extra: Sequence[str] = ()) -
     if exe is None:
         return {"error": "the pvslam command is not installed (pip install -e .)"}
     cmd = [exe, "run", str(src), "--calib", str(src / "calib.txt"), "--output-dir", str(out / "pvslam"),
-           "--name", f"kitti_{seq}", "--quiet", *extra]
-    rc, cpu, wall, text = run_child(cmd, out / "logs" / f"pvslam_{seq}.log", timeout)
+           "--name", f"kitti_{seq}{tag}", "--quiet", *extra]
+    rc, cpu, wall, text = run_child(cmd, out / "logs" / f"pvslam_{seq}{tag}.log", timeout)
     m = re.search(r"^run directory: (.+)$", text, re.M)
     if m is None or not (Path(m.group(1)) / "trajectory.txt").is_file():
         return {"error": f"pvslam exited with {rc} and no trajectory (log: {out / 'logs'})", "cpu_s": cpu}
@@ -125,6 +128,19 @@ def run_pvslam(seq: str, out: Path, timeout: float, extra: Sequence[str] = ()) -
     posed = 0 if rc != 0 else int(np.all(np.isfinite(poses), axis=1).sum()) - failures
     return {"ts": np.asarray(ts), "poses": np.asarray(poses), "posed": posed, "cpu_s": cpu, "wall_s": wall,
             "exit": rc, "run_dir": str(run_dir), "command": cmd, "reinits": int(timing.get("reinitialisations", 0))}
+
+
+def size_variants(spread_pct: float) -> list[tuple[str, list[str]]]:
+    """pvslam's runs per excerpt: ``(tag, extra arguments)``, as a user runs it and, with ``spread_pct`` > 0, with
+    the processing area ``spread_pct`` % per side smaller and larger (``dataset.max_pixels``).  pvslam repeats
+    exactly, ORB-SLAM3 does not: its runs show its spread, these how much pvslam's result moves with the size."""
+    from pvslam_core.datasets.base import MAX_PIXELS
+
+    out = [("", [])]
+    if spread_pct > 0:
+        for tag, f in (("_smaller", 1.0 - spread_pct / 100.0), ("_larger", 1.0 + spread_pct / 100.0)):
+            out.append((tag, ["--set", f"dataset.max_pixels={round(MAX_PIXELS * f * f)}"]))
+    return out
 
 
 def orb_timestamps(orb_ts: np.ndarray, seq_ts: np.ndarray, fps: float = ORB_FPS) -> np.ndarray:
@@ -217,13 +233,20 @@ def table(rows: list[dict]) -> list[str]:
     return out
 
 
+def _labels(run: dict) -> str:
+    """``; size smaller, ORB-SLAM3 run 2``: which pvslam size and which ORB-SLAM3 run a figure is of, if any."""
+    parts = ([f"size {run['size']}"] if "size" in run else []) + \
+        ([f"ORB-SLAM3 run {run['orb_run'] + 1}"] if "orb_run" in run else [])
+    return "".join(f"; {p}" for p in parts)
+
+
 def run_details(rows: list[dict]) -> list[str]:
     """One line per method with several runs: each run's ATE and frames posed (ranges hide which run posed what)."""
     out = []
     for r in rows:
         if len(r.get("runs") or []) > 1:
-            runs = ", ".join(f"{x['ate_m']:.3f} m = {x['ate_pct']:.2f} % ({x['posed']}/{x['total']} frames)"
-                             for x in r["runs"])
+            runs = ", ".join(f"{x['ate_m']:.3f} m = {x['ate_pct']:.2f} % ({x['posed']}/{x['total']} frames"
+                             f"{_labels(x)})" for x in r["runs"])
             out.append(f"{r['sequence']} {r['method']}, each run: {runs}")
     return out
 
@@ -254,11 +277,13 @@ def bench_sequence(seq: str, out: Path, args, vocab: Optional[str]) -> list[dict
     gt_ts, gt = read_gt(seq_dir)
     total = len(gt_ts)
     rows = []
-    print(f"[{seq}] pvslam ...", flush=True)
-    pv_res = run_pvslam(seq, out, args.timeout)
-    pv = evaluate("pvslam", pv_res, gt_ts, gt, total)
-    rows.append({"sequence": seq, "method": "pvslam", "runs": [pv] if "ate_m" in pv else [],
-                 "note": pv.get("error", "")})
+    pv_res, pv = [], []
+    for tag, extra in size_variants(args.size_spread):
+        print(f"[{seq}] pvslam{tag.replace('_', ', processing area ')} ...", flush=True)
+        pv_res.append(run_pvslam(seq, out, args.timeout, extra, tag))
+        pv.append({**evaluate("pvslam", pv_res[-1], gt_ts, gt, total), "size": tag.strip("_") or "default"})
+    rows.append({"sequence": seq, "method": "pvslam", "runs": [r for r in pv if "ate_m" in r],
+                 "note": "; ".join(r["error"] for r in pv if "error" in r)})
     note = orb_missing(args.orb_python, vocab, PEERS / "orbslam3_traj.py")
     orb_runs, same = [], []
     if note is None:
@@ -266,8 +291,9 @@ def bench_sequence(seq: str, out: Path, args, vocab: Optional[str]) -> list[dict
             print(f"[{seq}] ORB-SLAM3 run {k + 1}/{args.orb_runs} ...", flush=True)
             orb = run_orb(seq, seq_dir, args.orb_python, vocab, k, out, args.timeout)
             orb_runs.append(evaluate("orbslam3", orb, gt_ts, gt, total))
-            if "ts" in orb and "ts" in pv_res and "ate_m" in orb_runs[-1]:
-                same.append({**on_frames(pv_res, orb["ts"], gt_ts, gt, total), "method": "pvslam", "orb_run": k})
+            if "ts" in orb and "ate_m" in orb_runs[-1]:
+                same += [{**on_frames(r, orb["ts"], gt_ts, gt, total), "method": "pvslam", "orb_run": k,
+                          "size": p["size"]} for r, p in zip(pv_res, pv) if "ts" in r]
     else:
         print(f"[{seq}] ORB-SLAM3 skipped: {note}", flush=True)
     rows.append({"sequence": seq, "method": "orbslam3", "runs": [r for r in orb_runs if "ate_m" in r],
@@ -299,6 +325,9 @@ def main(argv=None) -> int:
                     help="ORB vocabulary trained on other images: PATH for every sequence, SEQ=PATH for one "
                     f"(repeatable; default: $PVSLAM_ORB_VOCAB, the same separated by '{os.pathsep}')")
     ap.add_argument("--orb-runs", type=int, default=3, help="ORB-SLAM3 runs per sequence (default 3)")
+    ap.add_argument("--size-spread", type=float, default=2.0, metavar="PCT",
+                    help="pvslam also with the processing area PCT %% per side smaller and larger: how much its "
+                    "result moves with the input's size (default 2; 0: one run)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per child process (default 1800)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench" / "real"), help="folder for run directories, "
                     "ORB-SLAM3 trajectories and logs (default runs/bench/real)")
@@ -336,7 +365,7 @@ def main(argv=None) -> int:
             print(f"note: {r['sequence']} ORB-SLAM3: {r['note']}")
     path = provenance.write_json(args.json, {"sequences": args.sequences, "orb_runs": args.orb_runs,
                                              "orb_vocab": args.orb_vocab, "orb_python": args.orb_python,
-                                             "rows": rows, "table": lines}, prov)
+                                             "size_spread": args.size_spread, "rows": rows, "table": lines}, prov)
     print(f"wrote {path}")
     return 0
 

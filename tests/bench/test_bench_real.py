@@ -135,3 +135,47 @@ def test_where_orb_slam3_lives_comes_from_the_environment_when_not_given(tmp_pat
     assert seen == {"00": ("/orb/bin/python", "/v/a.txt"), "06": ("/orb/bin/python", "/v/b.txt")}
     assert bench_real.main(["--sequences", "06", "--orb-vocab", "/v/c.txt", "--json", str(out)]) == 0
     assert seen["06"] == ("/orb/bin/python", "/v/c.txt")
+
+
+def test_pvslam_runs_at_its_size_and_two_percent_either_side():
+    from pvslam_core.datasets.base import MAX_PIXELS
+
+    assert bench_real.size_variants(0) == [("", [])]
+    tags = bench_real.size_variants(2.0)
+    assert [t for t, _ in tags] == ["", "_smaller", "_larger"]
+    areas = [int(a[1].split("=")[1]) for _, a in tags[1:]]
+    assert areas == [round(MAX_PIXELS * 0.98 ** 2), round(MAX_PIXELS * 1.02 ** 2)]
+    assert all(a[0] == "--set" and a[1].startswith("dataset.max_pixels=") for _, a in tags[1:])
+
+
+def test_a_sequence_row_holds_every_pvslam_size_and_each_is_scored_on_orb_slam3s_frames(tmp_path, monkeypatch):
+    """Three pvslam runs (the sizes) and two ORB-SLAM3 runs: the pvslam row has three runs labelled by size, the
+    same-frames row one score per (pvslam run, ORB-SLAM3 run), each over that ORB-SLAM3 run's frames only."""
+    ts, gt = _gt()
+    drift = {"": 0.0, "_smaller": 1.0, "_larger": 2.0}
+
+    def fake_pvslam(seq, out, timeout, extra=(), tag=""):
+        est = gt.copy()
+        est[:, 1] += drift[tag] * np.linspace(0, 1, len(ts)) ** 2  # a bend, not removable by a similarity
+        return {"ts": ts, "poses": est, "posed": len(ts), "cpu_s": 1.0}
+
+    orbs = iter([{"ts": ts[10:], "poses": gt[10:], "cpu_s": 0.5}, {"ts": ts[:25], "poses": gt[:25], "cpu_s": 0.5}])
+    monkeypatch.setattr(bench_real, "kitti_as_tum", lambda seq, out: tmp_path)
+    monkeypatch.setattr(bench_real, "read_gt", lambda d: (ts, gt))
+    monkeypatch.setattr(bench_real, "run_pvslam", fake_pvslam)
+    monkeypatch.setattr(bench_real, "orb_missing", lambda *a: None)
+    monkeypatch.setattr(bench_real, "run_orb", lambda *a: next(orbs))
+    monkeypatch.setattr(bench_real, "run_vo", lambda d: {"ts": ts, "poses": gt, "cpu_s": 0.1})
+
+    class Args:
+        timeout, orb_runs, orb_python, size_spread = 10.0, 2, "py", 2.0
+
+    rows = {r["method"]: r for r in bench_real.bench_sequence("00", tmp_path, Args, "voc")}
+    pv = rows["pvslam"]["runs"]
+    assert [r["size"] for r in pv] == ["default", "smaller", "larger"]
+    assert pv[0]["ate_m"] < 1e-6 < pv[1]["ate_m"] < pv[2]["ate_m"]
+    same = rows[bench_real.SAME_FRAMES]["runs"]
+    assert [(r["orb_run"], r["size"]) for r in same] == [(0, "default"), (0, "smaller"), (0, "larger"),
+                                                         (1, "default"), (1, "smaller"), (1, "larger")]
+    assert [r["posed"] for r in same] == [30, 30, 30, 25, 25, 25]
+    assert "size smaller; ORB-SLAM3 run 1" in " ".join(bench_real.run_details(list(rows.values())))

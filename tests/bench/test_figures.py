@@ -191,6 +191,9 @@ def test_the_real_excerpts_beside_orb_slam3_are_a_figure_with_the_full_table(res
     assert "## Real sequences beside ORB-SLAM3" in page and "| 00 | pvslam |" in page
     assert "- 00 orbslam3, each run: ..." in page  # the per-run lines below the table, not inside it
     assert figures.BENCHES["real"].shown() == "python bench/bench_real.py --json runs/bench/figures/real.json"
+    spread = {**_real(), "size_spread": 2.0}
+    assert figures.real_peers(spread)[0].startswith("pvslam 0.436 / 0.024 / 0.173 m (its processing size and 2 % "
+                                                    "per side either way); on ORB-SLAM3's frames")
 
 
 def test_the_real_figure_says_why_orb_slam3_is_missing_and_refuses_too_few_runs(results):
