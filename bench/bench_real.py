@@ -205,7 +205,7 @@ def _cell(v: float, fmt: str) -> str:
     return "-" if v is None or not np.isfinite(v) else format(v, fmt)
 
 
-def _span(vals: list[float], fmt: str) -> str:
+def span(vals: list[float], fmt: str) -> str:
     vals = [v for v in vals if v is not None and np.isfinite(v)]
     if not vals:
         return "-"
@@ -223,13 +223,13 @@ def table(rows: list[dict]) -> list[str]:
         if not runs:
             out.append(f"| {r['sequence']} | {r['method']} | 0 | {r.get('note', '-')} | | | | | |")
             continue
-        posed = _span([x["posed"] for x in runs], "d")
+        posed = span([x["posed"] for x in runs], "d")
         tried = r.get("attempted", len(runs))
         n = str(len(runs)) if tried == len(runs) else f"{len(runs)} of {tried}"
-        out.append(f"| {r['sequence']} | {r['method']} | {n} | {_span([x['ate_m'] for x in runs], '.3f')} | "
-                   f"{_span([x['ate_pct'] for x in runs], '.2f')} | {_span([x['rpe_t_m'] for x in runs], '.3f')} | "
-                   f"{_span([x['rpe_r_deg'] for x in runs], '.3f')} | {posed} / {runs[0]['total']} | "
-                   f"{_span([x['cpu_ms_per_frame'] for x in runs], '.0f')} |")
+        out.append(f"| {r['sequence']} | {r['method']} | {n} | {span([x['ate_m'] for x in runs], '.3f')} | "
+                   f"{span([x['ate_pct'] for x in runs], '.2f')} | {span([x['rpe_t_m'] for x in runs], '.3f')} | "
+                   f"{span([x['rpe_r_deg'] for x in runs], '.3f')} | {posed} / {runs[0]['total']} | "
+                   f"{span([x['cpu_ms_per_frame'] for x in runs], '.0f')} |")
     return out
 
 
@@ -263,11 +263,10 @@ def evaluate(method: str, res: dict, gt_ts: np.ndarray, gt: np.ndarray, total: i
 def on_frames(res: dict, ts: np.ndarray, gt_ts: np.ndarray, gt: np.ndarray, total: int) -> dict:
     """``res``'s scores over the frames at timestamps ``ts`` only (another method's posed frames), aligned on those:
     an ATE over a part of a sequence is comparable only with an ATE over the same part."""
-    own = np.asarray(res["ts"], np.float64)
-    ts = np.sort(np.asarray(ts, np.float64))
-    k = np.clip(np.searchsorted(ts, own), 1, max(len(ts) - 1, 1))
-    near = np.minimum(np.abs(own - ts[k - 1]), np.abs(own - ts[np.minimum(k, len(ts) - 1)])) if len(ts) else own
-    sel = (near <= MAX_DIFF) if len(ts) else np.zeros(len(own), bool)
+    from bench.peers.common import _associate
+
+    own, ts = np.asarray(res["ts"], np.float64), np.asarray(ts, np.float64)
+    sel = _associate(own, ts, MAX_DIFF)[0] if len(ts) else np.zeros(0, dtype=np.int64)
     s = score(own[sel], np.asarray(res["poses"])[sel], gt_ts, gt, total)
     return {**s, "cpu_ms_per_frame": math.nan}
 

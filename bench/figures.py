@@ -74,7 +74,9 @@ def _pipeline_check(*sections: str) -> Callable[[dict], Optional[str]]:
 
 
 def _real_check(r: dict) -> Optional[str]:
-    missing = [q for q in ("00", "06", "01") if q not in (r.get("sequences") or [])]
+    from bench.bench_real import SEQUENCES
+
+    missing = [q for q in SEQUENCES if q not in (r.get("sequences") or [])]
     if missing:
         return f"KITTI excerpts {missing} not measured"
     return "fewer than 3 ORB-SLAM3 runs per excerpt" if r.get("orb_runs", 0) < 3 else None
@@ -207,12 +209,12 @@ def _real_rows(r: dict) -> dict[tuple[str, str], list[dict]]:
 
 def real_peers(r: dict) -> tuple[str, str]:
     """The real excerpts beside ORB-SLAM3 (bench_real.py): ATE m per excerpt, over all frames and over ORB-SLAM3's."""
-    from bench.bench_real import SAME_FRAMES, _span
+    from bench.bench_real import SAME_FRAMES, SEQUENCES as seqs, span
 
-    runs, seqs = _real_rows(r), ("00", "06", "01")
+    runs = _real_rows(r)
 
     def each(method: str, key: str, fmt: str) -> str:
-        return " / ".join(_span([x.get(key) for x in runs.get((q, method), [])], fmt) for q in seqs)
+        return " / ".join(span([x.get(key) for x in runs.get((q, method), [])], fmt) for q in seqs)
 
     sizes = f" (its processing size and {r['size_spread']:g} % per side either way)" if r.get("size_spread") else ""
     value = (f"pvslam {each('pvslam', 'ate_m', '.3f')} m{sizes}; on ORB-SLAM3's frames "
@@ -358,11 +360,14 @@ def page(rows: list[Row], got: dict[str, dict]) -> str:
                          f"{_pct(lp.get('precision'), 2)} / {_pct(lp.get('recall'), 2)} | "
                          f"{m['timing']['keyframes']} |")
     if "real" in got:
-        table = [t for t in got["real"].get("table", []) if t.startswith("|")]
-        details = [t for t in got["real"].get("table", []) if not t.startswith("|")]
+        real = got["real"]
+        table = [t for t in real.get("table", []) if t.startswith("|")]
+        details = [t for t in real.get("table", []) if not t.startswith("|")]
+        sizes = (f", and with the processing area {real['size_spread']:g} % per side smaller and larger "
+                 "(`--size-spread`)") if real.get("size_spread") else ""
         lines += ["", "## Real sequences beside ORB-SLAM3 and the textbook VO (`bench/bench_real.py`)", "",
-                  "pvslam is run as `pvslam run SEQUENCE --calib SEQUENCE/calib.txt`, and with the processing "
-                  "area 2 % per side smaller and larger (`--size-spread`); ORB-SLAM3 with a vocabulary "
+                  f"pvslam is run as `pvslam run SEQUENCE --calib SEQUENCE/calib.txt`{sizes}; ORB-SLAM3 with a "
+                  "vocabulary "
                   "trained on the other excerpts; ATE and RPE after Sim(3) alignment over the frames each posed "
                   "(ORB-SLAM3: its largest map); CPU per frame with start-up.", "", *table, "",
                   *(f"- {t}" for t in details)]
