@@ -34,3 +34,33 @@ def test_tally_counts_false_dynamic_missed_and_lost_confidence():
     # static confidence 6 x 0.5 = 3.0, of which the two road pixels lost 2 x 0.4
     assert abs(s["w_lost_static"] - 0.8 / 3.0) < 1e-6 and abs(s["w_lost_scale_bearing"] - 0.8 / 3.0) < 1e-6  # float32
     assert abs(s["all_pixels"]["removed"] - 3 / 8) < 1e-9 and abs(s["all_pixels"]["removed_in_thing"] - 2 / 8) < 1e-9
+
+
+def _run(scenario, seed, segm, rmse):
+    return {"scenario": scenario, "seed": seed, "segmenter": segm, "ate": {"rmse": rmse}}
+
+
+def test_each_segmenter_is_compared_with_none_on_the_same_sequence_and_worse_runs_are_counted():
+    runs = [_run("mv", "1", "panoptic_fpn", 2.0), _run("mv", "1", "none", 1.0),
+            _run("mv", "2", "panoptic_fpn", 1.04), _run("mv", "2", "none", 1.0), _run("mv", "2", "labels", 0.5),
+            _run("mv", "3", "panoptic_fpn", 9.0)]  # no none run on seed 3: left out
+    rows = {r["segmenter"]: r for r in B.against_none(runs)}
+    assert set(rows) == {"panoptic_fpn", "labels"}
+    p = rows["panoptic_fpn"]
+    assert p["runs"] == ["mv:1", "mv:2"] and p["ratios"] == [2.0, 1.04]
+    assert p["worse"] == 1  # 1.04 is within the 5 % a run may differ by
+    assert abs(p["mean_ate"] - 1.52) < 1e-12 and p["mean_ate_none"] == 1.0
+    assert rows["labels"]["worse"] == 0 and rows["labels"]["ratios"] == [0.5]
+    assert B.against_none([_run("mv", "1", "none", 1.0)]) == []
+
+
+def test_the_domain_option_reaches_the_run_config(monkeypatch, tmp_path):
+    seen = []
+    monkeypatch.setattr(B, "run_one", lambda sc, sd, segm, frames, out, ov: seen.append(ov) or
+                        {"ate": {"rmse": 1.0}, "scenario": sc, "seed": sd, "segmenter": segm})
+    monkeypatch.setattr(B, "print_summary", lambda *a: None)
+    monkeypatch.setattr(B.provenance, "check", lambda path: {})
+    monkeypatch.setattr(B.provenance, "write_json", lambda *a: None)
+    assert B.main(["--runs", "moving_vehicles:5", "--segmenters", "none", "--domain", "heldout",
+                   "--json", str(tmp_path / "x.json")]) == 0
+    assert seen == [['dataset.domain="heldout"']]
