@@ -17,7 +17,10 @@ Printed per ground-truth category (road, building, car, ...) and per segmenter:
   by thing   share of the false-dynamic pixels that lie in a segment the segmenter called a movable thing (the
              segment vote) rather than in the geometric candidates alone
 
-and the run's Sim(3) ATE.  Last, per segmenter, each run's ATE against ``none`` on the same sequence and how many runs
+and the run's Sim(3) ATE.  ``--trace`` also prints, per keyframe in time order, the share of its view that moves and,
+from the latest mask of each of its edges (averaged over them), the share of the moving pixels the masks hold and
+the share of the view they mark that does not move: where a mover fills the view, a mask that lets go of it and
+marks the background instead shows there.  Last, per segmenter, each run's ATE against ``none`` on the same sequence and how many runs
 are more than 5 % worse (the target: none on held-out looks, ``--domain heldout``).  Results: ``--json`` (default
 runs/bench/results_dynamic_masks.json) with the commit of the measured code (:mod:`bench.provenance`).  Torch runs
 with one thread.
@@ -31,6 +34,7 @@ import tempfile
 import time
 from collections import defaultdict
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -52,6 +56,10 @@ class Tally:
         self.n = defaultdict(lambda: torch.zeros(6, dtype=torch.float64))
         # [static, static removed, moving, moving kept, static conf, static conf lost]
         self.kf: dict[int, tuple] = {}
+        self.frame: dict[int, int] = {}  # keyframe id -> its frame index
+        # (source id, target id) -> (moving share of the view, share of the moving pixels removed or None, share of
+        # the view removed that does not move) of the edge's latest observation
+        self.last: dict[tuple[int, int], tuple[float, Optional[float], float]] = {}
 
     def add_keyframe(self, sid: int, frame, seg, h: int, w: int) -> None:
         from pvslam_plugins.frontends.flow.dynamic_masking import segment_info
@@ -59,6 +67,7 @@ class Tally:
         from pvslam_plugins.frontends.flow import flow_ops as F
 
         ids, things = segment_info(seg, h, w)
+        self.frame[sid] = int(frame.index)
         in_thing = torch.zeros(h, w, dtype=torch.bool) if ids is None else torch.isin(ids, things)
         if frame.gt_dynamic is None or frame.gt_panoptic is None:  # no ground truth: the segmenter's word only
             self.kf[sid] = (None, None, in_thing)
@@ -68,7 +77,7 @@ class Tally:
         self.kf[sid] = (dyn > 0.5, cat, in_thing)
 
     def observe(self, keys, dyn: torch.Tensor, conf: torch.Tensor, weight: torch.Tensor) -> None:
-        for e, (sid, _) in enumerate(keys):
+        for e, (sid, tgt) in enumerate(keys):
             if sid not in self.kf:
                 continue
             moving, cat, in_thing = self.kf[sid]
@@ -80,6 +89,9 @@ class Tally:
                                           dtype=torch.float64)
             if moving is None:
                 continue
+            n_mv = int(moving.sum())
+            self.last[(sid, tgt)] = (n_mv / moving.numel(), float((rem & moving).sum()) / n_mv if n_mv else None,
+                                     float((rem & ~moving).sum()) / rem.numel())
             for k in torch.unique(cat).tolist():
                 m = cat == k
                 st, mv = m & ~moving, m & moving
@@ -130,6 +142,28 @@ def summarise(tally: Tally, names: dict[int, str]) -> dict:
     return {"categories": rows, "w_lost_static": lost_all, "w_lost_scale_bearing": scale, "all_pixels": every}
 
 
+def trace(tally: Tally) -> list[dict]:
+    """Per keyframe with ground truth, in frame order: ``frame``, ``moving`` (share of its view), ``held`` (share of
+    its moving pixels removed, averaged over its edges' latest masks; None when nothing moves) and ``false`` (share
+    of its view removed that does not move, averaged likewise)."""
+    per: dict[int, list] = defaultdict(list)
+    for (sid, _), v in tally.last.items():
+        per[sid].append(v)
+    rows = []
+    for sid, vs in per.items():
+        held = [v[1] for v in vs if v[1] is not None]
+        rows.append({"frame": tally.frame.get(sid, -1), "moving": vs[0][0],
+                     "held": sum(held) / len(held) if held else None, "false": sum(v[2] for v in vs) / len(vs)})
+    return sorted(rows, key=lambda r: r["frame"])
+
+
+def print_trace(rows: list[dict]) -> None:
+    print(f"   {'frame':>5s} {'moving':>7s} {'held':>6s} {'false':>6s}")
+    for r in rows:
+        held = "-" if r["held"] is None else f"{100 * r['held']:.0f} %"
+        print(f"   {r['frame']:5d} {100 * r['moving']:6.1f}% {held:>6s} {100 * r['false']:5.1f}%")
+
+
 def print_summary(label: str, s: dict, ate: dict) -> None:
     print(f"-- {label}: ATE {ate.get('rmse', float('nan')):.4f} m ({ate.get('rmse_percent_of_path', float('nan')):.3f} "
           f"%); static confidence removed {100 * s['w_lost_static']:.2f} % (scale-bearing stuff "
@@ -170,7 +204,8 @@ def run_one(scenario: str, seed: str, segmenter: str, frames: int, out: Path, ov
         undo()
     s = summarise(tally, {c.id: c.name for c in CATEGORIES})
     return {"scenario": scenario, "seed": seed, "segmenter": segmenter, "frames": frames,
-            "ate": r.metrics.get("ate", {}), "keyframes": r.metrics["timing"]["keyframes"], **s}
+            "ate": r.metrics.get("ate", {}), "keyframes": r.metrics["timing"]["keyframes"], **s,
+            "trace": trace(tally)}
 
 
 # a segmenter's run counts as worse than ``none`` beyond this ATE ratio: a run repeats exactly, but a small change of
@@ -213,6 +248,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=150, help="frames of a synthetic run (0: the scenario's own)")
     ap.add_argument("--domain", choices=["train", "heldout"], help="the generator's restyled looks (dataset.domain): "
                     "'heldout' are texture families and sizes the shipped segmenter never saw")
+    ap.add_argument("--trace", action="store_true", help="also print each keyframe's moving share and how much of "
+                    "it the masks hold (the JSON has it always)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="extra config override")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=str(provenance.RESULTS_DIR / "results_dynamic_masks.json"))
@@ -235,6 +272,8 @@ def main(argv=None) -> int:
                 res["cpu_s"] = time.process_time() - t0
                 print_summary(f"{scenario} seed {seed}, segmenter {segm} ({res['cpu_s']:.0f} CPU s, busy machine)",
                               res, res["ate"])
+                if args.trace:
+                    print_trace(res["trace"])
                 results.append(res)
                 rows = against_none(results)  # written after every run: an interrupted bench keeps what it ran
                 out = {"domain": args.domain, "runs": results, "against_none": rows}

@@ -36,6 +36,25 @@ def test_tally_counts_false_dynamic_missed_and_lost_confidence():
     assert abs(s["all_pixels"]["removed"] - 3 / 8) < 1e-9 and abs(s["all_pixels"]["removed_in_thing"] - 2 / 8) < 1e-9
 
 
+def test_trace_follows_each_keyframe_from_its_edges_latest_masks():
+    t = B.Tally()
+    moving = torch.tensor([[True, True, False, False]])  # half the view moves
+    cat = torch.ones(1, 4, dtype=torch.int64)
+    none = torch.zeros(1, 4, dtype=torch.bool)
+    t.kf[5], t.frame[5] = (moving, cat, none), 40
+    t.kf[3], t.frame[3] = (torch.zeros(1, 4, dtype=torch.bool), cat, none), 10  # nothing moves there
+    conf = torch.ones(2, 1, 4)
+    held = torch.tensor([[[1.0, 1.0, 0.0, 0.0]], [[1.0, 0.0, 0.0, 0.0]]])
+    t.observe([(5, 3), (5, 6)], held, conf, conf)
+    flipped = torch.tensor([[[0.0, 0.0, 1.0, 1.0]], [[0.0, 0.0, 0.0, 1.0]]])  # later: the background instead
+    t.observe([(5, 3), (3, 5)], flipped, conf, conf)
+    rows = B.trace(t)
+    assert [r["frame"] for r in rows] == [10, 40]
+    assert rows[0] == {"frame": 10, "moving": 0.0, "held": None, "false": 0.25}
+    # keyframe 5: edge (5, 3) now holds none of the mover and marks both static pixels; (5, 6) kept its first mask
+    assert rows[1]["moving"] == 0.5 and rows[1]["held"] == (0.0 + 0.5) / 2 and rows[1]["false"] == (0.5 + 0.0) / 2
+
+
 def _run(scenario, seed, segm, rmse):
     return {"scenario": scenario, "seed": seed, "segmenter": segm, "ate": {"rmse": rmse}}
 
