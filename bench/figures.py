@@ -1,7 +1,7 @@
 """The current figures: runs the benchmark set and rewrites ``bench/RESULTS.md`` and the README's Status table.
 
     python bench/figures.py                  # every benchmark (about 1-2 hours on 2 quiet cores), then both pages
-    python bench/figures.py --skip-speed     # accuracy only (a busy machine): the speed rows stay TBD
+    python bench/figures.py --skip-speed     # accuracy only (a busy machine): the speed rows stay as they are
     python bench/figures.py --only report    # one benchmark (see --list), then both pages
     python bench/figures.py --render-only    # both pages from the result files already in --results
     python bench/figures.py --list           # the benchmarks, their commands and result files
@@ -12,7 +12,9 @@ figure is one row read from a result: what, on which data (``tuned on``: the def
 and ``held out``: never tuned on, see ``bench/seeds.toml``), the figure, what it is compared with, the command, and
 the commit.  A figure without its result file shows TBD and its command.  Results of a dirty checkout or of a
 benchmark run with other settings (overrides, another seed set) are refused.  Speed figures depend on the machine
-and its load: ``--skip-speed`` leaves them as they are.
+and its load: ``--skip-speed`` leaves them as they are.  Result files stay on the machine that measured them, so on
+another machine a part of the set (``--only``, ``--skip-speed``) would turn every figure it did not measure to TBD:
+the pages are then not written (the results measured are kept) unless ``--allow-tbd``.
 """
 from __future__ import annotations
 
@@ -384,6 +386,16 @@ def page(rows: list[Row], got: dict[str, dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def measured_now(text: str) -> set[str]:
+    """The figures (their ``what``) that the README's Status table in ``text`` shows with a commit, i.e. measured."""
+    if BEGIN not in text or END not in text:
+        return set()
+    block = text.split(BEGIN, 1)[1].split(END, 1)[0]
+    cells = [[c.strip() for c in line.strip().strip("|").split("|")] for line in block.splitlines()
+             if line.startswith("|") and not line.startswith("|---")]
+    return {c[0] for c in cells[1:] if len(c) >= 2 and c[-1] not in ("", "-")}
+
+
 def readme_with(text: str, rows: list[Row]) -> str:
     """``text`` (the README) with the table between its figures markers replaced."""
     if BEGIN not in text or END not in text:
@@ -420,6 +432,8 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=2, help="parallel cells of the matrices (default 2)")
     ap.add_argument("--allow-dirty", action="store_true", help="accept results of a checkout with changes "
                     "(marked +dirty; not for a committed page)")
+    ap.add_argument("--allow-tbd", action="store_true", help="write the pages even where a figure they show measured "
+                    "has no result file here (it becomes TBD)")
     ap.add_argument("--list", action="store_true", help="print the benchmarks and their commands")
     args = ap.parse_args(argv)
     if args.list:
@@ -442,6 +456,15 @@ def main(argv=None) -> int:
         rows, got = load(args.results, args.allow_dirty)
     except (provenance.ProvenanceError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    # result files are per machine (ignored by git): on another machine a part of the set would wipe the rest
+    shown = measured_now(README.read_text(encoding="utf-8"))
+    lost = [r.figure for r in rows if not r.commit and r.figure.what in shown]
+    if lost and not args.allow_tbd:
+        print(f"error: {args.results} has no result for the figures {', '.join(f.key for f in lost)}, which the pages "
+              f"show measured now: writing them would turn those to TBD. Measure them here too (python "
+              f"bench/figures.py --only {' '.join(dict.fromkeys(f.bench for f in lost))}) or pass --allow-tbd; the "
+              f"results measured so far stay in {args.results}", file=sys.stderr)
         return 2
     PAGE.write_text(page(rows, got), encoding="utf-8")
     README.write_text(readme_with(README.read_text(encoding="utf-8"), rows), encoding="utf-8")

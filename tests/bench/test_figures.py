@@ -141,6 +141,32 @@ def test_render_only_writes_both_pages(results, tmp_path, monkeypatch, capsys):
     assert "TBD: heldout" in capsys.readouterr().out
 
 
+def test_the_figures_measured_now_are_read_from_the_readme_table(results):
+    rows, _ = figures.load(results)
+    text = figures.readme_with(f"x\n{figures.BEGIN}\n{figures.END}\n", rows)
+    shown = figures.measured_now(text)
+    assert shown == {r.figure.what for r in rows if r.commit} and len(shown) >= 3
+    assert any(not r.commit for r in rows)  # the TBD rows (commit "-") are not among them
+    assert figures.measured_now("no table here\n") == set()
+
+
+def test_pages_are_not_written_when_figures_they_show_measured_have_no_result_here(results, tmp_path, monkeypatch,
+                                                                                  capsys):
+    rows, _ = figures.load(results)
+    page, readme = tmp_path / "RESULTS.md", tmp_path / "README.md"
+    before = figures.readme_with(f"intro\n{figures.BEGIN}\n{figures.END}\n", rows)
+    readme.write_text(before)
+    monkeypatch.setattr(figures, "PAGE", page)
+    monkeypatch.setattr(figures, "README", readme)
+    (results / "long.json").unlink()  # another machine: this result file is not here
+    assert figures.main(["--render-only", "--results", str(results)]) == 2
+    err = capsys.readouterr().err
+    assert "long" in err and "--only long" in err and "--allow-tbd" in err
+    assert readme.read_text() == before and not page.exists()
+    assert figures.main(["--render-only", "--results", str(results), "--allow-tbd"]) == 0
+    assert page.exists() and readme.read_text() != before
+
+
 def test_a_benchmark_run_twice_by_two_figures_is_measured_once(tmp_path, monkeypatch):
     calls = []
 
