@@ -33,8 +33,8 @@ LOG = logging.getLogger("pvslam.frontend.flow")
 
 DYNAMIC_UPDATES = 3  # an edge's mask is re-estimated on this many observations after its first, then kept
 # the residual threshold is also at least this multiple of the edge's median residual (robust to an estimate that
-# has not converged yet); 0 would use the absolute threshold alone
-DYNAMIC_REL_THRESH = 3.0
+# has not converged yet); 0 would use the absolute threshold alone (docs/decisions.md: DYNAMIC_REL_THRESH)
+DYNAMIC_REL_THRESH = 2.0
 # group the candidates into coherent regions: a moving vehicle is a region, isolated pixels are left to the BA's
 # robust kernel
 DYNAMIC_REGIONS = True
