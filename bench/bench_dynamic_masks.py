@@ -18,12 +18,12 @@ Printed per ground-truth category (road, building, car, ...) and per segmenter:
              segment vote) rather than in the geometric candidates alone
 
 and the run's Sim(3) ATE.  ``--trace`` also prints, per keyframe in time order, the share of its view that moves and,
-from the latest mask of each of its edges (averaged over them), the share of the moving pixels the masks hold and
-the share of the view they mark that does not move: where a mover fills the view, a mask that lets go of it and
-marks the background instead shows there.  Last, per segmenter, each run's ATE against ``none`` on the same sequence and how many runs
-are more than 5 % worse (the target: none on held-out looks, ``--domain heldout``).  Results: ``--json`` (default
-runs/bench/results_dynamic_masks.json) with the commit of the measured code (:mod:`bench.provenance`).  Torch runs
-with one thread.
+from the latest mask of each of its edges (averaged over them), the share of the moving pixels the masks hold and the
+share of the view they mark that does not move: where a mover fills the view, a mask that lets go of it and marks the
+background instead shows there.  Last, per segmenter, each run's ATE against ``none`` on the same sequence and how many
+runs are more than 5 % worse (the target: none on held-out looks, ``--domain heldout``).  Results: ``--json`` (default
+runs/bench/results_dynamic_masks.json) with the commit of the measured code (:mod:`bench.provenance`).  Torch runs with
+one thread.
 """
 from __future__ import annotations
 
