@@ -2,11 +2,20 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, model_validator
 
 LOG = logging.getLogger("pvslam.config")
+
+
+@dataclass(frozen=True)
+class Retired:
+    """A retired key's fixed ``value`` now, and the defaults it had in ``earlier`` releases (their files store them)."""
+
+    value: Any
+    earlier: tuple = ()
 
 
 class PluginConfig(BaseModel):
@@ -20,7 +29,9 @@ class PluginConfig(BaseModel):
       are an error.
     * ``retired = {"old": value}``: the setting became a fixed part of the method (a constant in the code).  A file
       that gives exactly ``value`` loads (old run directories store every key); any other value is an error that
-      says so, since the run would not do what the file asks.
+      says so, since the run would not do what the file asks.  When the constant changes later, ``Retired(value,
+      earlier=(old default, ...))``: a file of an earlier release stores that release's default, which loads with a
+      warning that the method now uses ``value``.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -57,11 +68,20 @@ class PluginConfig(BaseModel):
             LOG.warning("%s: config keys of an earlier release, now named: %s", cls.__name__, ", ".join(moved))
         if ignored:
             LOG.warning("%s: config keys no longer used, ignored: %s", cls.__name__, ", ".join(ignored))
+        stale = []
         for old, fixed in cls.retired.items():
             if old not in out:
                 continue
             value = out.pop(old)
-            if value != fixed:
-                raise ValueError(f"key {old!r} was retired: its setting is now fixed at {fixed!r} (got {value!r}); "
-                                 "remove the key (docs/decisions.md says why)")
+            now, earlier = (fixed.value, fixed.earlier) if isinstance(fixed, Retired) else (fixed, ())
+            if value == now:
+                continue
+            if value in earlier:
+                stale.append(f"{old} = {value!r} (now {now!r})")
+                continue
+            raise ValueError(f"key {old!r} was retired: its setting is now fixed at {now!r} (got {value!r}); "
+                             "remove the key (docs/decisions.md says why)")
+        if stale:
+            LOG.warning("%s: config keys of an earlier release at that release's defaults, which the method has since "
+                        "changed (docs/decisions.md says why): %s", cls.__name__, ", ".join(stale))
         return out

@@ -10,7 +10,7 @@ from typing import Literal, Optional
 
 from pydantic import Field, field_validator
 
-from pvslam_core.config_base import PluginConfig
+from pvslam_core.config_base import PluginConfig, Retired
 from pvslam_core.slam.dynamic_config import DynamicMaskingConfig
 
 
@@ -103,7 +103,7 @@ class FlowFrontendConfig(PluginConfig):
         # road_prior.py
         "road_region": 0.15, "road_max_gap": 5, "road_verify": True, "road_margin": 1.1,
         # dynamic_masking.py
-        "dynamic_updates": 3, "dynamic_rel_thresh": 2.0, "dynamic_regions": True, "dynamic_min_area": 4,
+        "dynamic_updates": 3, "dynamic_rel_thresh": Retired(2.0, earlier=(3.0,)), "dynamic_regions": True, "dynamic_min_area": 4,
         "dynamic_grow": 1, "dynamic_track": True, "things_only": True, "vote_keeps_candidates": True,
         # opt-in paths that no shipped configuration enabled, deleted with their code
         "dynamic_persist": False, "depth_check": 0.0, "epipolar_cue": False, "epipolar_track": False,

@@ -5,6 +5,7 @@ import json
 import pytest
 from pydantic import BaseModel, ValidationError
 
+from pvslam_core.config_base import Retired
 from pvslam_core.slam.dynamic_config import DynamicMaskingConfig
 from pvslam_plugins.frontends.flow import dynamic_masking, frontend, pair_flow, road_prior, track_starts
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
@@ -91,7 +92,7 @@ def test_old_flat_keys_land_in_the_nested_tables(caplog):
 
 
 def test_retired_keys_load_at_their_constant_and_fail_otherwise():
-    retired = FlowFrontendConfig.retired
+    retired = {k: v.value if isinstance(v, Retired) else v for k, v in FlowFrontendConfig.retired.items()}
     for key, (module, name) in CONSTANTS.items():
         assert getattr(module, name) == retired[key], key
     # an old run directory's config.json: every key of the previous release, at the defaults of then
@@ -99,6 +100,17 @@ def test_retired_keys_load_at_their_constant_and_fail_otherwise():
     every.update({k: _get(FlowFrontendConfig(), path) for k, (_, path) in OLD_FLAT.items()})
     assert FlowFrontendConfig.model_validate(json.loads(json.dumps(every))) == FlowFrontendConfig()
     for key, other in (("texture_tau", 0.0), ("epipolar_cue", True), ("dynamic_persist", True),
-                       ("track_preset", "medium"), ("road_verify", False)):
+                       ("track_preset", "medium"), ("road_verify", False), ("dynamic_rel_thresh", 2.5)):
         with pytest.raises(ValueError, match=f"'{key}' was retired"):
             FlowFrontendConfig.model_validate({key: other})
+
+
+def test_a_retired_key_at_an_earlier_release_default_loads_with_a_warning(caplog):
+    # dynamic_rel_thresh was 3.0 when it was retired; the constant is 2.0 since: files of then store 3.0
+    with caplog.at_level("WARNING", logger="pvslam.config"):
+        assert FlowFrontendConfig.model_validate({"dynamic_rel_thresh": 3.0}) == FlowFrontendConfig()
+    assert "dynamic_rel_thresh = 3.0 (now 2.0)" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="pvslam.config"):
+        FlowFrontendConfig.model_validate({"dynamic_rel_thresh": 2.0})
+    assert "earlier release" not in caplog.text
