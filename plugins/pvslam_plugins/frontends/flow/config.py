@@ -103,8 +103,9 @@ class FlowFrontendConfig(PluginConfig):
         # road_prior.py
         "road_region": 0.15, "road_max_gap": 5, "road_verify": True, "road_margin": 1.1,
         # dynamic_masking.py
-        "dynamic_updates": 3, "dynamic_rel_thresh": Retired(2.0, earlier=(3.0,)), "dynamic_regions": True, "dynamic_min_area": 4,
-        "dynamic_grow": 1, "dynamic_track": True, "things_only": True, "vote_keeps_candidates": True,
+        "dynamic_updates": 3, "dynamic_rel_thresh": Retired(2.0, earlier=(3.0,)), "dynamic_regions": True,
+        "dynamic_min_area": 4, "dynamic_grow": 1, "dynamic_track": True, "things_only": True,
+        "vote_keeps_candidates": True,
         # opt-in paths that no shipped configuration enabled, deleted with their code
         "dynamic_persist": False, "depth_check": 0.0, "epipolar_cue": False, "epipolar_track": False,
         "epipolar_with_segmenter": False, "epipolar_replaces_residual": False, "epipolar_edges": 2,
