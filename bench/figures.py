@@ -458,7 +458,8 @@ def main(argv=None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     # result files are per machine (ignored by git): on another machine a part of the set would wipe the rest
-    shown = measured_now(README.read_text(encoding="utf-8"))
+    readme = README.read_text(encoding="utf-8")
+    shown = measured_now(readme)
     lost = [r.figure for r in rows if not r.commit and r.figure.what in shown]
     if lost and not args.allow_tbd:
         print(f"error: {args.results} has no result for the figures {', '.join(f.key for f in lost)}, which the pages "
@@ -467,7 +468,7 @@ def main(argv=None) -> int:
               f"results measured so far stay in {args.results}", file=sys.stderr)
         return 2
     PAGE.write_text(page(rows, got), encoding="utf-8")
-    README.write_text(readme_with(README.read_text(encoding="utf-8"), rows), encoding="utf-8")
+    README.write_text(readme_with(readme, rows), encoding="utf-8")
     tbd = [r.figure.key for r in rows if not r.commit]
     print(f"wrote {PAGE} and the Status table of {README} ({len(rows)} figures"
           + (f"; TBD: {', '.join(tbd)}" if tbd else "") + ")")
