@@ -57,9 +57,9 @@ class Tally:
         # [static, static removed, moving, moving kept, static conf, static conf lost]
         self.kf: dict[int, tuple] = {}
         self.frame: dict[int, int] = {}  # keyframe id -> its frame index
-        # (source id, target id) -> (moving share of the view, share of the moving pixels removed or None, share of
-        # the view removed that does not move) of the edge's latest observation
-        self.last: dict[tuple[int, int], tuple[float, Optional[float], float]] = {}
+        # (source id, target id) -> (share of the moving pixels removed or None, share of the view removed that does
+        # not move) of the edge's latest observation
+        self.last: dict[tuple[int, int], tuple[Optional[float], float]] = {}
 
     def add_keyframe(self, sid: int, frame, seg, h: int, w: int) -> None:
         from pvslam_plugins.frontends.flow.dynamic_masking import segment_info
@@ -90,7 +90,7 @@ class Tally:
             if moving is None:
                 continue
             n_mv = int(moving.sum())
-            self.last[(sid, tgt)] = (n_mv / moving.numel(), float((rem & moving).sum()) / n_mv if n_mv else None,
+            self.last[(sid, tgt)] = (float((rem & moving).sum()) / n_mv if n_mv else None,
                                      float((rem & ~moving).sum()) / rem.numel())
             for k in torch.unique(cat).tolist():
                 m = cat == k
@@ -151,9 +151,9 @@ def trace(tally: Tally) -> list[dict]:
         per[sid].append(v)
     rows = []
     for sid, vs in per.items():
-        held = [v[1] for v in vs if v[1] is not None]
-        rows.append({"frame": tally.frame.get(sid, -1), "moving": vs[0][0],
-                     "held": sum(held) / len(held) if held else None, "false": sum(v[2] for v in vs) / len(vs)})
+        held = [v[0] for v in vs if v[0] is not None]
+        rows.append({"frame": tally.frame.get(sid, -1), "moving": float(tally.kf[sid][0].float().mean()),
+                     "held": sum(held) / len(held) if held else None, "false": sum(v[1] for v in vs) / len(vs)})
     return sorted(rows, key=lambda r: r["frame"])
 
 
