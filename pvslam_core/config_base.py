@@ -18,6 +18,11 @@ class Retired:
     earlier: tuple = ()
 
 
+def retired_value(fixed: Any) -> Any:
+    """The value a ``retired`` entry fixes now (a plain value, or a :class:`Retired`'s ``value``)."""
+    return fixed.value if isinstance(fixed, Retired) else fixed
+
+
 class PluginConfig(BaseModel):
     """Plugin parameters: unknown keys are errors (``extra="forbid"``), so typos never pass silently.
 
@@ -73,7 +78,7 @@ class PluginConfig(BaseModel):
             if old not in out:
                 continue
             value = out.pop(old)
-            now, earlier = (fixed.value, fixed.earlier) if isinstance(fixed, Retired) else (fixed, ())
+            now, earlier = retired_value(fixed), fixed.earlier if isinstance(fixed, Retired) else ()
             if value == now:
                 continue
             if value in earlier:

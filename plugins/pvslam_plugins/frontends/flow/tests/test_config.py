@@ -5,7 +5,7 @@ import json
 import pytest
 from pydantic import BaseModel, ValidationError
 
-from pvslam_core.config_base import Retired
+from pvslam_core.config_base import retired_value
 from pvslam_core.slam.dynamic_config import DynamicMaskingConfig
 from pvslam_plugins.frontends.flow import dynamic_masking, frontend, pair_flow, road_prior, track_starts
 from pvslam_plugins.frontends.flow.config import FlowFrontendConfig
@@ -92,7 +92,7 @@ def test_old_flat_keys_land_in_the_nested_tables(caplog):
 
 
 def test_retired_keys_load_at_their_constant_and_fail_otherwise():
-    retired = {k: v.value if isinstance(v, Retired) else v for k, v in FlowFrontendConfig.retired.items()}
+    retired = {k: retired_value(v) for k, v in FlowFrontendConfig.retired.items()}
     for key, (module, name) in CONSTANTS.items():
         assert getattr(module, name) == retired[key], key
     # an old run directory's config.json: every key of the previous release, at the defaults of then
