@@ -171,18 +171,22 @@ def orb_missing(python: Optional[str], vocab: Optional[str], runner: Path) -> Op
     return None
 
 
-def run_orb(seq: str, seq_dir: Path, python: str, vocab: str, run: int, out: Path, timeout: float) -> dict:
+def run_orb(seq: str, seq_dir: Path, python: str, vocab: str, run: int, out: Path, timeout: float,
+            images: Optional[Path] = None, first: int = 0, tag: str = "") -> dict:
+    """ORB-SLAM3's run ``run`` on excerpt ``seq`` (``images``: a folder of its frames from frame ``first`` on instead
+    of all of them; ``tag``: a suffix of the trajectory's and log's names)."""
     from bench.peers.common import load_sequence, read_tum_trajectory
 
     s = load_sequence(seq_dir)
     fx, fy, cx, cy = s.intrinsics
-    traj = out / "orbslam3" / f"{seq}_run{run}.tum"
+    traj = out / "orbslam3" / f"{seq}{tag}_run{run}.tum"
     traj.parent.mkdir(parents=True, exist_ok=True)
     traj.unlink(missing_ok=True)
-    cmd = [python, str(PEERS / "orbslam3_traj.py"), str(KITTI / "sequences" / seq / "image_0"), "--fx", str(fx),
+    images = images or KITTI / "sequences" / seq / "image_0"
+    cmd = [python, str(PEERS / "orbslam3_traj.py"), str(images), "--fx", str(fx),
            "--fy", str(fy), "--cx", str(cx), "--cy", str(cy), "--vocab", str(vocab), "--fps", str(ORB_FPS),
            "--realtime", "--out", str(traj)]
-    rc, cpu, wall, text = run_child(cmd, out / "logs" / f"orbslam3_{seq}_run{run}.log", timeout)
+    rc, cpu, wall, text = run_child(cmd, out / "logs" / f"orbslam3_{seq}{tag}_run{run}.log", timeout)
     last = re.search(r"tracked=(\d+)/(\d+) saved=(\d+).*?vocab_load_s=([\d.]+)", text)
     res = {"cpu_s": cpu, "wall_s": wall, "exit": rc, "command": cmd, "vocab": str(vocab),
            "vocab_load_s": float(last.group(4)) if last else None}
@@ -190,7 +194,7 @@ def run_orb(seq: str, seq_dir: Path, python: str, vocab: str, run: int, out: Pat
         tail = text.strip().splitlines()[-1:] or ["no output"]
         return {**res, "note": f"no trajectory (exit {rc}): {tail[0][:200]}"}
     ts, poses = read_tum_trajectory(traj)
-    return {**res, "ts": orb_timestamps(ts, s.timestamps), "poses": poses}
+    return {**res, "ts": orb_timestamps(ts, s.timestamps[first:]), "poses": poses}
 
 
 def run_vo(seq_dir: Path) -> dict:
