@@ -319,39 +319,54 @@ def vocab_for(specs: list[str], seq: str) -> Optional[str]:
     return plain[-1] if plain else None
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), help="KITTI excerpts (default: 00 06 01)")
+def add_peer_options(ap: argparse.ArgumentParser, per: str) -> None:
+    """The ORB-SLAM3 options (``per``: what ``--orb-runs`` counts runs of) and the child processes' timeout."""
     ap.add_argument("--orb-python", help="python of the venv with pyorbslam3 (default: $PVSLAM_ORB_PYTHON; "
                     "skipped without it)")
     ap.add_argument("--orb-vocab", action="append", default=[], metavar="[SEQ=]PATH",
                     help="ORB vocabulary trained on other images: PATH for every sequence, SEQ=PATH for one "
                     f"(repeatable; default: $PVSLAM_ORB_VOCAB, the same separated by '{os.pathsep}')")
-    ap.add_argument("--orb-runs", type=int, default=3, help="ORB-SLAM3 runs per sequence (default 3)")
+    ap.add_argument("--orb-runs", type=int, default=3, help=f"ORB-SLAM3 runs per {per} (default 3)")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per child process (default 1800)")
+
+
+def peers_from_environment(args: argparse.Namespace) -> argparse.Namespace:
+    """``args`` with the ORB-SLAM3 python and vocabularies from the environment where the options gave none: where
+    ORB-SLAM3 lives is the machine's business, and figures.py runs the tools without options."""
+    args.orb_python = args.orb_python or os.environ.get("PVSLAM_ORB_PYTHON") or None
+    args.orb_vocab = args.orb_vocab or [v for v in os.environ.get("PVSLAM_ORB_VOCAB", "").split(os.pathsep) if v]
+    return args
+
+
+def excerpts_missing(sequences: Sequence[str]) -> Optional[str]:
+    """What is missing of the KITTI excerpts ``sequences`` (a message), or None."""
+    if not (KITTI / "sequences").is_dir():
+        return f"no KITTI excerpts at {KITTI} (../shared/data, or set PVSLAM_KITTI)"
+    missing = [s for s in sequences if not (KITTI / "sequences" / s / "image_0").is_dir()]
+    return f"KITTI excerpt(s) {missing} not in {KITTI / 'sequences'}" if missing else None
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), help="KITTI excerpts (default: 00 06 01)")
+    add_peer_options(ap, "sequence")
     ap.add_argument("--size-spread", type=float, default=2.0, metavar="PCT",
                     help="pvslam also with the processing area PCT %% per side smaller and larger: how much its "
                     "result moves with the input's size (default 2; 0: one run)")
-    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per child process (default 1800)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench" / "real"), help="folder for run directories, "
                     "ORB-SLAM3 trajectories and logs (default runs/bench/real)")
     ap.add_argument("--json", default=str(ROOT / "runs" / "bench" / "real.json"),
                     help="result file with provenance (default runs/bench/real.json; not into bench/)")
     ap.add_argument("--reprint", metavar="JSON", help="print the table of a saved result file and stop")
-    args = ap.parse_args(argv)
-    # where ORB-SLAM3 lives is the machine's business: figures.py runs this tool without options
-    args.orb_python = args.orb_python or os.environ.get("PVSLAM_ORB_PYTHON") or None
-    args.orb_vocab = args.orb_vocab or [v for v in os.environ.get("PVSLAM_ORB_VOCAB", "").split(os.pathsep) if v]
+    args = peers_from_environment(ap.parse_args(argv))
     if args.reprint:
         saved = provenance.read_json(args.reprint)
         print(f"commit {saved['provenance']['commit']} (dirty: {saved['provenance'].get('dirty')})")
         print("\n".join(table(saved["rows"]) + run_details(saved["rows"])))
         return 0
-    if not (KITTI / "sequences").is_dir():
-        print(f"pvslam: error: no KITTI excerpts at {KITTI} (../shared/data, or set PVSLAM_KITTI)", file=sys.stderr)
-        return 2
-    missing = [s for s in args.sequences if not (KITTI / "sequences" / s / "image_0").is_dir()]
+    missing = excerpts_missing(args.sequences)
     if missing:
-        print(f"pvslam: error: KITTI excerpt(s) {missing} not in {KITTI / 'sequences'}", file=sys.stderr)
+        print(f"pvslam: error: {missing}", file=sys.stderr)
         return 2
     try:
         prov = provenance.check(args.json)

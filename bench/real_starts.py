@@ -18,7 +18,6 @@ result file (``--json``, default ``runs/bench/real_starts.json``) records the pr
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 from pathlib import Path
@@ -62,9 +61,10 @@ def compare(pv_on: Sequence[float], orb: Sequence[float]) -> dict:
             "median": bool(statistics.median(pv_on[k] for k in ok) <= statistics.median(orb[k] for k in ok))}
 
 
-def bench_start(seq: str, first: int, out: Path, args, vocab: Optional[str], gt: tuple) -> dict:
+def bench_start(seq: str, first: int, out: Path, args, vocab: Optional[str], seq_dir: Path, gt: tuple) -> dict:
+    """Excerpt ``seq`` (its TUM folder ``seq_dir``, ground truth ``gt = (timestamps, poses)``) from frame ``first``:
+    pvslam once, ORB-SLAM3 ``args.orb_runs`` times, pvslam scored on each ORB-SLAM3 run's frames."""
     gt_ts, gt_poses = gt
-    seq_dir = kitti_as_tum(seq, out / "peers")
     total = len(gt_ts) - first
     tag = f"_from{first}"
     print(f"[{seq} from {first}] pvslam ...", flush=True)
@@ -109,21 +109,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sequences", nargs="+", default=list(R.SEQUENCES), help="KITTI excerpts (default: 00 06 01)")
     ap.add_argument("--starts", type=int, nargs="+", default=list(STARTS), help="start frames (default 0 5 10 20)")
-    ap.add_argument("--orb-python", help="python of the venv with pyorbslam3 (default: $PVSLAM_ORB_PYTHON)")
-    ap.add_argument("--orb-vocab", action="append", default=[], metavar="[SEQ=]PATH",
-                    help="ORB vocabulary trained on other images, as bench/bench_real.py (default: $PVSLAM_ORB_VOCAB)")
-    ap.add_argument("--orb-runs", type=int, default=3, help="ORB-SLAM3 runs per start (default 3)")
-    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per child process (default 1800)")
+    R.add_peer_options(ap, "start")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench" / "real_starts"), help="folder for run "
                     "directories, frame links, trajectories and logs (default runs/bench/real_starts)")
     ap.add_argument("--json", default=str(ROOT / "runs" / "bench" / "real_starts.json"),
                     help="result file with provenance (default runs/bench/real_starts.json)")
-    args = ap.parse_args(argv)
-    args.orb_python = args.orb_python or os.environ.get("PVSLAM_ORB_PYTHON") or None
-    args.orb_vocab = args.orb_vocab or [v for v in os.environ.get("PVSLAM_ORB_VOCAB", "").split(os.pathsep) if v]
-    missing = [s for s in args.sequences if not (KITTI / "sequences" / s / "image_0").is_dir()]
+    args = R.peers_from_environment(ap.parse_args(argv))
+    missing = R.excerpts_missing(args.sequences)
     if missing:
-        print(f"pvslam: error: KITTI excerpt(s) {missing} not in {KITTI / 'sequences'}", file=sys.stderr)
+        print(f"pvslam: error: {missing}", file=sys.stderr)
         return 2
     try:
         prov = provenance.check(args.json)
@@ -132,9 +126,10 @@ def main(argv=None) -> int:
     out = Path(args.out).resolve()
     rows = []
     for seq in args.sequences:
-        gt = read_gt(kitti_as_tum(seq, out / "peers"))
+        seq_dir = kitti_as_tum(seq, out / "peers")
+        gt = read_gt(seq_dir)
         for first in args.starts:
-            rows.append(bench_start(seq, first, out, args, R.vocab_for(args.orb_vocab, seq), gt))
+            rows.append(bench_start(seq, first, out, args, R.vocab_for(args.orb_vocab, seq), seq_dir, gt))
     text = lines(rows)
     print("\n".join(text))
     path = provenance.write_json(args.json, {"sequences": args.sequences, "starts": args.starts,

@@ -84,15 +84,15 @@ def test_orb_slam3_from_a_later_start_is_scored_against_the_frames_it_saw(kitti,
     monkeypatch.setattr(bench_real, "run_pvslam", fake_pvslam)
     monkeypatch.setattr(bench_real, "orb_missing", lambda *a: None)
     args = type("A", (), {"orb_runs": 2, "orb_python": "py", "timeout": 10.0})()
-    gt = matrix_jobs.read_gt(matrix_jobs.kitti_as_tum("00", tmp_path / "out" / "peers"))
-    row = real_starts.bench_start("00", first, tmp_path / "out", args, "voc.txt", gt)
+    seq_dir = matrix_jobs.kitti_as_tum("00", tmp_path / "out" / "peers")
+    gt = matrix_jobs.read_gt(seq_dir)
+    row = real_starts.bench_start("00", first, tmp_path / "out", args, "voc.txt", seq_dir, gt)
     assert row["pvslam"]["ate_m"] == pytest.approx(0.05, rel=0.1) and row["pvslam"]["total"] == N - first
     assert [r["ate_m"] < 1e-6 for r in row["orbslam3"]] == [True, True]
     assert [r["posed"] for r in row["orbslam3"]] == [N - first - 2] * 2
     assert row["pvslam_on_orb"] == pytest.approx([0.05, 0.05], rel=0.1)
     assert row["ahead"] == {"best": False, "median": False}
     # the same ORB-SLAM3 run read as if it had started at frame 0 lands on the wrong frames
-    seq_dir = matrix_jobs.kitti_as_tum("00", tmp_path / "out" / "peers")
     wrong = bench_real.run_orb("00", seq_dir, "py", "voc.txt", 0, tmp_path / "out", 10.0,
                                real_starts.frames_from("00", first, tmp_path / "out"), 0, "_wrong")
     assert bench_real.evaluate("orbslam3", wrong, gt[0], gt[1], N)["ate_m"] > 0.1
