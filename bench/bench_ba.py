@@ -8,14 +8,13 @@ with the 6x6 matrix exponential it replaced).
     python bench/bench_ba.py --only-pose-graph        # the pose-graph table alone (~1 minute)
 
 Prints three tables (and writes them as markdown with ``--out FILE``).  Whole run: about 2 minutes on CPU.
-The memory table runs each configuration in a fresh subprocess (peak RSS = ``ru_maxrss`` of that process).
+The memory table runs each configuration in a fresh subprocess (its own peak RSS: :func:`bench.rss.peak_rss_mb`).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -35,6 +34,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from bench import provenance  # noqa: E402
+from bench.rss import peak_rss_mb  # noqa: E402
 
 
 def _sync(device):
@@ -171,11 +171,6 @@ def pose_graph_timing(sizes=(50, 150, 450, 900), reps: int = 2) -> list[dict]:
     return rows
 
 
-def _rss_mb() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return r / 2**20 if sys.platform == "darwin" else r / 1024.0  # bytes on macOS, KiB on Linux
-
-
 def _n_chunks(pr: SyntheticBAProblem, free: torch.Tensor, mcp: int) -> int:
     """Chunks dense_ba forms for this problem (default depth_free: every source keyframe of an edge)."""
     from pvslam_core.geometry.ba_schur import plan_chunks
@@ -208,7 +203,7 @@ def _memory_child(path: str, mcp: int, iters: int, reps: int) -> None:
     small = make_problem(n=4)
     dense_ba(small.graph(), small.obs(), torch.tensor([False, True, True, True]), iters=1, max_chunk_pixels=mcp)
     obs = pr.obs()
-    base = _rss_mb()
+    base = peak_rss_mb()
     times, rep = [], None
     for _ in range(reps):
         g = pr.graph(p0, d0)
@@ -217,7 +212,7 @@ def _memory_child(path: str, mcp: int, iters: int, reps: int) -> None:
         times.append((time.perf_counter() - t) / iters)
         del g
     h, w = pr.shape
-    print(json.dumps({"base_mb": base, "peak_mb": _rss_mb(), "s_per_iter": min(times), "cost": rep.cost_after,
+    print(json.dumps({"base_mb": base, "peak_mb": peak_rss_mb(), "s_per_iter": min(times), "cost": rep.cost_after,
                       "rejected": rep.rejected, "chunks": _n_chunks(pr, free, mcp), "edges": len(pr.ii),
                       "pixels": h * w}), flush=True)
 
@@ -226,11 +221,7 @@ def memory_comparison(n: int = 400, radius: int = 3, iters: int = 2, reps: int =
                       budgets=(None, 500_000, NO_CHUNKING)) -> dict:
     """Peak RSS and time per iteration (best of ``reps`` runs of ``iters``) of one large 30x40 problem (a loop of
     ``n`` keyframes, edges ``|i - j| <= radius`` both ways), each ``max_chunk_pixels`` in ``budgets`` (None:
-    dense_ba's default) in a fresh process.
-
-    A child's ``ru_maxrss`` starts at its parent's peak RSS (Linux carries the high-water mark over fork/exec), so
-    the problem is built in a subprocess too and ``parent_mb`` (this process's peak at launch) is reported: it
-    must stay below the children's "before BA" RSS for the table to be meaningful."""
+    dense_ba's default) in a fresh process."""
     default = BAOptions().max_chunk_pixels
     env = dict(os.environ)
     if threads:
@@ -254,8 +245,7 @@ def memory_comparison(n: int = 400, radius: int = 3, iters: int = 2, reps: int =
             r["mcp"], r["is_default"] = mcp, mcp == default
             rows.append(r)
     E, P = rows[0]["edges"], rows[0]["pixels"]
-    return {"keyframes": n, "free": n - 2, "edges": E, "pixels": P, "edge_px": E * P, "rows": rows,
-            "parent_mb": _rss_mb()}
+    return {"keyframes": n, "free": n - 2, "edges": E, "pixels": P, "edge_px": E * P, "rows": rows}
 
 
 def print_pose_graph(rows: list[dict], quiet: bool = False) -> list[str]:
@@ -347,7 +337,7 @@ def main(argv=None) -> None:
     if args.device == "cpu" and not args.no_memory:
         emit()
         emit(f"## Peak memory: one large problem ({m['keyframes']} keyframes, {m['free']} free poses, {m['edges']} "
-             f"edges, 30x40, {m['edge_px']} edge-pixels), each setting in a fresh process (peak RSS: ru_maxrss; "
+             f"edges, 30x40, {m['edge_px']} edge-pixels), each setting in a fresh process (its own peak RSS; "
              f"time: best of 2 runs of 2 iterations)")
         emit()
         emit("| max_chunk_pixels | chunks | peak RSS MB | RSS before BA MB | BA peak above it MB | s / iteration | "
@@ -359,9 +349,6 @@ def main(argv=None) -> None:
             emit(f"| {name} | {r['chunks']} | {r['peak_mb']:.0f} | {r['base_mb']:.0f} | "
                  f"{r['peak_mb'] - r['base_mb']:.0f} | {r['s_per_iter']:.3f} | {r['cost']:.2f}"
                  f"{' (rejected)' if r['rejected'] else ''} |")
-        if m["parent_mb"] >= min(r["base_mb"] for r in m["rows"]):
-            emit()
-            emit(f"(the launching process peaked at {m['parent_mb']:.0f} MB, which floors the children's ru_maxrss)")
     if args.device == "cpu":
         emit()
         for line in print_pose_graph(pose_graph_timing((50, 150, 450) if args.quick else (50, 150, 450, 900)), quiet=True):

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -41,6 +40,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from bench import provenance  # noqa: E402
+from bench.rss import peak_rss_mb  # noqa: E402
 
 KITTI = Path(os.environ.get("PVSLAM_KITTI", ROOT.parent / "shared" / "data" / "kitti-odometry"))
 RESULTS: dict = {}
@@ -252,10 +252,10 @@ def _long_child(frames: int, out: str) -> None:
                                 "retired_edges": g.num_retired,
                                 "frontend_edge_states": len(fe.cached_edges()) if hasattr(fe, "cached_edges") else None,
                                 "frontend_mb": fe.memory_bytes() / 2**20 if hasattr(fe, "memory_bytes") else None})
-        peak_run_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # before the final BA
+        peak_run_mb = peak_rss_mb()  # before the final BA
         r = pipe.finish()
     k = min(500, len(fs) // 4)
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak_mb = peak_rss_mb()
     ate = r.metrics.get("ate", {})
     print(json.dumps({"frames": len(fs), "first": sum(fs[:k]) / k, "last": sum(fs[-k:]) / k, "window": k,
                       "first_cpu": sum(cs[:k]) / k, "last_cpu": sum(cs[-k:]) / k,

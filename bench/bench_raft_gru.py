@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -42,6 +41,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from bench import provenance  # noqa: E402
+from bench.rss import peak_rss_mb  # noqa: E402
 RESULTS: dict = {}
 
 
@@ -264,7 +264,7 @@ def _long_child(frames: int, out: str, weights: str | None, profile: str, extra:
                                 "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0})
                 print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
         r = pipe.finish()
-    print(json.dumps({"frames": pipe.frames_done, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    print(json.dumps({"frames": pipe.frames_done, "peak_mb": peak_rss_mb(),
                       "samples": samples, "keyframes": r.metrics["timing"]["keyframes"],
                       "ate_pct": r.metrics.get("ate", {}).get("rmse_percent_of_path"),
                       "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}))
@@ -375,7 +375,7 @@ def section_memory_frontend(frames: int, kf_every: int, window: int, neighbours:
             print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
     n = min(frames, stop or frames)
     cpu = time.process_time() - c0
-    d = {"frames": frames, "processed": n, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    d = {"frames": frames, "processed": n, "peak_mb": peak_rss_mb(),
          "samples": samples, "rounds": fe.rounds, "frontend_cpu_s": dict(fe.stats.cpu),
          "frontend_counts": dict(fe.stats.counts), "cpu_s": cpu, "ba_cpu_s": ba_cpu, "load_end": load(),
          "cpu_ms_per_frame": 1000 * cpu / n, "fps_1core": n / cpu}

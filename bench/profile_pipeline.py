@@ -16,7 +16,6 @@ import cProfile
 import io
 import json
 import pstats
-import resource
 import sys
 import tempfile
 import time
@@ -26,6 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from bench import provenance  # noqa: E402
+from bench.rss import peak_rss_mb  # noqa: E402
 
 
 def main() -> None:
@@ -88,7 +88,7 @@ def main() -> None:
         "stage_seconds": t.get("stage_seconds"), "stage_cpu_seconds": t.get("stage_cpu_seconds"),
         "map_cpu_seconds": t.get("map_cpu_seconds"),
         "process_cpu_s": t.get("cpu_seconds"), "tracking": res.metrics.get("tracking"),
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        "peak_rss_mb": round(peak_rss_mb()),
         "run_dir": str(run_dir),
     }
     if metrics:
