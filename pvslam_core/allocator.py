@@ -7,6 +7,10 @@ page-faults the same memory in again and the kernel zero-fills it, a sizeable sh
 results and peak memory (docs/decisions.md: run.keep_freed_memory).  With the thresholds at 64 MB / 256 MB the
 scratch stays in the heap between calls.  ``GLIBC_TUNABLES=glibc.malloc.mmap_threshold=...`` does the same from the shell, but only
 at process start, which a library cannot choose.
+
+What stays also scatters: scratch blocks of changing sizes leave free pages inside the heap that the trim threshold
+never returns (only the heap's top is trimmed), so a run's memory would creep up with the frames driven.
+:func:`release_freed_memory` gives them back every :data:`RELEASE_EVERY` frames (the pipeline calls it).
 """
 from __future__ import annotations
 
@@ -17,7 +21,13 @@ import sys
 M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers (malloc.h)
 M_MMAP_THRESHOLD = -3
 
+# frames between two releases of the heap's free pages: a release costs a few ms and the next BA call faults its
+# scratch in once more, so every 100 frames costs nothing measurable and keeps an endless run's memory from creeping
+# (docs/decisions.md: RELEASE_EVERY)
+RELEASE_EVERY = 100
+
 _done: bool | None = None
+_trim = None  # glibc's malloc_trim, once looked up; False where there is none
 
 
 def keep_freed_memory(mmap_threshold: int = 64 << 20, trim_threshold: int = 256 << 20) -> bool:
@@ -38,3 +48,19 @@ def keep_freed_memory(mmap_threshold: int = 64 << 20, trim_threshold: int = 256 
     _done = bool(mallopt(M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(mallopt(M_TRIM_THRESHOLD,
                                                                                    int(trim_threshold)))
     return _done
+
+
+def release_freed_memory() -> bool:
+    """Return the free pages inside glibc's heaps (every arena, not only their tops) to the OS: ``malloc_trim(0)``.
+    True where glibc released some; False where nothing was released or there is no glibc."""
+    global _trim
+    if _trim is None:
+        _trim = False
+        if sys.platform.startswith("linux"):
+            try:
+                libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+                _trim = libc.malloc_trim
+                _trim.argtypes, _trim.restype = [ctypes.c_size_t], ctypes.c_int
+            except (OSError, AttributeError):  # musl has no malloc_trim
+                _trim = False
+    return bool(_trim(0)) if _trim else False

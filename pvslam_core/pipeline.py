@@ -35,6 +35,7 @@ from typing import Any, Optional
 
 import torch
 
+from .allocator import RELEASE_EVERY, release_freed_memory
 from .config import ResolvedConfig
 from .interfaces import BuildContext, VPSState
 from .registry import get_registry
@@ -230,6 +231,8 @@ class Pipeline:
                 self.outputs.checkpoint(self.mapper.snapshot(), self.frames_done + 1)
         if self.observer is not None:
             self._observe(frame, result, panoptic)
+        if (self.frames_done + 1) % RELEASE_EVERY == 0:
+            release_freed_memory()  # free pages the BA's scratch left inside the heap go back to the OS
         self.frames_done += 1
         self._at = ("read", None)
         now, cnow = time.perf_counter(), time.thread_time()
