@@ -45,7 +45,6 @@ def test_set_once_and_the_pipeline_asks_for_it(monkeypatch):
 
 
 RELEASE_PROBE = r"""
-import sys
 import numpy as np
 from pvslam_core.allocator import keep_freed_memory, release_freed_memory
 assert keep_freed_memory()
