@@ -12,7 +12,15 @@ import resource
 import sys
 from pathlib import Path
 
-__all__ = ["peak_rss_mb"]
+__all__ = ["current_rss_mb", "peak_rss_mb"]
+
+
+def current_rss_mb(statm: Path = Path("/proc/self/statm")) -> float | None:
+    """This process's resident set size now (MiB), or None where there is no ``/proc``."""
+    try:
+        return int(statm.read_text().split()[1]) * resource.getpagesize() / 2**20
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def peak_rss_mb(status: Path = Path("/proc/self/status")) -> float:

@@ -60,7 +60,8 @@ def test_the_endless_input_runs_compare_peak_memory_as_a_live_source(monkeypatch
     def child(frames, peak, peak_run):
         return {"frames": frames, "keyframes": frames // 20, "culled": frames // 5, "peak_mb": peak,
                 "peak_run_mb": peak_run, "first_cpu": 0.1, "last_cpu": 0.1, "ate_pct": 0.01, "path_m": 1.0,
-                "loops": 3, "unmerged": 1, "samples": [{"frame": 1000 * k, "keyframes": 100 + k} for k in (1, 2)]}
+                "loops": 3, "unmerged": 1, "samples": [{"frame": 1000 * k, "keyframes": 100 + k, "rss_mb": 400.0 + k}
+                                                       for k in (1, 2)]}
 
     results = {3000: child(3000, 1000.0, 650.0), 10000: child(10000, 1300.0, 700.0)}
 
@@ -84,7 +85,7 @@ def test_the_endless_input_runs_compare_peak_memory_as_a_live_source(monkeypatch
     assert "3000 frames: 150 keyframes (600 culled on revisits), peak RSS 1000 MB" in out
     assert "10000 frames: 500 keyframes (2000 culled on revisits), peak RSS 1300 MB" in out
     assert "[MISS] peak RSS 10000 / 3000 frames: 1.30" in out and "<= 1.10" in out
-    assert "keyframes every 1000 frames: 101, 102" in out
+    assert "keyframes every 1000 frames: 101, 102" in out and "RSS (MB) every 1000 frames: 401, 402" in out
     assert bench_pipeline.RESULTS["flat"]["long"]["peak_mb"] == 1300.0
     results[10000] = child(10000, 1080.0, 700.0)
     bench_pipeline.section_flat(tmp_path, 10000)
