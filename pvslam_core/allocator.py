@@ -30,23 +30,28 @@ _done: bool | None = None
 _trim = None  # glibc's malloc_trim, once looked up; False where there is none
 
 
+def _glibc(name: str, argtypes: list):
+    """glibc's function ``name`` (returning int) with ``argtypes``, or None: not Linux, or a libc without it (musl
+    has neither mallopt nor malloc_trim)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        fn = getattr(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6"), name)
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes, fn.restype = argtypes, ctypes.c_int
+    return fn
+
+
 def keep_freed_memory(mmap_threshold: int = 64 << 20, trim_threshold: int = 256 << 20) -> bool:
     """Raise glibc's mmap and trim thresholds once per process; True when glibc accepted them (False elsewhere:
     another libc, macOS, Windows - nothing changes there)."""
     global _done
     if _done is not None:
         return _done
-    _done = False
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # musl has no mallopt
-        return False
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    _done = bool(mallopt(M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(mallopt(M_TRIM_THRESHOLD,
-                                                                                   int(trim_threshold)))
+    mallopt = _glibc("mallopt", [ctypes.c_int, ctypes.c_int])
+    _done = mallopt is not None and bool(mallopt(M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(
+        mallopt(M_TRIM_THRESHOLD, int(trim_threshold)))
     return _done
 
 
@@ -55,12 +60,5 @@ def release_freed_memory() -> bool:
     True where glibc released some; False where nothing was released or there is no glibc."""
     global _trim
     if _trim is None:
-        _trim = False
-        if sys.platform.startswith("linux"):
-            try:
-                libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-                _trim = libc.malloc_trim
-                _trim.argtypes, _trim.restype = [ctypes.c_size_t], ctypes.c_int
-            except (OSError, AttributeError):  # musl has no malloc_trim
-                _trim = False
+        _trim = _glibc("malloc_trim", [ctypes.c_size_t]) or False
     return bool(_trim(0)) if _trim else False
