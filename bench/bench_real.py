@@ -14,7 +14,9 @@ Per KITTI excerpt in ``../shared/data/kitti-odometry`` (00, 06, 01; ``--sequence
   one); without its python or a vocabulary the peer is skipped with a note;
 * the **textbook VO** (``bench/peers/textbook_vo.py``, in this process).
 
-Scores, all against ``poses/NN.txt``: ATE RMSE after Sim(3) alignment (metres and % of the path length), RPE
+Scores, all against ``poses/NN.txt`` from its first frame with measured ground truth on (KITTI's poses begin 00
+and 06 with a constant-velocity extrapolation that no camera motion follows: :func:`bench.matrix_jobs.measured_from`;
+the ATE over every frame is printed beside): ATE RMSE after Sim(3) alignment (metres and % of the path length), RPE
 between consecutive posed frames (translation in metres, rotation in degrees; evo's RPE with ``delta = 1`` frame
 through ``pvslam_core.evaluation``, after the same Sim(3) alignment), frames posed / total (pvslam: the trajectory's
 rows less its tracking failures; ORB-SLAM3: the frames of its largest map), and CPU milliseconds per frame (the
@@ -49,7 +51,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import provenance  # noqa: E402
-from bench.matrix_jobs import KITTI, kitti_as_tum, read_gt  # noqa: E402
+from bench.matrix_jobs import KITTI, kitti_as_tum, measured_from, read_gt  # noqa: E402
 
 PEERS = Path(os.environ.get("PVSLAM_PEERS", ROOT.parent / "shared" / "peers"))
 SEQUENCES = ("00", "06", "01")
@@ -60,24 +62,30 @@ SAME_FRAMES = "pvslam on ORB-SLAM3's frames"  # the table row: pvslam scored ove
 
 # ------------------------------------------------------------------------------------------------ scores
 def score(ts: np.ndarray, poses: np.ndarray, gt_ts: np.ndarray, gt: np.ndarray, total: int,
-          posed: Optional[int] = None) -> dict:
-    """ATE (Sim(3), m and %), RPE per frame (translation m, rotation deg), frames posed of ``total``.
-    ``poses`` [N, 7] T_wc (rows with NaN are not posed); ``posed`` overrides the count of finite rows."""
+          posed: Optional[int] = None, first: int = 0) -> dict:
+    """ATE (Sim(3), m and %), RPE per frame (translation m, rotation deg), frames posed of ``total``, over the frames
+    from ``first`` on (aligned on those; the first with measured ground truth: :func:`bench.matrix_jobs.measured_from`),
+    and the ATE over every frame (``ate_all_m``, ``ate_all_pct``).  ``poses`` [N, 7] T_wc (rows with NaN are not
+    posed); ``posed`` overrides the count of finite rows."""
     from bench.peers.common import ate_sim3
     from pvslam_core.evaluation.trajectory import rpe
 
     ts = np.asarray(ts, np.float64).reshape(-1)
     poses = np.asarray(poses, np.float64).reshape(-1, 7)
     finite = np.all(np.isfinite(poses), axis=1)
-    out = {"posed": int(finite.sum()) if posed is None else int(posed), "total": int(total)}
-    if finite.sum() < 3:
-        return {**out, "ate_m": math.nan, "ate_pct": math.nan, "rpe_t_m": math.nan, "rpe_r_deg": math.nan,
-                "error": f"{int(finite.sum())} poses: nothing to align"}
+    out = {"posed": int(finite.sum()) if posed is None else int(posed), "total": int(total), "first": int(first)}
+    scored = finite & (ts >= gt_ts[first] - MAX_DIFF) if first else finite
+    if scored.sum() < 3:
+        return {**out, "ate_m": math.nan, "ate_pct": math.nan, "ate_all_m": math.nan, "ate_all_pct": math.nan,
+                "rpe_t_m": math.nan, "rpe_r_deg": math.nan, "error": f"{int(scored.sum())} poses: nothing to align"}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        a = ate_sim3(ts, poses, gt_ts, gt, max_diff=MAX_DIFF)
-        r = rpe(ts[finite], poses[finite], gt_ts, gt, delta=1, delta_unit="frames", align="sim3", max_diff=MAX_DIFF)
+        a_all = ate_sim3(ts, poses, gt_ts, gt, max_diff=MAX_DIFF)
+        a = ate_sim3(ts, poses, gt_ts[first:], gt[first:], max_diff=MAX_DIFF) if first else a_all
+        r = rpe(ts[scored], poses[scored], gt_ts[first:], gt[first:], delta=1, delta_unit="frames", align="sim3",
+                max_diff=MAX_DIFF)
     return {**out, "ate_m": float(a["rmse"]), "ate_pct": float(a["rmse_percent_of_path"]),
+            "ate_all_m": float(a_all["rmse"]), "ate_all_pct": float(a_all["rmse_percent_of_path"]),
             "path_m": float(a["path_length"]), "rpe_t_m": r["trans_rmse"], "rpe_r_deg": r["rot_rmse"],
             "rpe_pairs": r["num_pairs"]}
 
@@ -219,19 +227,21 @@ def span(vals: list[float], fmt: str) -> str:
 
 
 def table(rows: list[dict]) -> list[str]:
-    """Markdown rows: one per (sequence, method); a method with several runs shows each figure's range."""
-    out = ["| sequence | method | runs | ATE m | ATE % | RPE m/frame | RPE deg/frame | posed / total | CPU ms/frame |",
-           "|---|---|---|---|---|---|---|---|---|"]
+    """Markdown rows: one per (sequence, method); a method with several runs shows each figure's range.  ATE and RPE
+    from the first frame with measured ground truth on (``scored from``), the ATE over every frame beside them."""
+    out = ["| sequence | method | runs | scored from | ATE m | ATE % | ATE m, all frames | RPE m/frame | RPE deg/frame "
+           "| posed / total | CPU ms/frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         runs = r.get("runs") or []
         if not runs:
-            out.append(f"| {r['sequence']} | {r['method']} | 0 | {r.get('note', '-')} | | | | | |")
+            out.append(f"| {r['sequence']} | {r['method']} | 0 | | {r.get('note', '-')} | | | | | | |")
             continue
         posed = span([x["posed"] for x in runs], "d")
         tried = r.get("attempted", len(runs))
         n = str(len(runs)) if tried == len(runs) else f"{len(runs)} of {tried}"
-        out.append(f"| {r['sequence']} | {r['method']} | {n} | {span([x['ate_m'] for x in runs], '.3f')} | "
-                   f"{span([x['ate_pct'] for x in runs], '.2f')} | {span([x['rpe_t_m'] for x in runs], '.3f')} | "
+        out.append(f"| {r['sequence']} | {r['method']} | {n} | frame {runs[0].get('first', 0)} | "
+                   f"{span([x['ate_m'] for x in runs], '.3f')} | {span([x['ate_pct'] for x in runs], '.2f')} | "
+                   f"{span([x.get('ate_all_m') for x in runs], '.3f')} | {span([x['rpe_t_m'] for x in runs], '.3f')} | "
                    f"{span([x['rpe_r_deg'] for x in runs], '.3f')} | {posed} / {runs[0]['total']} | "
                    f"{span([x['cpu_ms_per_frame'] for x in runs], '.0f')} |")
     return out
@@ -249,42 +259,46 @@ def run_details(rows: list[dict]) -> list[str]:
     out = []
     for r in rows:
         if len(r.get("runs") or []) > 1:
-            runs = ", ".join(f"{x['ate_m']:.3f} m = {x['ate_pct']:.2f} % ({x['posed']}/{x['total']} frames"
-                             f"{_labels(x)})" for x in r["runs"])
+            runs = ", ".join(f"{x['ate_m']:.3f} m = {x['ate_pct']:.2f} % (all frames {x.get('ate_all_m', math.nan):.3f} "
+                             f"m; {x['posed']}/{x['total']} frames{_labels(x)})" for x in r["runs"])
             out.append(f"{r['sequence']} {r['method']}, each run: {runs}")
     return out
 
 
-def evaluate(method: str, res: dict, gt_ts: np.ndarray, gt: np.ndarray, total: int) -> dict:
-    """One run's scores (or its error) plus CPU per frame of the sequence's ``total`` frames."""
+def evaluate(method: str, res: dict, gt_ts: np.ndarray, gt: np.ndarray, total: int, first: int = 0) -> dict:
+    """One run's scores (or its error; ``first``: :func:`score`'s) plus CPU per frame of the sequence's ``total``
+    frames."""
     keep = {k: v for k, v in res.items() if k not in ("ts", "poses")}
     if "ts" not in res:
         return {**keep, "method": method}
-    s = score(res["ts"], res["poses"], gt_ts, gt, total, res.get("posed"))
+    s = score(res["ts"], res["poses"], gt_ts, gt, total, res.get("posed"), first)
     return {**keep, **s, "method": method, "cpu_ms_per_frame": _ms(res.get("cpu_s", math.nan), total)}
 
 
-def on_frames(res: dict, ts: np.ndarray, gt_ts: np.ndarray, gt: np.ndarray, total: int) -> dict:
+def on_frames(res: dict, ts: np.ndarray, gt_ts: np.ndarray, gt: np.ndarray, total: int, first: int = 0) -> dict:
     """``res``'s scores over the frames at timestamps ``ts`` only (another method's posed frames), aligned on those:
     an ATE over a part of a sequence is comparable only with an ATE over the same part."""
     from bench.peers.common import _associate
 
     own, ts = np.asarray(res["ts"], np.float64), np.asarray(ts, np.float64)
     sel = _associate(own, ts, MAX_DIFF)[0] if len(ts) else np.zeros(0, dtype=np.int64)
-    s = score(own[sel], np.asarray(res["poses"])[sel], gt_ts, gt, total)
+    s = score(own[sel], np.asarray(res["poses"])[sel], gt_ts, gt, total, first=first)
     return {**s, "cpu_ms_per_frame": math.nan}
 
 
 def bench_sequence(seq: str, out: Path, args, vocab: Optional[str]) -> list[dict]:
     seq_dir = kitti_as_tum(seq, out / "peers")
     gt_ts, gt = read_gt(seq_dir)
-    total = len(gt_ts)
+    total, first = len(gt_ts), measured_from(gt)
+    if first:
+        print(f"[{seq}] ground truth of frames 0-{first - 1} is extrapolated: scored from frame {first} on, "
+              "all frames beside", flush=True)
     rows = []
     pv_res, pv = [], []
     for tag, extra in size_variants(args.size_spread):
         print(f"[{seq}] pvslam{tag.replace('_', ', processing area ')} ...", flush=True)
         pv_res.append(run_pvslam(seq, out, args.timeout, extra, tag))
-        pv.append({**evaluate("pvslam", pv_res[-1], gt_ts, gt, total), "size": tag.strip("_") or "default"})
+        pv.append({**evaluate("pvslam", pv_res[-1], gt_ts, gt, total, first), "size": tag.strip("_") or "default"})
     rows.append({"sequence": seq, "method": "pvslam", "runs": [r for r in pv if "ate_m" in r],
                  "note": "; ".join(r["error"] for r in pv if "error" in r)})
     note = orb_missing(args.orb_python, vocab, PEERS / "orbslam3_traj.py")
@@ -293,9 +307,9 @@ def bench_sequence(seq: str, out: Path, args, vocab: Optional[str]) -> list[dict
         for k in range(args.orb_runs):
             print(f"[{seq}] ORB-SLAM3 run {k + 1}/{args.orb_runs} ...", flush=True)
             orb = run_orb(seq, seq_dir, args.orb_python, vocab, k, out, args.timeout)
-            orb_runs.append(evaluate("orbslam3", orb, gt_ts, gt, total))
+            orb_runs.append(evaluate("orbslam3", orb, gt_ts, gt, total, first))
             if "ts" in orb and "ate_m" in orb_runs[-1]:
-                same += [{**on_frames(r, orb["ts"], gt_ts, gt, total), "method": "pvslam", "orb_run": k,
+                same += [{**on_frames(r, orb["ts"], gt_ts, gt, total, first), "method": "pvslam", "orb_run": k,
                           "size": p["size"]} for r, p in zip(pv_res, pv) if "ts" in r]
     else:
         print(f"[{seq}] ORB-SLAM3 skipped: {note}", flush=True)
@@ -306,7 +320,7 @@ def bench_sequence(seq: str, out: Path, args, vocab: Optional[str]) -> list[dict
                  "note": "no ORB-SLAM3 trajectory" if not same else ""})
     print(f"[{seq}] textbook VO ...", flush=True)
     rows.append({"sequence": seq, "method": "textbook_vo", "runs": [evaluate("textbook_vo", run_vo(seq_dir), gt_ts,
-                                                                             gt, total)], "note": ""})
+                                                                             gt, total, first)], "note": ""})
     return rows
 
 

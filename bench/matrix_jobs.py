@@ -82,6 +82,32 @@ def read_gt(seq_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     return read_tum_trajectory(seq_dir / "groundtruth.txt")
 
 
+# KITTI's ground truth (OXTS) begins some sequences (00, 06) with a constant-velocity extrapolation, not measured
+# motion: their first rotation increments repeat to 1e-4 deg, where measured ones differ by 0.013 deg or more from
+# frame to frame, and both ORB-SLAM3 and pvslam follow another, shared motion there (docs/decisions.md: MEASURED GROUND
+# TRUTH)
+EXTRAPOLATED_TOL_DEG = 0.002  # increments closer than this (any axis) to the previous one repeat it
+EXTRAPOLATED_MIN = 3  # ... and only a leading run of at least this many repeats is an extrapolation
+
+
+def measured_from(gt: np.ndarray) -> int:
+    """Index of the first frame whose ground truth is measured: 0, or the frame after a leading run of poses whose
+    rotation increments repeat (``gt`` [N, 7] TUM T_wc rows ``tx ty tz qx qy qz qw``)."""
+    from scipy.spatial.transform import Rotation
+
+    gt = np.asarray(gt, np.float64).reshape(-1, 7)
+    if len(gt) < EXTRAPOLATED_MIN + 2:
+        return 0
+    R = Rotation.from_quat(gt[:, 3:])
+    inc = np.degrees((R[:-1].inv() * R[1:]).as_rotvec())  # [N-1, 3] in the camera frame
+    same = np.abs(np.diff(inc, axis=0)).max(1) < EXTRAPOLATED_TOL_DEG  # [N-2]: increment k + 1 repeats k
+    if same.all():  # a steady motion all along (a synthetic drive): nothing to tell apart
+        return 0
+    run = int(np.argmin(same))
+    # increments 0..run are on the line: frames 0..run + 1; the first measured frame follows
+    return 0 if run < EXTRAPOLATED_MIN else run + 2
+
+
 def motion_start(gt_ts: np.ndarray, gt: np.ndarray) -> float:
     """Time of the last frame before the camera has moved (> 1 cm or > 0.5 deg from the first frame)."""
     from scipy.spatial.transform import Rotation

@@ -9,8 +9,10 @@ A real excerpt scored from its first frame is one draw: a monocular map's scale 
 initialises on and drifts from there, so the same method started a few frames later can score very differently.
 Per excerpt and start frame ``S``: pvslam exactly as a user runs it plus ``--set dataset.start=S`` (one run: it
 repeats exactly), and ORB-SLAM3 ``--orb-runs`` times on a folder of the excerpt's frames from ``S`` on (links).
-pvslam is scored over all its frames and over each ORB-SLAM3 run's posed frames (aligned on those: an ATE over a
-part of a sequence is comparable only with one over the same part; :func:`bench.bench_real.on_frames`).  Printed per
+The scores begin at the first frame with measured ground truth (:func:`bench.matrix_jobs.measured_from`), or at
+``S`` where that is later.  pvslam is scored over all its frames and over each ORB-SLAM3 run's posed frames
+(aligned on those: an ATE over a part of a sequence is comparable only with one over the same part;
+:func:`bench.bench_real.on_frames`).  Printed per
 excerpt: a row per start, and on how many starts pvslam is at or below ORB-SLAM3's best run and its median run.
 ORB-SLAM3 paces frames at 10 frames/s and loses them when the machine is busy: run this on a quiet machine.  The
 result file (``--json``, default ``runs/bench/real_starts.json``) records the provenance.
@@ -31,7 +33,7 @@ if str(ROOT) not in sys.path:
 
 from bench import bench_real as R  # noqa: E402
 from bench import provenance  # noqa: E402
-from bench.matrix_jobs import KITTI, kitti_as_tum, read_gt  # noqa: E402
+from bench.matrix_jobs import KITTI, kitti_as_tum, measured_from, read_gt  # noqa: E402
 
 STARTS = (0, 5, 10, 20)
 
@@ -66,10 +68,11 @@ def bench_start(seq: str, first: int, out: Path, args, vocab: Optional[str], seq
     pvslam once, ORB-SLAM3 ``args.orb_runs`` times, pvslam scored on each ORB-SLAM3 run's frames."""
     gt_ts, gt_poses = gt
     total = len(gt_ts) - first
+    scored = max(first, measured_from(gt_poses))  # the first frame with measured ground truth
     tag = f"_from{first}"
     print(f"[{seq} from {first}] pvslam ...", flush=True)
     pv = R.run_pvslam(seq, out, args.timeout, ["--set", f"dataset.start={first}"], tag)
-    row = {"sequence": seq, "start": first, "pvslam": R.evaluate("pvslam", pv, gt_ts, gt_poses, total),
+    row = {"sequence": seq, "start": first, "pvslam": R.evaluate("pvslam", pv, gt_ts, gt_poses, total, scored),
            "orbslam3": [], "pvslam_on_orb": []}
     note = R.orb_missing(args.orb_python, vocab, R.PEERS / "orbslam3_traj.py")
     if note is not None:
@@ -78,22 +81,23 @@ def bench_start(seq: str, first: int, out: Path, args, vocab: Optional[str], seq
     for k in range(args.orb_runs):
         print(f"[{seq} from {first}] ORB-SLAM3 run {k + 1}/{args.orb_runs} ...", flush=True)
         orb = R.run_orb(seq, seq_dir, args.orb_python, vocab, k, out, args.timeout, images, first, tag)
-        row["orbslam3"].append(R.evaluate("orbslam3", orb, gt_ts, gt_poses, total))
-        on = R.on_frames(pv, orb["ts"], gt_ts, gt_poses, total) if "ts" in orb and "ts" in pv else {}
+        row["orbslam3"].append(R.evaluate("orbslam3", orb, gt_ts, gt_poses, total, scored))
+        on = R.on_frames(pv, orb["ts"], gt_ts, gt_poses, total, scored) if "ts" in orb and "ts" in pv else {}
         row["pvslam_on_orb"].append(on.get("ate_m", float("nan")))
     orb_ate = [r.get("ate_m", float("nan")) for r in row["orbslam3"]]
     return {**row, "ahead": compare(row["pvslam_on_orb"], orb_ate)}
 
 
 def lines(rows: list[dict]) -> list[str]:
-    out = ["| sequence | start | pvslam ATE m (all frames) | pvslam on ORB-SLAM3's frames | ORB-SLAM3 ATE m | "
-           "ORB-SLAM3 frames | at or below ORB-SLAM3's best / median |", "|---|---|---|---|---|---|---|"]
+    out = ["| sequence | start | scored from | pvslam ATE m (its frames) | pvslam on ORB-SLAM3's frames | ORB-SLAM3 ATE m "
+           "| ORB-SLAM3 frames | at or below ORB-SLAM3's best / median |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         orb = [x.get("ate_m", float("nan")) for x in r["orbslam3"]]
         posed = [x["posed"] for x in r["orbslam3"] if "posed" in x]
         ahead = r.get("ahead") or {}
         yes = {True: "yes", False: "no", None: "-"}
-        out.append(f"| {r['sequence']} | {r['start']} | {R._cell(r['pvslam'].get('ate_m'), '.3f')} | "
+        out.append(f"| {r['sequence']} | {r['start']} | frame {r['pvslam'].get('first', r['start'])} | "
+                   f"{R._cell(r['pvslam'].get('ate_m'), '.3f')} | "
                    f"{R.span(r['pvslam_on_orb'], '.3f')} | {R.span(orb, '.3f') if orb else r.get('note', '-')} | "
                    f"{R.span(posed, 'd')} / {r['pvslam'].get('total', '-')} | "
                    f"{yes[ahead.get('best')]} / {yes[ahead.get('median')]} |")

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench import bench_real  # noqa: E402
+from bench import bench_real, matrix_jobs  # noqa: E402
 
 
 def _gt(n: int = 40) -> tuple[np.ndarray, np.ndarray]:
@@ -82,6 +82,39 @@ def test_pvslam_is_scored_on_the_frames_another_method_posed():
     assert math.isnan(bench_real.on_frames(res, ts[:2], ts, gt, total=len(ts))["ate_m"])  # too few to align
 
 
+def _extrapolated_start(n: int = 40, k: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """A drive whose first ``k`` + 1 poses lie on a constant-velocity line (KITTI's extrapolated start), measured
+    after: the yaw increments then change by 0.02-0.2 deg from frame to frame."""
+    rng = np.random.default_rng(0)
+    inc = np.full(n - 1, -0.12)
+    inc[k:] += rng.uniform(0.02, 0.2, n - 1 - k) * rng.choice([-1, 1], n - 1 - k)
+    yaw = np.radians(np.concatenate([[0.0], np.cumsum(inc)]))
+    R = Rotation.from_euler("y", yaw[:, None])
+    pos = np.cumsum(R.apply(np.array([0.0, 0.0, 0.86])), 0)
+    return np.arange(n) / 10.0, np.concatenate([pos, R.as_quat()], 1)
+
+
+def test_an_extrapolated_start_of_the_ground_truth_is_found_and_scored_apart():
+    ts, gt = _extrapolated_start(k=10)
+    assert matrix_jobs.measured_from(gt) == 11  # increments 0-9 equal: frames 0-10 on the line
+    assert matrix_jobs.measured_from(_extrapolated_start(k=4)[1]) == 5  # three repeats of the first increment
+    assert matrix_jobs.measured_from(_extrapolated_start(k=3)[1]) == 0  # two may be chance
+    assert matrix_jobs.measured_from(_extrapolated_start(k=0)[1]) == 0
+    assert matrix_jobs.measured_from(_extrapolated_start(k=39)[1]) == 0  # steady all along: nothing to tell apart
+    _, gt_real = _gt()
+    assert matrix_jobs.measured_from(gt_real) == 0  # a curve whose rate changes
+    # an estimate that follows another motion on the extrapolated frames and the truth after them
+    est = _similar(gt, 0.4, [0.0, 0.2, 0.0], [1.0, 0.0, 2.0])
+    est[:11, :3] += np.linspace(1.0, 0.0, 11)[:, None] * np.array([0.3, 0.0, 0.0])
+    s = bench_real.score(ts, est, ts, gt, total=len(ts), first=11)
+    assert s["ate_m"] < 1e-6 and s["rpe_t_m"] < 1e-6 and s["ate_all_m"] > 0.05 and s["first"] == 11
+    assert s["posed"] == s["total"] == len(ts)
+    full = bench_real.score(ts, est, ts, gt, total=len(ts))
+    assert full["ate_m"] == full["ate_all_m"] == pytest.approx(s["ate_all_m"])
+    on = bench_real.on_frames({"ts": ts, "poses": est}, ts[5:], ts, gt, total=len(ts), first=11)
+    assert on["ate_m"] < 1e-6 and on["ate_all_m"] > 0.05
+
+
 def test_orb_timestamps_map_to_the_sequence_timestamps():
     seq_ts = np.array([0.0, 0.1036, 0.2072, 0.3108])  # times.txt, not exactly 10 Hz
     assert np.allclose(bench_real.orb_timestamps(np.array([0.1, 0.3]), seq_ts), [0.1036, 0.3108])
@@ -90,20 +123,21 @@ def test_orb_timestamps_map_to_the_sequence_timestamps():
 
 
 def test_the_table_shows_ranges_over_runs_and_notes_for_skipped_peers():
-    def run(ate, posed, cpu):
-        return {"ate_m": ate, "ate_pct": ate, "rpe_t_m": 0.01, "rpe_r_deg": 0.1, "posed": posed, "total": 160,
-                "cpu_ms_per_frame": cpu}
-    rows = [{"sequence": "00", "method": "pvslam", "runs": [run(0.5, 160, 900.0)]},
+    def run(ate, posed, cpu, ate_all=None):
+        return {"ate_m": ate, "ate_pct": ate, "ate_all_m": ate if ate_all is None else ate_all, "rpe_t_m": 0.01,
+                "rpe_r_deg": 0.1, "posed": posed, "total": 160, "cpu_ms_per_frame": cpu, "first": 14}
+    rows = [{"sequence": "00", "method": "pvslam", "runs": [run(0.5, 160, 900.0, 0.7)]},
             {"sequence": "00", "method": "orbslam3", "runs": [run(0.39, 119, 60.0), run(0.54, 159, 70.0)],
              "attempted": 3},
             {"sequence": "06", "method": "orbslam3", "runs": [], "note": "no --orb-vocab for this sequence"}]
     lines = bench_real.table(rows)
-    assert lines[0].startswith("| sequence | method | runs | ATE m | ATE % |")
-    assert "| 00 | pvslam | 1 | 0.500 | 0.50 | 0.010 | 0.100 | 160 / 160 | 900 |" in lines
-    assert "| 00 | orbslam3 | 2 of 3 | 0.390-0.540 | 0.39-0.54 | 0.010 | 0.100 | 119-159 / 160 | 60-70 |" in lines
-    assert any("| 06 | orbslam3 | 0 | no --orb-vocab" in line for line in lines)
-    assert bench_real.run_details(rows) == ["00 orbslam3, each run: 0.390 m = 0.39 % (119/160 frames), "
-                                            "0.540 m = 0.54 % (159/160 frames)"]
+    assert lines[0].startswith("| sequence | method | runs | scored from | ATE m | ATE % | ATE m, all frames |")
+    assert "| 00 | pvslam | 1 | frame 14 | 0.500 | 0.50 | 0.700 | 0.010 | 0.100 | 160 / 160 | 900 |" in lines
+    assert "| 00 | orbslam3 | 2 of 3 | frame 14 | 0.390-0.540 | 0.39-0.54 | 0.390-0.540 | 0.010 | 0.100 | " \
+           "119-159 / 160 | 60-70 |" in lines
+    assert any("| 06 | orbslam3 | 0 | | no --orb-vocab" in line for line in lines)
+    assert bench_real.run_details(rows) == ["00 orbslam3, each run: 0.390 m = 0.39 % (all frames 0.390 m; 119/160 "
+                                            "frames), 0.540 m = 0.54 % (all frames 0.540 m; 159/160 frames)"]
 
 
 def test_vocabulary_options_per_sequence_and_the_note_when_orb_slam3_cannot_run(tmp_path):

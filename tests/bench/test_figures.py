@@ -191,11 +191,11 @@ def test_the_speed_benchmarks_are_the_ones_skipped():
 
 def _real(orb=True, orb_runs=3):
     def run(ate, posed, cpu=None):
-        return {"ate_m": ate, "posed": posed, "cpu_ms_per_frame": cpu}
+        return {"ate_m": ate, "ate_all_m": 1.5 * ate, "posed": posed, "cpu_ms_per_frame": cpu, "first": first}
     rows = []
-    for q, pv, same, o, vo in (("00", 0.436, [0.416] * 3, [0.364, 0.457, 0.380], 3.436),
-                               ("06", 0.024, [0.023] * 3, [0.057, 0.089, 0.087], 1.537),
-                               ("01", 0.173, [0.019, 0.159], [0.031, 0.276], 3.348)):
+    for q, first, pv, same, o, vo in (("00", 14, 0.436, [0.416] * 3, [0.364, 0.457, 0.380], 3.436),
+                                      ("06", 12, 0.024, [0.023] * 3, [0.057, 0.089, 0.087], 1.537),
+                                      ("01", 0, 0.173, [0.019, 0.159], [0.031, 0.276], 3.348)):
         rows += [{"sequence": q, "method": "pvslam", "runs": [run(pv, 160, 190.0)]},
                  {"sequence": q, "method": "orbslam3", "runs": [run(a, 50, 110.0) for a in o] if orb else [],
                   "note": "" if orb else "no --orb-python (the python of a venv with pyorbslam3)"},
@@ -209,7 +209,8 @@ def test_the_real_excerpts_beside_orb_slam3_are_a_figure_with_the_full_table(res
     (results / "real.json").write_text(json.dumps(_real()))
     rows, got = figures.load(results)
     row = {r.figure.key: r for r in rows}["real"]
-    assert row.value == ("pvslam 0.436 / 0.024 / 0.173 m; on ORB-SLAM3's frames 0.416 / 0.023 / 0.019-0.159 m; "
+    assert row.value == ("scored from frame 14 / 12 / 0 (the measured ground truth): pvslam 0.436 / 0.024 / 0.173 m; "
+                         "on ORB-SLAM3's frames 0.416 / 0.023 / 0.019-0.159 m; all frames 0.654 / 0.036 / 0.259 m; "
                          "CPU 190 / 190 / 190 ms per frame")
     assert row.compared == ("ORB-SLAM3, 3 runs each: 0.364-0.457 / 0.057-0.089 / 0.031-0.276 m on 50 / 50 / 50 "
                             "frames, 110 / 110 / 110 ms; textbook VO 3.44 / 1.54 / 3.35 m")
@@ -218,7 +219,8 @@ def test_the_real_excerpts_beside_orb_slam3_are_a_figure_with_the_full_table(res
     assert "- 00 orbslam3, each run: ..." in page  # the per-run lines below the table, not inside it
     assert figures.BENCHES["real"].shown() == "python bench/bench_real.py --json runs/bench/figures/real.json"
     spread = {**_real(), "size_spread": 2.0}
-    assert figures.real_peers(spread)[0].startswith("pvslam 0.436 / 0.024 / 0.173 m (its processing size and 2 % "
+    assert figures.real_peers(spread)[0].startswith("scored from frame 14 / 12 / 0 (the measured ground truth): "
+                                                    "pvslam 0.436 / 0.024 / 0.173 m (its processing size and 2 % "
                                                     "per side either way); on ORB-SLAM3's frames")
 
 

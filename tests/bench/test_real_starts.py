@@ -104,11 +104,11 @@ def test_best_and_median_comparisons_and_the_summary_line():
     assert real_starts.compare([0.25, 0.19, 0.40], [0.30, 0.20, 0.50]) == {"best": True, "median": True}
     assert real_starts.compare([0.40, 0.35, 0.45], [0.30, 0.20, 0.50]) == {"best": False, "median": False}
     assert real_starts.compare([float("nan")], [float("nan")]) == {"best": None, "median": None}
-    pv = {"ate_m": 0.2, "total": 30}
+    pv = {"ate_m": 0.2, "total": 30, "first": 14}
     orb = [{"ate_m": 0.3, "posed": 28}]
     rows = [{"sequence": "00", "start": s, "pvslam": pv, "orbslam3": orb, "pvslam_on_orb": [v],
              "ahead": real_starts.compare([v], [0.3])} for s, v in ((0, 0.4), (5, 0.1))]
     text = real_starts.lines(rows)
-    assert "| 00 | 0 | 0.200 | 0.400 | 0.300 | 28 / 30 | no / no |" in text
-    assert "| 00 | 5 | 0.200 | 0.100 | 0.300 | 28 / 30 | yes / yes |" in text
+    assert "| 00 | 0 | frame 14 | 0.200 | 0.400 | 0.300 | 28 / 30 | no / no |" in text
+    assert "| 00 | 5 | frame 14 | 0.200 | 0.100 | 0.300 | 28 / 30 | yes / yes |" in text
     assert text[-1] == "00: pvslam at or below ORB-SLAM3's best run from 1 of 2 starts, its median run from 1 of 2"
