@@ -374,8 +374,9 @@ def page(rows: list[Row], got: dict[str, dict]) -> str:
                   "vocabulary "
                   "trained on the other excerpts; ATE and RPE after Sim(3) alignment over the frames each posed "
                   "(ORB-SLAM3: its largest map) from the first frame with measured ground truth on (KITTI's poses "
-                  "begin 00 and 06 with a constant-velocity extrapolation; docs/decisions.md: MEASURED GROUND "
-                  "TRUTH), the ATE over every frame beside; CPU per frame with start-up.", "", *table, "",
+                  "begin 00 and 06 with a constant-velocity extrapolation; "
+                  "docs/decisions.md: MEASURED GROUND TRUTH), the ATE over every frame beside; CPU per frame with "
+                  "start-up.", "", *table, "",
                   *(f"- {t}" for t in details)]
     lines += ["", "## Results", "",
               "| result | command | commit | dirty | machine | started | finished |", "|---|---|---|---|---|---|---|"]
