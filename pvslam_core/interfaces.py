@@ -102,6 +102,8 @@ class Frontend(GraphListener, ABC):
         r = frontend.track(frame, seg)                 # motion filter; r.is_keyframe decides
         if r.is_keyframe:
             frontend.add_keyframe(kf_id, frame, seg)   # kf_id = graph.ids[-1], the new keyframe's stable id
+        frontend.prefetch(next_frame)                  # when the next frame is at hand (default: nothing)
+        if r.is_keyframe:
             for _ in range(frontend.rounds):           # learned: update -> BA -> update; classical: once
                 obs = frontend.observe(graph, ii, jj)
                 optimizer.step(graph, obs)
@@ -134,6 +136,11 @@ class Frontend(GraphListener, ABC):
     def observe(self, graph: "FrameGraph", ii: torch.Tensor, jj: torch.Tensor) -> EdgeObservations:
         """Targets and weights for edges ``ii[e] -> jj[e]`` (graph indices) given the graph's current poses and
         depths.  See the class docstring for when it is called."""
+
+    def prefetch(self, frame: Frame) -> None:
+        """The next input frame, while this one's keyframe work (edges, BA) is still to come: a frontend may start
+        what its next :meth:`track` needs from that frame and the keyframes alone, on another thread.  What
+        :meth:`track` returns must not depend on it.  Default: nothing."""
 
     def discard_pairs(self, src_ids: torch.Tensor, dst_ids: torch.Tensor) -> None:
         """Forget what observing pairs ``src_ids[e] -> dst_ids[e]`` (stable ids) computed and cached, without them

@@ -198,8 +198,10 @@ class Pipeline:
         if self.observer is not None:
             self._notify("on_start", self.info, self.categories())
 
-    def step(self, frame: Frame) -> FrameResult:
-        """Process one frame (segmentation, mapping, VPS, outputs); returns the mapper's result for it."""
+    def step(self, frame: Frame, next_frame: Optional[Frame] = None) -> FrameResult:
+        """Process one frame (segmentation, mapping, VPS, outputs); returns the mapper's result for it.
+        ``next_frame``: the next input frame when it is at hand (the frontend may start on it while this frame's
+        map work runs; the results do not depend on it)."""
         from .slam.motion_cue import motion_cue
 
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -207,7 +209,7 @@ class Pipeline:
         seg = self.segmenter.segment(frame) if self.segmenter is not None else None
         t1, c1 = time.perf_counter(), time.thread_time()
         self._at = ("map", frame.index)
-        result = self.mapper.process(frame, seg)
+        result = self.mapper.process(frame, seg, next_frame)
         self.ever_initialized |= result.initialized
         t2, c2 = time.perf_counter(), time.thread_time()
         panoptic: Optional[PanopticSegmentation] = None  # this frame's temporally consistent segmentation
@@ -370,12 +372,14 @@ class Pipeline:
             with _sigterm_as_interrupt(), _progress(total, self.pcfg.run.progress, "pvslam") as bar, \
                     closing(frames):
                 t_prev, c_prev = time.perf_counter(), time.thread_time()
-                for frame in frames:
+                # a source of known length is read one frame ahead (the frontend's prefetch); a live one is not
+                # (its next frame may not exist yet: this one would wait for it)
+                for frame, next_frame in _with_next(frames, total is not None):
                     if limit is not None and self.frames_done >= limit:
                         break
                     self.stage["read"] += time.perf_counter() - t_prev
                     self.stage_cpu["read"] += time.thread_time() - c_prev
-                    self.step(frame)
+                    self.step(frame, next_frame)
                     now = time.perf_counter()
                     self.frame_seconds.append(now - t_prev)
                     t_prev, c_prev = now, time.thread_time()
@@ -387,6 +391,25 @@ class Pipeline:
             _record_where(exc, *getattr(self, "_at", ("start", None)), self.frames_done)
             self.abort(exc)
             raise
+
+
+def _with_next(frames, ahead: bool):
+    """``(frame, the next frame or None)`` for each of ``frames``; with ``ahead`` False the next is always None (the
+    iterator is not read ahead of the frame being processed)."""
+    it = iter(frames)
+    cur = next(it, None)
+    while cur is not None:
+        if not ahead:
+            yield cur, None
+            cur = next(it, None)
+            continue
+        try:
+            nxt = next(it, None)
+        except BaseException:  # the frame read before the failing one is processed first, as without the lookahead
+            yield cur, None
+            raise
+        yield cur, nxt
+        cur = nxt
 
 
 def run(config: ResolvedConfig, run_dir: Optional[Path | str] = None, registry=None,

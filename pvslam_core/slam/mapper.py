@@ -6,9 +6,10 @@ every decision to a part that owns its state: the keyframe policy (:mod:`.keyfra
 (:mod:`.bootstrap`), all over one shared :class:`~.map_state.MapState`.  Per input frame::
 
     track = frontend.track(frame)                       # the motion filter proposes keyframes
-    not a keyframe: anchor the frame to the newest keyframe; done
+    not a keyframe: frontend.prefetch(next frame); anchor the frame to the newest keyframe; done
     pose = motion-only guess; keyframes.propose(pose)   # settles the provisional keyframe; provisional or ordinary?
     graph.add_keyframe; frontend.add_keyframe(id); loop_detector.add_keyframe(id); its edges (unless provisional)
+    frontend.prefetch(next frame)                       # when at hand: its tracking may begin beside the BA
     provisional: place the frames of the keyframe before; done
     not initialised: bootstrap.try_initialise; done
     retire edges that left the window (graph -> listeners.on_edges_retired)
@@ -130,11 +131,14 @@ class Mapper:
                 "fragments": len(fr.starts), "fragment_merges": fr.merges, "maps": fr.unmerged}
 
     # -------------------------------------------------------------------------------------- per frame --
-    def process(self, frame: Frame, seg: Optional[PanopticSegmentation]) -> FrameResult:
-        """Track one frame (and, when it becomes a keyframe, grow and optimise the map)."""
+    def process(self, frame: Frame, seg: Optional[PanopticSegmentation],
+                next_frame: Optional[Frame] = None) -> FrameResult:
+        """Track one frame (and, when it becomes a keyframe, grow and optimise the map).  ``next_frame``: the next
+        input frame when it is at hand (:meth:`.Frontend.prefetch`; the results do not depend on it)."""
         st, g = self.state, self.state.graph
         if g.n == 0:
             kf_id = self._add_keyframe(frame, seg, IDENTITY.clone())
+            self._prefetch(next_frame)
             return self._result(frame, st.frames.entries[-1], {}, kf_id=kf_id)
         t0 = thread_time()
         track = self.frontend.track(frame, seg)
@@ -144,6 +148,7 @@ class Mapper:
             return self._failed(frame, seg, track, ref)
         self._consecutive_failures = 0
         if not track.is_keyframe:
+            self._prefetch(next_frame)
             entry = st.frames.add_frame(frame.index, frame.timestamp, g.id_of(-1), st.frames.last_rel(),
                                         track.target, track.weight)
             return self._result(frame, entry, ref, track)
@@ -153,6 +158,7 @@ class Mapper:
         provisional = self.keyframe_policy.propose(pose, frame.timestamp)
         a_id = g.id_of(-1)  # the previous keyframe that stays
         kf_id = self._add_keyframe(frame, seg, pose, provisional)
+        self._prefetch(next_frame)  # beside this keyframe's edges and BA
         entry = st.frames.entries[-1]
         k = g.n - 1
         if provisional:
@@ -175,6 +181,10 @@ class Mapper:
         self.keyframe_policy.remove_redundant(k)
         self.revisits.cull(g.n - 1)
         return result
+
+    def _prefetch(self, next_frame: Optional[Frame]) -> None:
+        if next_frame is not None:
+            self.frontend.prefetch(next_frame)
 
     def _add_keyframe(self, frame: Frame, seg: Optional[PanopticSegmentation], pose: torch.Tensor,
                       provisional: bool = False) -> int:

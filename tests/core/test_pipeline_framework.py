@@ -144,3 +144,35 @@ def test_the_map_stage_accounts_a_new_keyframes_setup(fake_registry, fake_config
     parts = t["map_cpu_seconds"]
     assert t["keyframes"] > 1 and parts["keyframe"] > 0
     assert sum(parts.values()) <= t["stage_cpu_seconds"]["map"] + 1e-3
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_the_frontend_gets_the_next_frame_after_tracking_one_unless_the_source_is_live(
+        fake_registry, fake_config_file, monkeypatch, live):
+    """A source of known length is read one frame ahead: frame ``i + 1`` goes to ``Frontend.prefetch`` after frame
+    ``i`` was tracked (and added when it became a keyframe), before the next track; a live source (length unknown)
+    is not read ahead, as its next frame may not exist yet."""
+    from pvslam_core.types import SequenceInfo
+
+    events = []
+    track, add = fakes.ExactFrontend.track, fakes.ExactFrontend.add_keyframe
+    monkeypatch.setattr(fakes.ExactFrontend, "track",
+                        lambda self, frame, seg: events.append(("track", frame.index)) or track(self, frame, seg))
+    monkeypatch.setattr(fakes.ExactFrontend, "add_keyframe", lambda self, kf_id, frame, seg: events.append(
+        ("add", frame.index)) or add(self, kf_id, frame, seg))
+    monkeypatch.setattr(fakes.ExactFrontend, "prefetch", lambda self, frame: events.append(("prefetch", frame.index)),
+                        raising=False)
+    if live:
+        info = fakes.FakeDataset.info
+        monkeypatch.setattr(fakes.FakeDataset, "info", lambda self: SequenceInfo(
+            **{**info(self).__dict__, "num_frames": None}))
+    res = run_config(fake_config_file, overrides=["run.name=ahead"], registry=fake_registry)
+    n = res.metrics["timing"]["frames"]
+    fetched = [i for kind, i in events if kind == "prefetch"]
+    if live:
+        assert fetched == [] and n == 12
+        return
+    assert fetched == list(range(1, n))
+    for i in fetched:  # after frame i - 1's track (and add), before frame i's track
+        k = events.index(("prefetch", i))
+        assert events[k - 1] in (("track", i - 1), ("add", i - 1)) and events[k + 1] == ("track", i)

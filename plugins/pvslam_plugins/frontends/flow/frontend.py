@@ -35,7 +35,9 @@ convention (static -> c, dynamic -> ~ c e^-eta; :mod:`pvslam_core.slam.confidenc
 on static scenes.  ``rounds`` observe -> BA rounds per new keyframe (default 1).
 
 Independent DIS calls (a frame's two tracking flows, a new keyframe's edge pairs with their forward-backward checks)
-run on ``dis.threads`` threads (:mod:`.lanes`; OpenCV releases the GIL), with results bit-equal to one thread.
+run on ``dis.threads`` threads (:mod:`.lanes`; OpenCV releases the GIL), with results bit-equal to one thread.  With
+two or more, the next frame's tracking flows begin on a thread of their own while this frame's keyframe work runs
+(:meth:`FlowFrontend.prefetch`, :mod:`.prefetch`), with the same results.
 
 ``initial_depth(graph, id)``: a constant map equal to the median inverse depth of the newest keyframe, as DROID-SLAM
 does; a median is robust to the few near/far outliers that would pull a mean.
@@ -60,6 +62,7 @@ from . import flow_ops as F
 from .config import FlowFrontendConfig
 from .dynamic_masking import DynamicMasking, segment_info
 from .pair_flow import FlowPairs, Plane
+from .prefetch import Ahead
 from .road_prior import RoadMotion, RoadPrior
 from .track_starts import TrackStarts
 
@@ -125,14 +128,17 @@ class FlowFrontend(Frontend):
         self._edges: dict[tuple[int, int], _Edge] = {}  # (source id, target id) -> cached edge
         self._pending: Optional[_Tracked] = None
         self._graph = None  # the last graph seen in observe (BA resolution, tracking weights, predicted rotation)
-        self._counts = {"track_calls": 0, "track_s": 0.0, "edges_computed": 0, "reprojection_init_used": 0}
+        self._counts = {"track_calls": 0, "track_s": 0.0, "edges_computed": 0, "reprojection_init_used": 0,
+                        "prefetched": 0}
+        self._ahead = Ahead()  # the next frame's gray and tracking flows, started by prefetch()
 
     # ----------------------------------------------------------------------------------------- helpers --
     @property
     def stats(self) -> dict:
         """Counts and seconds: tracking, DIS calls, edges computed, reprojection inits, tracking recoveries."""
         c = self._counts
-        return {"track_calls": c["track_calls"], "track_s": c["track_s"], **self.pairs.stats,
+        return {"track_calls": c["track_calls"], "track_s": c["track_s"], "track_prefetched": c["prefetched"],
+                **self.pairs.stats,
                 "edges_computed": c["edges_computed"], "reprojection_init_used": c["reprojection_init_used"],
                 **self.starts.stats}
 
@@ -183,15 +189,36 @@ class FlowFrontend(Frontend):
             self._counts["track_calls"] += 1
             self._counts["track_s"] += time.perf_counter() - t0
 
+    def prefetch(self, frame: Frame) -> None:
+        """Start the next frame's gray image and tracking flows against the newest keyframe on another thread
+        (:class:`.prefetch.Ahead`); :meth:`track` takes them when it tracks that frame against that keyframe from the same
+        previous frame, else it computes its own."""
+        sid = self._last_id()
+        if sid is None or self.pairs.lanes.threads < 2:  # one DIS thread: nothing runs beside this one
+            return
+        ref = self._kfs[sid]
+        prev, job = self.starts.ahead(ref.gray, ref.frame_index)
+        self._ahead.start(frame, (sid, prev), lambda: self._prefetch_job(frame, ref.gray, job))
+
+    def _prefetch_job(self, frame: Frame, g_ref: np.ndarray, job) -> tuple:
+        """On the prefetch thread: ``(gray, started)`` (started None where :meth:`_track` stops before its flows)."""
+        gray = self.pairs.gray(frame.image)
+        std = float(gray.std())
+        if not np.isfinite(std) or std < MIN_TEXTURE_STD or gray.shape != g_ref.shape:
+            return gray, None
+        return gray, job(gray, frame.index)
+
     def _track(self, frame: Frame) -> TrackResult:
         self._pending = None
         self.starts.new_frame()
-        gray = self.pairs.gray(frame.image)
+        last_sid = self._last_id()
+        gray, ahead = self._ahead.take(frame, (last_sid, self.starts.previous))
+        if gray is None:
+            gray = self.pairs.gray(frame.image)
         std = float(gray.std())
         if not np.isfinite(std) or std < MIN_TEXTURE_STD:
             return TrackResult(is_keyframe=False, mean_flow=0.0, failed=True,
                                message=f"no texture: intensity std {std:.2f} < {MIN_TEXTURE_STD}")
-        last_sid = self._last_id()
         if last_sid is None:
             self._pending = _Tracked(frame.index, gray)
             return TrackResult(is_keyframe=True, mean_flow=0.0, message="first keyframe")
@@ -202,7 +229,8 @@ class FlowFrontend(Frontend):
         h, w = self._ba_shape_for(frame)
         # both flows (the forward-backward check needs them), but the backward target and confidence only if this
         # frame becomes a keyframe (add_keyframe): most frames do not
-        fwd, bwd = self.starts.start(last.gray, gray, last.frame_index, frame.index)
+        self._counts["prefetched"] += ahead is not None
+        fwd, bwd = self.starts.start(last.gray, gray, last.frame_index, frame.index, ahead)
         road, plane = None, (None, None)
         if self.road is not None:
             fwd, bwd, road, plane = self.road.track(last_sid, last.gray, last.frame_index, gray, frame, fwd, bwd,

@@ -17,7 +17,7 @@ are at the flow resolution, ``float32 [H, W, 2]``.
 from __future__ import annotations
 
 from concurrent.futures import Future
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -42,6 +42,8 @@ TRACK_PREDICT_RECOVER = True
 TRACK_PREDICT_INIT = True
 
 Tracked = tuple[int, int, np.ndarray, np.ndarray]  # (reference frame index, frame index, fwd, bwd) of a tracked frame
+# a frame's starting flows (fwd, bwd) and the counts they took: DIS calls, their seconds, predicted starts tried / used
+Started = tuple[np.ndarray, np.ndarray, dict]
 
 
 class TrackStarts:
@@ -64,14 +66,53 @@ class TrackStarts:
         """A new frame is being tracked: the previous one's flows can start it only if it tracked."""
         self._prev, self._last = self._last, None
 
-    def start(self, g0: np.ndarray, g1: np.ndarray, ref_index: int, index: int) -> tuple[np.ndarray, np.ndarray]:
+    @property
+    def previous(self) -> Optional[Tracked]:
+        """The tracked frame that starts the frame being tracked (None: it starts from zero or the prediction)."""
+        return self._prev
+
+    def start(self, g0: np.ndarray, g1: np.ndarray, ref_index: int, index: int,
+              ahead: Optional[Started] = None) -> tuple[np.ndarray, np.ndarray]:
         """Both tracking flows ``(fwd, bwd)`` of frame ``index`` (gray ``g1``) against the reference ``ref_index``
-        (gray ``g0``): from the velocity init, else from zero or the predicted motion, whichever is more consistent."""
-        init_f, init_b = self._velocity_init(self._prev, ref_index, index)
-        fwd, bwd = self._pairs.flows(self._pairs.pair_calls(g0, g1, init_f, init_b, kind="track"))
-        if init_f is None and TRACK_PREDICT_INIT:  # no velocity init (e.g. the first frame after a keyframe)
-            fwd, bwd = self._predicted_start(g0, g1, ref_index, index, fwd, bwd)
+        (gray ``g0``): from the velocity init, else from zero or the predicted motion, whichever is more consistent.
+        ``ahead``: what :meth:`ahead`'s job computed for these inputs (the caller checked they are these)."""
+        fwd, bwd, counts = ahead if ahead is not None else \
+            self._start(g0, g1, ref_index, index, self._prev, self.predictor)
+        self._pairs.count(counts["dis_calls"], counts["dis_s"])
+        for k in ("track_predicted_starts", "track_predicted_used"):
+            self.stats[k] += counts[k]
         return fwd, bwd
+
+    def ahead(self, g0: np.ndarray, ref_index: int) -> tuple[Optional[Tracked], Callable[[np.ndarray, int], Started]]:
+        """The next frame's :meth:`start` before :meth:`new_frame`: ``(prev, job)``, ``prev`` the tracked frame that
+        will start it and ``job(g1, index)`` its flows against ``ref_index`` (gray ``g0``), for another thread.  The job
+        reads the motion predictor once its pending observation is done and changes nothing here (:meth:`start`
+        counts), so the flows are those :meth:`start` would compute, as long as the next frame tracks against
+        ``ref_index`` from ``prev``."""
+        prev, observing = self._last, self._observing
+
+        def predictor() -> MotionPredictor:
+            if observing is not None:
+                observing.result()  # on the lane worker, queued before this job's DIS calls
+            return self._predictor
+
+        return prev, lambda g1, index: self._start(g0, g1, ref_index, index, prev, predictor)
+
+    def _start(self, g0: np.ndarray, g1: np.ndarray, ref_index: int, index: int, prev: Optional[Tracked],
+               predictor: Callable[[], MotionPredictor]) -> Started:
+        counts = {"dis_calls": 0, "dis_s": 0.0, "track_predicted_starts": 0, "track_predicted_used": 0}
+
+        def flows(calls):
+            out, seconds = self._pairs.lanes.run(calls)
+            counts["dis_calls"] += len(calls)
+            counts["dis_s"] += seconds
+            return out
+
+        init_f, init_b = self._velocity_init(prev, ref_index, index)
+        fwd, bwd = flows(self._pairs.pair_calls(g0, g1, init_f, init_b, kind="track"))
+        if init_f is None and TRACK_PREDICT_INIT:  # no velocity init (e.g. the first frame after a keyframe)
+            fwd, bwd = self._predicted_start(g0, g1, ref_index, index, fwd, bwd, predictor, flows, counts)
+        return fwd, bwd, counts
 
     def recover(self, g0: np.ndarray, g1: np.ndarray, ref_index: int, index: int, h: int, w: int,
                 fail_frac: float) -> Optional[tuple]:
@@ -118,21 +159,22 @@ class TrackStarts:
 
     # ------------------------------------------------------------------------------------------- starts --
     def _predicted_start(self, g0: np.ndarray, g1: np.ndarray, ref_index: int, index: int, fwd: np.ndarray,
-                         bwd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                         bwd: np.ndarray, predictor: Callable[[], MotionPredictor], flows: Callable,
+                         counts: dict) -> tuple[np.ndarray, np.ndarray]:
         """The flows ``(fwd, bwd)`` found from zero, or those found from the motion predicted at constant rate when
         that motion is at least ``TRACK_INIT_MIN_FLOW`` BA px and they fail the forward-backward check on fewer
         pixels.  Why: the first frame after a keyframe has no velocity init, and in a fast pan DIS from zero finds
         part of the motion while most pixels still pass the check, under the recovery's threshold."""
-        pred = self.predictor().flows(ref_index, index, *g0.shape)
+        pred = predictor().flows(ref_index, index, *g0.shape)
         if pred is None:
             return fwd, bwd
         if self._mean_flow_ba(pred[0]) < TRACK_INIT_MIN_FLOW:
             return fwd, bwd
-        self.stats["track_predicted_starts"] += 1
-        fwd2, bwd2 = self._pairs.flows(self._pairs.pair_calls(g0, g1, pred[0], pred[1], kind="track"))
+        counts["track_predicted_starts"] += 1
+        fwd2, bwd2 = flows(self._pairs.pair_calls(g0, g1, pred[0], pred[1], kind="track"))
         sigma, fail = self._pairs.sigma, self._pairs.fail_fraction
         if fail(F.fb_consistency(fwd2, bwd2, sigma)[1]) < fail(F.fb_consistency(fwd, bwd, sigma)[1]):
-            self.stats["track_predicted_used"] += 1
+            counts["track_predicted_used"] += 1
             return fwd2, bwd2
         return fwd, bwd
 
