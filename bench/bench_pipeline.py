@@ -232,15 +232,15 @@ def _long_child(frames: int, out: str) -> None:
 
     init_run_dir(run_dir, cfg, get_registry(), {})
     samples = []
-    from pvslam_core.background import read_ahead
+    from pvslam_core.background import read_ahead, with_next
 
     with RunLog(run_dir, "INFO"):
         pipe = Pipeline(cfg, run_dir)
         pipe.start()
         fs, cs = [], []  # wall and process-CPU seconds per frame
         t_prev, c_prev = time.perf_counter(), time.process_time()
-        for frame in read_ahead(pipe.dataset, cfg.pipeline.run.read_ahead):
-            pipe.step(frame)
+        for frame, next_frame in with_next(read_ahead(pipe.dataset, cfg.pipeline.run.read_ahead), True):
+            pipe.step(frame, next_frame)  # as Pipeline.run steps a source of known length
             now, cnow = time.perf_counter(), time.process_time()
             fs.append(now - t_prev)
             cs.append(cnow - c_prev)

@@ -149,8 +149,8 @@ def run_pvslam(overrides: list[str], out: Path, name: str) -> dict:
     first_map: dict = {}  # the keyframes (timestamps, T_wc) when the map first initialised
     original = pl.Pipeline.step
 
-    def step(self, frame):
-        r = original(self, frame)
+    def step(self, frame, next_frame=None):
+        r = original(self, frame, next_frame)
         record.append((int(r.frame_index), bool(r.initialized), bool(r.failed)))
         if r.initialized and not first_map and self.mapper is not None:
             g = self.mapper.graph

@@ -8,6 +8,8 @@ producer could run ahead: at most ``depth`` frames are decoded ahead, at most ``
 * :func:`read_ahead` wraps an iterator: a daemon thread fills the queue, the caller's loop takes from it.  An
   exception raised by the iterator reaches the caller at the item where it happened; closing the generator
   (``break``, an exception in the loop, Ctrl-C) stops the thread.
+* :func:`with_next` pairs each item with the next one (read before the item is processed), for work that may begin
+  on the next frame early; an error reading the next item reaches the caller after the item before it.
 * :class:`BackgroundWriter` runs submitted calls in order on one thread.  An exception of a call is kept and
   re-raised by the next :meth:`~BackgroundWriter.submit`, :meth:`~BackgroundWriter.drain` or
   :meth:`~BackgroundWriter.close` in the caller's thread (so a write error still stops the run, one frame later).
@@ -66,6 +68,25 @@ def read_ahead(items: Iterable[Any], depth: int = 2, name: str = "pvslam-read-ah
     finally:
         stop.set()
         t.join(timeout=5.0)
+
+
+def with_next(frames: Iterable[Any], ahead: bool) -> Iterator[tuple[Any, Any]]:
+    """``(frame, the next frame or None)`` for each of ``frames``; with ``ahead`` False the next is always None (the
+    iterator is not read ahead of the frame being processed)."""
+    it = iter(frames)
+    cur = next(it, None)
+    while cur is not None:
+        if not ahead:
+            yield cur, None
+            cur = next(it, None)
+            continue
+        try:
+            nxt = next(it, None)
+        except BaseException:  # the frame read before the failing one is processed first, as without the lookahead
+            yield cur, None
+            raise
+        yield cur, nxt
+        cur = nxt
 
 
 class BackgroundWriter:

@@ -3,7 +3,7 @@
 For every input frame (:meth:`Pipeline.step`)::
 
     seg    = segmenter.segment(frame)                 # initial panoptic segmentation
-    result = mapper.process(frame, seg)               # VO: motion filter; on a keyframe: edges, online BA,
+    result = mapper.process(frame, seg, next frame)   # VO: motion filter; on a keyframe: edges, online BA,
                                                       # loop closure (i, j-1), (i, j), (i, j+1) + relaxed loop BA,
                                                       # motion-only BA of the frames since the last keyframe
     cue    = motion_cue(previous result, result)      # VO flow, depth and poses between the two frames
@@ -18,7 +18,8 @@ fitted to the data (:mod:`pvslam_core.adapt`: no ``labels`` segmenter on unlabel
 T_wc ``[t, q_xyzw]`` (see :mod:`pvslam_core.types`).
 
 Threads (:mod:`pvslam_core.background`): the mapping is one thread; :meth:`run` decodes the next frames on a
-reader thread (``run.read_ahead``), and with a run directory the motion cue, the VPS update and the panoptic PNG of
+reader thread (``run.read_ahead``) and, for a source of known length, hands the mapper the next frame too (a frontend
+may begin its tracking beside this frame's BA: :meth:`~pvslam_core.interfaces.Frontend.prefetch`), and with a run directory the motion cue, the VPS update and the panoptic PNG of
 each frame run in order on an output thread (``run.write_behind``) while the next frame is mapped -- unless an
 observer waits for each frame's panoptic.  Both queues are bounded, so memory stays flat.
 """
@@ -359,7 +360,7 @@ class Pipeline:
         from contextlib import closing
         from itertools import islice
 
-        from .background import read_ahead
+        from .background import read_ahead, with_next
 
         try:
             # frames are decoded on a background thread, at most run.read_ahead ahead (see background.py)
@@ -374,7 +375,7 @@ class Pipeline:
                 t_prev, c_prev = time.perf_counter(), time.thread_time()
                 # a source of known length is read one frame ahead (the frontend's prefetch); a live one is not
                 # (its next frame may not exist yet: this one would wait for it)
-                for frame, next_frame in _with_next(frames, total is not None):
+                for frame, next_frame in with_next(frames, total is not None):
                     if limit is not None and self.frames_done >= limit:
                         break
                     self.stage["read"] += time.perf_counter() - t_prev
@@ -391,25 +392,6 @@ class Pipeline:
             _record_where(exc, *getattr(self, "_at", ("start", None)), self.frames_done)
             self.abort(exc)
             raise
-
-
-def _with_next(frames, ahead: bool):
-    """``(frame, the next frame or None)`` for each of ``frames``; with ``ahead`` False the next is always None (the
-    iterator is not read ahead of the frame being processed)."""
-    it = iter(frames)
-    cur = next(it, None)
-    while cur is not None:
-        if not ahead:
-            yield cur, None
-            cur = next(it, None)
-            continue
-        try:
-            nxt = next(it, None)
-        except BaseException:  # the frame read before the failing one is processed first, as without the lookahead
-            yield cur, None
-            raise
-        yield cur, nxt
-        cur = nxt
 
 
 def run(config: ResolvedConfig, run_dir: Optional[Path | str] = None, registry=None,

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from pvslam_core.api import run_config
-from pvslam_core.background import BackgroundWriter, read_ahead
+from pvslam_core.background import BackgroundWriter, read_ahead, with_next
 from pvslam_core.outputs.panoptic_png import JOURNAL, PanopticWriter, load_panoptic_dir, read_segments_json
 from pvslam_core.types import PanopticSegmentation, Segment
 
@@ -55,6 +55,35 @@ def test_read_ahead_error_at_its_item_and_stop_on_close():
     gen.close()  # a loop left early (break, Ctrl-C): the reader thread ends
     time.sleep(0.3)
     assert _threads("t-close") == 0
+
+
+def test_with_next_pairs_each_item_with_the_next_and_reads_ahead_only_when_asked():
+    pulled = []
+
+    def items(n, fail_at=None):
+        for i in range(n):
+            if i == fail_at:
+                raise ValueError(f"item {i} is corrupt")
+            pulled.append(i)
+            yield i
+
+    got = []
+    for x, nxt in with_next(items(4), ahead=True):
+        assert pulled[-1] == (x + 1 if x < 3 else 3)  # the next item was read before this one is handed out
+        got.append((x, nxt))
+    assert got == [(0, 1), (1, 2), (2, 3), (3, None)]
+    pulled.clear()
+    got = []
+    for x, nxt in with_next(items(3), ahead=False):
+        assert pulled[-1] == x  # nothing read beyond the item handed out (a live source's next frame may not exist)
+        got.append((x, nxt))
+    assert got == [(0, None), (1, None), (2, None)]
+    got = []
+    with pytest.raises(ValueError, match="item 2 is corrupt"):
+        for x, nxt in with_next(items(5, fail_at=2), ahead=True):
+            got.append((x, nxt))
+    assert got == [(0, 1), (1, None)]  # the item before the failing one is still handed out
+    assert list(with_next([], ahead=True)) == []
 
 
 def test_background_writer_order_and_errors():
