@@ -259,8 +259,9 @@ def run_details(rows: list[dict]) -> list[str]:
     out = []
     for r in rows:
         if len(r.get("runs") or []) > 1:
-            runs = ", ".join(f"{x['ate_m']:.3f} m = {x['ate_pct']:.2f} % (all frames {x.get('ate_all_m', math.nan):.3f} "
-                             f"m; {x['posed']}/{x['total']} frames{_labels(x)})" for x in r["runs"])
+            runs = ", ".join(f"{x['ate_m']:.3f} m = {x['ate_pct']:.2f} % (all frames "
+                             f"{x.get('ate_all_m', math.nan):.3f} m; {x['posed']}/{x['total']} frames{_labels(x)})"
+                             for x in r["runs"])
             out.append(f"{r['sequence']} {r['method']}, each run: {runs}")
     return out
 

@@ -220,8 +220,8 @@ def real_peers(r: dict) -> tuple[str, str]:
 
     sizes = f" (its processing size and {r['size_spread']:g} % per side either way)" if r.get("size_spread") else ""
     first = " / ".join(str((runs.get((q, "pvslam")) or [{}])[0].get("first", 0)) for q in seqs)
-    value = (f"scored from frame {first} (the measured ground truth): pvslam {each('pvslam', 'ate_m', '.3f')} m{sizes}; "
-             f"on ORB-SLAM3's frames {each(SAME_FRAMES, 'ate_m', '.3f')} m; all frames "
+    value = (f"scored from frame {first} (the measured ground truth): pvslam {each('pvslam', 'ate_m', '.3f')} m"
+             f"{sizes}; on ORB-SLAM3's frames {each(SAME_FRAMES, 'ate_m', '.3f')} m; all frames "
              f"{each('pvslam', 'ate_all_m', '.3f')} m; CPU {each('pvslam', 'cpu_ms_per_frame', '.0f')} ms per frame")
     if not any(runs.get((q, "orbslam3")) for q in seqs):
         orb = "ORB-SLAM3 not run (" + next((row.get("note") or "?" for row in r["rows"]

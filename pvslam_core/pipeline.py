@@ -18,10 +18,11 @@ fitted to the data (:mod:`pvslam_core.adapt`: no ``labels`` segmenter on unlabel
 T_wc ``[t, q_xyzw]`` (see :mod:`pvslam_core.types`).
 
 Threads (:mod:`pvslam_core.background`): the mapping is one thread; :meth:`run` decodes the next frames on a
-reader thread (``run.read_ahead``) and, for a source of known length, hands the mapper the next frame too (a frontend
-may begin its tracking beside this frame's BA: :meth:`~pvslam_core.interfaces.Frontend.prefetch`), and with a run directory the motion cue, the VPS update and the panoptic PNG of
-each frame run in order on an output thread (``run.write_behind``) while the next frame is mapped -- unless an
-observer waits for each frame's panoptic.  Both queues are bounded, so memory stays flat.
+reader thread (``run.read_ahead``) and, for a source of known length, hands the mapper the next frame too (a
+frontend may begin its tracking beside this frame's BA: :meth:`~pvslam_core.interfaces.Frontend.prefetch`); with a
+run directory the motion cue, the VPS update and the panoptic PNG of each frame run in order on an output thread
+(``run.write_behind``) while the next frame is mapped -- unless an observer waits for each frame's panoptic.  Both
+queues are bounded, so memory stays flat.
 """
 from __future__ import annotations
 

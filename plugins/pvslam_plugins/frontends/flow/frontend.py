@@ -191,8 +191,8 @@ class FlowFrontend(Frontend):
 
     def prefetch(self, frame: Frame) -> None:
         """Start the next frame's gray image and tracking flows against the newest keyframe on another thread
-        (:class:`.prefetch.Ahead`); :meth:`track` takes them when it tracks that frame against that keyframe from the same
-        previous frame, else it computes its own."""
+        (:class:`.prefetch.Ahead`); :meth:`track` takes them when it tracks that frame against that keyframe from
+        the same previous frame, else it computes its own."""
         sid = self._last_id()
         if sid is None or self.pairs.lanes.threads < 2:  # one DIS thread: nothing runs beside this one
             return
