@@ -18,8 +18,8 @@ fitted to the data (:mod:`pvslam_core.adapt`: no ``labels`` segmenter on unlabel
 T_wc ``[t, q_xyzw]`` (see :mod:`pvslam_core.types`).
 
 Threads (:mod:`pvslam_core.background`): the mapping is one thread; :meth:`run` decodes the next frames on a
-reader thread (``run.read_ahead``) and, for a source of known length, hands the mapper the next frame too (a
-frontend may begin its tracking beside this frame's BA: :meth:`~pvslam_core.interfaces.Frontend.prefetch`); with a
+reader thread (``run.read_ahead``) and, from a built-in reader of known length, hands the mapper the next frame too
+(a frontend may begin its tracking beside this frame's BA: :meth:`~pvslam_core.interfaces.Frontend.prefetch`); with a
 run directory the motion cue, the VPS update and the panoptic PNG of each frame run in order on an output thread
 (``run.write_behind``) while the next frame is mapped -- unless an observer waits for each frame's panoptic.  Both
 queues are bounded, so memory stays flat.
@@ -374,9 +374,9 @@ class Pipeline:
             with _sigterm_as_interrupt(), _progress(total, self.pcfg.run.progress, "pvslam") as bar, \
                     closing(frames):
                 t_prev, c_prev = time.perf_counter(), time.thread_time()
-                # a source of known length is read one frame ahead (the frontend's prefetch); a live one is not
-                # (its next frame may not exist yet: this one would wait for it)
-                for frame, next_frame in with_next(frames, total is not None):
+                # a source read ahead (see above) of known length is read one frame ahead of the mapper too (the
+                # frontend's prefetch); a live one is not (its next frame may not exist yet: this one would wait)
+                for frame, next_frame in with_next(frames, depth > 0 and total is not None):
                     if limit is not None and self.frames_done >= limit:
                         break
                     self.stage["read"] += time.perf_counter() - t_prev

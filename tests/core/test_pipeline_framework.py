@@ -146,31 +146,41 @@ def test_the_map_stage_accounts_a_new_keyframes_setup(fake_registry, fake_config
     assert sum(parts.values()) <= t["stage_cpu_seconds"]["map"] + 1e-3
 
 
-@pytest.mark.parametrize("live", [False, True])
-def test_the_frontend_gets_the_next_frame_after_tracking_one_unless_the_source_is_live(
-        fake_registry, fake_config_file, monkeypatch, live):
-    """A source of known length is read one frame ahead: frame ``i + 1`` goes to ``Frontend.prefetch`` after frame
-    ``i`` was tracked (and added when it became a keyframe), before the next track; a live source (length unknown)
-    is not read ahead, as its next frame may not exist yet."""
+@pytest.mark.parametrize("source", ["built-in", "live", "third-party"])
+def test_the_frontend_gets_the_next_frame_after_tracking_one_when_the_source_is_read_ahead(
+        tmp_path, fake_registry, fake_config_file, monkeypatch, source):
+    """A built-in reader's source of known length is read one frame ahead: frame ``i + 1`` goes to
+    ``Frontend.prefetch`` after frame ``i`` was tracked (and added when it became a keyframe), before the next track.
+    A live source (length unknown) is not, as its next frame may not exist yet; nor is another reader's (it may
+    reuse or change a frame after yielding it, so it is not read ahead at all)."""
     from pvslam_core.types import SequenceInfo
+    from pvslam_plugins.datasets.synthetic.reader import SyntheticReader
+    from pvslam_plugins.frontends.flow.frontend import FlowFrontend
 
+    frontend = fakes.ExactFrontend if source == "third-party" else FlowFrontend
     events = []
-    track, add = fakes.ExactFrontend.track, fakes.ExactFrontend.add_keyframe
-    monkeypatch.setattr(fakes.ExactFrontend, "track",
+    track, add = frontend.track, frontend.add_keyframe
+    monkeypatch.setattr(frontend, "track",
                         lambda self, frame, seg: events.append(("track", frame.index)) or track(self, frame, seg))
-    monkeypatch.setattr(fakes.ExactFrontend, "add_keyframe", lambda self, kf_id, frame, seg: events.append(
+    monkeypatch.setattr(frontend, "add_keyframe", lambda self, kf_id, frame, seg: events.append(
         ("add", frame.index)) or add(self, kf_id, frame, seg))
-    monkeypatch.setattr(fakes.ExactFrontend, "prefetch", lambda self, frame: events.append(("prefetch", frame.index)),
-                        raising=False)
-    if live:
-        info = fakes.FakeDataset.info
-        monkeypatch.setattr(fakes.FakeDataset, "info", lambda self: SequenceInfo(
-            **{**info(self).__dict__, "num_frames": None}))
-    res = run_config(fake_config_file, overrides=["run.name=ahead"], registry=fake_registry)
+    monkeypatch.setattr(frontend, "prefetch", lambda self, frame: events.append(("prefetch", frame.index)))
+    if source == "third-party":
+        res = run_config(fake_config_file, overrides=["run.name=ahead"], registry=fake_registry)
+    else:
+        if source == "live":
+            info = SyntheticReader.info
+            monkeypatch.setattr(SyntheticReader, "info", lambda self: SequenceInfo(
+                **{**info(self).__dict__, "num_frames": None}))
+        res = run_config(None, overrides=[
+            'dataset.scenario="driving_loop"', "dataset.num_frames=12", f'run.output_dir="{tmp_path.as_posix()}"',
+            "run.progress=false", "evaluation.enabled=false", "outputs.ply=false", "outputs.plots=false",
+            "outputs.panoptic_png=false"])
     n = res.metrics["timing"]["frames"]
+    assert n == 12 and ("track", 11) in events
     fetched = [i for kind, i in events if kind == "prefetch"]
-    if live:
-        assert fetched == [] and n == 12
+    if source != "built-in":
+        assert fetched == []
         return
     assert fetched == list(range(1, n))
     for i in fetched:  # after frame i - 1's track (and add), before frame i's track
