@@ -3,6 +3,7 @@
     python bench/bench_real.py --orb-python /work/venv-orb/bin/python --orb-vocab runs/orbvoc/voc.txt
     python bench/bench_real.py --orb-vocab 00=runs/orbvoc/voc_06_01.txt --orb-vocab runs/orbvoc/voc_00.txt
     PVSLAM_ORB_PYTHON=... PVSLAM_ORB_VOCAB=00=VOC_A:VOC_B python bench/bench_real.py   # as bench/figures.py runs it
+    python bench/bench_real.py --orb-runs 0 --set frontend.road.enabled=false --json runs/bench/variant.json  # screen
 
 Per KITTI excerpt in ``../shared/data/kitti-odometry`` (00, 06, 01; ``--sequences``):
 
@@ -298,7 +299,7 @@ def bench_sequence(seq: str, out: Path, args, vocab: Optional[str]) -> list[dict
     pv_res, pv = [], []
     for tag, extra in size_variants(args.size_spread):
         print(f"[{seq}] pvslam{tag.replace('_', ', processing area ')} ...", flush=True)
-        pv_res.append(run_pvslam(seq, out, args.timeout, extra, tag))
+        pv_res.append(run_pvslam(seq, out, args.timeout, [*extra, *variant_args(args)], tag))
         pv.append({**evaluate("pvslam", pv_res[-1], gt_ts, gt, total, first), "size": tag.strip("_") or "default"})
     rows.append({"sequence": seq, "method": "pvslam", "runs": [r for r in pv if "ate_m" in r],
                  "note": "; ".join(r["error"] for r in pv if "error" in r)})
@@ -345,6 +346,18 @@ def add_peer_options(ap: argparse.ArgumentParser, per: str) -> None:
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per child process (default 1800)")
 
 
+def add_variant_option(ap: argparse.ArgumentParser) -> None:
+    """``--set KEY=VALUE``: a config override for every pvslam run, to screen a variant on the real excerpts (with
+    ``--orb-runs 0`` in minutes); the result file records it and ``figures.py`` refuses such a file."""
+    ap.add_argument("--set", action="append", default=[], dest="overrides", metavar="KEY=VALUE",
+                    help="config override for every pvslam run (repeatable; a variant, not the figures)")
+
+
+def variant_args(args: argparse.Namespace) -> list[str]:
+    """pvslam's command-line arguments for ``args.overrides``."""
+    return [a for kv in getattr(args, "overrides", []) for a in ("--set", kv)]
+
+
 def peers_from_environment(args: argparse.Namespace) -> argparse.Namespace:
     """``args`` with the ORB-SLAM3 python and vocabularies from the environment where the options gave none: where
     ORB-SLAM3 lives is the machine's business, and figures.py runs the tools without options."""
@@ -365,6 +378,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), help="KITTI excerpts (default: 00 06 01)")
     add_peer_options(ap, "sequence")
+    add_variant_option(ap)
     ap.add_argument("--size-spread", type=float, default=2.0, metavar="PCT",
                     help="pvslam also with the processing area PCT %% per side smaller and larger: how much its "
                     "result moves with the input's size (default 2; 0: one run)")
@@ -396,7 +410,8 @@ def main(argv=None) -> int:
     for r in rows:
         if r["method"] == "orbslam3" and r.get("note"):
             print(f"note: {r['sequence']} ORB-SLAM3: {r['note']}")
-    path = provenance.write_json(args.json, {"sequences": args.sequences, "orb_runs": args.orb_runs,
+    path = provenance.write_json(args.json, {"sequences": args.sequences, "overrides": args.overrides,
+                                             "orb_runs": args.orb_runs,
                                              "orb_vocab": args.orb_vocab, "orb_python": args.orb_python,
                                              "size_spread": args.size_spread, "rows": rows, "table": lines}, prov)
     print(f"wrote {path}")

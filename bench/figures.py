@@ -78,6 +78,8 @@ def _pipeline_check(*sections: str) -> Callable[[dict], Optional[str]]:
 def _real_check(r: dict) -> Optional[str]:
     from bench.bench_real import SEQUENCES
 
+    if r.get("overrides"):
+        return f"measured with overrides {r['overrides']}"
     missing = [q for q in SEQUENCES if q not in (r.get("sequences") or [])]
     if missing:
         return f"KITTI excerpts {missing} not measured"

@@ -71,7 +71,7 @@ def bench_start(seq: str, first: int, out: Path, args, vocab: Optional[str], seq
     scored = max(first, measured_from(gt_poses))  # the first frame with measured ground truth
     tag = f"_from{first}"
     print(f"[{seq} from {first}] pvslam ...", flush=True)
-    pv = R.run_pvslam(seq, out, args.timeout, ["--set", f"dataset.start={first}"], tag)
+    pv = R.run_pvslam(seq, out, args.timeout, ["--set", f"dataset.start={first}", *R.variant_args(args)], tag)
     row = {"sequence": seq, "start": first, "pvslam": R.evaluate("pvslam", pv, gt_ts, gt_poses, total, scored),
            "orbslam3": [], "pvslam_on_orb": []}
     note = R.orb_missing(args.orb_python, vocab, R.PEERS / "orbslam3_traj.py")
@@ -115,6 +115,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", nargs="+", default=list(R.SEQUENCES), help="KITTI excerpts (default: 00 06 01)")
     ap.add_argument("--starts", type=int, nargs="+", default=list(STARTS), help="start frames (default 0 5 10 20)")
     R.add_peer_options(ap, "start")
+    R.add_variant_option(ap)
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench" / "real_starts"), help="folder for run "
                     "directories, frame links, trajectories and logs (default runs/bench/real_starts)")
     ap.add_argument("--json", default=str(ROOT / "runs" / "bench" / "real_starts.json"),
@@ -138,6 +139,7 @@ def main(argv=None) -> int:
     text = lines(rows)
     print("\n".join(text))
     path = provenance.write_json(args.json, {"sequences": args.sequences, "starts": args.starts,
+                                             "overrides": args.overrides,
                                              "orb_runs": args.orb_runs, "orb_vocab": args.orb_vocab,
                                              "rows": rows, "table": text}, prov)
     print(f"wrote {path}")

@@ -189,6 +189,7 @@ def test_a_sequence_row_holds_every_pvslam_size_and_each_is_scored_on_orb_slam3s
     drift = {"": 0.0, "_smaller": 1.0, "_larger": 2.0}
 
     def fake_pvslam(seq, out, timeout, extra=(), tag=""):
+        assert list(extra[-2:]) == ["--set", "graph.edges.active_window=16"]  # the variant, on every size
         est = gt.copy()
         est[:, 1] += drift[tag] * np.linspace(0, 1, len(ts)) ** 2  # a bend, not removable by a similarity
         return {"ts": ts, "poses": est, "posed": len(ts), "cpu_s": 1.0}
@@ -203,6 +204,7 @@ def test_a_sequence_row_holds_every_pvslam_size_and_each_is_scored_on_orb_slam3s
 
     class Args:
         timeout, orb_runs, orb_python, size_spread = 10.0, 2, "py", 2.0
+        overrides = ["graph.edges.active_window=16"]
 
     rows = {r["method"]: r for r in bench_real.bench_sequence("00", tmp_path, Args, "voc")}
     pv = rows["pvslam"]["runs"]

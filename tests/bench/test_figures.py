@@ -231,3 +231,6 @@ def test_the_real_figure_says_why_orb_slam3_is_missing_and_refuses_too_few_runs(
     (results / "real.json").write_text(json.dumps(_real(orb_runs=1)))
     with pytest.raises(ValueError, match="fewer than 3 ORB-SLAM3 runs"):
         figures.load(results)
+    (results / "real.json").write_text(json.dumps({**_real(), "overrides": ["frontend.road.enabled=false"]}))
+    with pytest.raises(ValueError, match="measured with overrides"):  # a screened variant is not the figures
+        figures.load(results)
