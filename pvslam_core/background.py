@@ -73,13 +73,12 @@ def read_ahead(items: Iterable[Any], depth: int = 2, name: str = "pvslam-read-ah
 def with_next(frames: Iterable[Any], ahead: bool) -> Iterator[tuple[Any, Any]]:
     """``(frame, the next frame or None)`` for each of ``frames``; with ``ahead`` False the next is always None (the
     iterator is not read ahead of the frame being processed)."""
+    if not ahead:
+        yield from ((frame, None) for frame in frames)
+        return
     it = iter(frames)
     cur = next(it, None)
     while cur is not None:
-        if not ahead:
-            yield cur, None
-            cur = next(it, None)
-            continue
         try:
             nxt = next(it, None)
         except BaseException:  # the frame read before the failing one is processed first, as without the lookahead

@@ -80,6 +80,13 @@ INIT_MIN_FLOW = 1.0
 INIT_COMPARE_MIN_GAP = 4
 
 
+def _no_texture(gray: np.ndarray) -> Optional[str]:
+    """Why a frame cannot be tracked for want of texture (a black or blank frame), or None."""
+    std = float(gray.std())
+    return None if np.isfinite(std) and std >= MIN_TEXTURE_STD else \
+        f"no texture: intensity std {std:.2f} < {MIN_TEXTURE_STD}"
+
+
 @dataclass
 class _Keyframe:
     gray: np.ndarray  # uint8 [Hf, Wf] at the flow resolution
@@ -203,8 +210,7 @@ class FlowFrontend(Frontend):
     def _prefetch_job(self, frame: Frame, g_ref: np.ndarray, job) -> tuple:
         """On the prefetch thread: ``(gray, started)`` (started None where :meth:`_track` stops before its flows)."""
         gray = self.pairs.gray(frame.image)
-        std = float(gray.std())
-        if not np.isfinite(std) or std < MIN_TEXTURE_STD or gray.shape != g_ref.shape:
+        if _no_texture(gray) or gray.shape != g_ref.shape:
             return gray, None
         return gray, job(gray, frame.index)
 
@@ -215,10 +221,9 @@ class FlowFrontend(Frontend):
         gray, ahead = self._ahead.take(frame, (last_sid, self.starts.previous))
         if gray is None:
             gray = self.pairs.gray(frame.image)
-        std = float(gray.std())
-        if not np.isfinite(std) or std < MIN_TEXTURE_STD:
-            return TrackResult(is_keyframe=False, mean_flow=0.0, failed=True,
-                               message=f"no texture: intensity std {std:.2f} < {MIN_TEXTURE_STD}")
+        blank = _no_texture(gray)
+        if blank:
+            return TrackResult(is_keyframe=False, mean_flow=0.0, failed=True, message=blank)
         if last_sid is None:
             self._pending = _Tracked(frame.index, gray)
             return TrackResult(is_keyframe=True, mean_flow=0.0, message="first keyframe")

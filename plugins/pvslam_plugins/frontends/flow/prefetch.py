@@ -39,24 +39,20 @@ class Ahead:
         """``(gray, started)`` of the job begun for ``frame`` with ``key`` (the reference keyframe's id and the
         tracked frame that starts it, the same object), or ``(None, None)``; a job begun for anything else is
         waited for (it reads state that the caller is about to change) and dropped."""
-        job, self._job = self._job, None
-        if job is None:
-            return None, None
-        fut = job[2]
-        try:
-            out = fut.result()
-        except Exception:  # noqa: BLE001 - the caller computes the same afresh, and meets the error itself
+        job = self._job
+        out = self.wait()
+        if out is None or job[0] is not frame:
             return None, None
         (sid, prev), (sid_now, prev_now) = job[1], key
-        if job[0] is not frame or sid != sid_now or prev is not prev_now:
-            return None, None
-        return out
+        return out if sid == sid_now and prev is prev_now else (None, None)
 
-    def wait(self) -> None:
-        """Wait for the job in flight, if any, and drop it."""
-        if self._job is not None:
-            job, self._job = self._job, None
-            try:
-                job[2].result()
-            except Exception:  # noqa: BLE001 - nobody takes it
-                pass
+    def wait(self) -> Optional[tuple]:
+        """Wait for the job in flight and drop it: its result, or None (no job, or it raised: a caller computes the
+        same afresh, and meets the error itself)."""
+        job, self._job = self._job, None
+        if job is None:
+            return None
+        try:
+            return job[2].result()
+        except Exception:  # noqa: BLE001
+            return None

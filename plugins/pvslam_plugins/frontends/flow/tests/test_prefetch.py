@@ -1,5 +1,7 @@
 """FlowFrontend.prefetch: the next frame's tracking flows begun on another thread are taken only by that frame with
 the inputs they were begun with, and tracking gives bit for bit what it gives without them."""
+from contextlib import contextmanager
+
 import cv2
 import numpy as np
 import torch
@@ -22,12 +24,27 @@ def _frames(n: int, seed: int = 4) -> list[Frame]:
     return out
 
 
+@contextmanager
+def _frontend(threads: int = 2):
+    fe = FlowFrontend(FlowFrontendConfig(dis={"threads": threads}), ba_downsample=8)
+    try:
+        yield fe
+    finally:
+        fe.pairs.close()
+
+
+def _start(fe: FlowFrontend, frames: list[Frame]) -> None:
+    """Frame 0 the first keyframe, frame 1 prefetched."""
+    fe.track(frames[0], None)
+    fe.add_keyframe(0, frames[0], None)
+    fe.prefetch(frames[1])
+
+
 def _drive(frames: list[Frame], prefetch: bool, keyframe_every: int = 4):
     """Track every frame (each ``keyframe_every``-th becomes a keyframe); with ``prefetch`` the next frame is
     handed over after each one, as the mapper does."""
-    fe = FlowFrontend(FlowFrontendConfig(dis={"threads": 2}), ba_downsample=8)
     got = []
-    try:
+    with _frontend() as fe:
         for i, frame in enumerate(frames):
             r = fe.track(frame, None)
             got.append((r.is_keyframe, r.failed, None if r.target is None else r.target.clone(),
@@ -37,8 +54,6 @@ def _drive(frames: list[Frame], prefetch: bool, keyframe_every: int = 4):
             if prefetch and i + 1 < len(frames):
                 fe.prefetch(frames[i + 1])
         return got, dict(fe.stats)
-    finally:
-        fe.pairs.close()
 
 
 def test_tracking_with_the_next_frame_prefetched_is_bit_equal():
@@ -54,11 +69,8 @@ def test_tracking_with_the_next_frame_prefetched_is_bit_equal():
 
 def test_a_prefetch_for_other_inputs_is_not_taken():
     frames = _frames(5)
-    fe = FlowFrontend(FlowFrontendConfig(dis={"threads": 2}), ba_downsample=8)
-    try:
-        fe.track(frames[0], None)
-        fe.add_keyframe(0, frames[0], None)
-        fe.prefetch(frames[1])
+    with _frontend() as fe:
+        _start(fe, frames)
         fe.track(frames[2], None)  # another frame than the one prefetched
         assert fe.stats["track_prefetched"] == 0
         fe.prefetch(frames[3])
@@ -68,18 +80,11 @@ def test_a_prefetch_for_other_inputs_is_not_taken():
         fe.prefetch(frames[4])  # the frame, the reference and the previous frame as the track will have them
         assert not fe.track(frames[4], None).failed
         assert fe.stats["track_prefetched"] == 1
-    finally:
-        fe.pairs.close()
 
 
 def test_one_flow_thread_prefetches_nothing():
     frames = _frames(3)
-    fe = FlowFrontend(FlowFrontendConfig(dis={"threads": 1}), ba_downsample=8)
-    try:
-        fe.track(frames[0], None)
-        fe.add_keyframe(0, frames[0], None)
-        fe.prefetch(frames[1])
+    with _frontend(threads=1) as fe:
+        _start(fe, frames)
         fe.track(frames[1], None)
         assert fe.stats["track_prefetched"] == 0
-    finally:
-        fe.pairs.close()
