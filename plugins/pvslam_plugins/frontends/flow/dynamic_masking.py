@@ -6,8 +6,11 @@ into coherent regions (:func:`.dynamic.group_regions`) and, with a segmenter, vo
 movable thing segments (:func:`pvslam_core.slam.confidence.segment_vote`); re-estimated on ``DYNAMIC_UPDATES``
 observations, then kept.  Per keyframe: a vote over its edges' masks (:func:`.dynamic.keyframe_vote`), used where an
 edge has no mask of its own yet and for the tracking weights of the frames placed against that keyframe; a new
-keyframe starts from its reference's mask moved along the tracked flow.  Every mask reaches the weights through
-eq. 4 with the paper convention: static pixels keep their confidence, dynamic ones get about ``c e^-eta``.
+keyframe starts from its reference's mask moved along the tracked flow.  The tracking weights also take out the
+reference keyframe's movable thing segments, judged or not (PV-SLAM's eq. 4 with a trusted segmenter): the BA's
+edges release a parked car once the geometry says it is static, the tracking does not lean on it.  Every mask reaches
+the weights through eq. 4 with the paper convention: static pixels keep their confidence, dynamic ones get about
+``c e^-eta``.
 
 :class:`DynamicMasking` owns the masks, keyed by the graph's stable keyframe ids like the frontend's edge cache.  It
 keeps its own record of the cached edges (their targets and how often each was observed), told by the frontend
@@ -41,6 +44,9 @@ DYNAMIC_REGIONS = True
 DYNAMIC_MIN_AREA = 4  # smallest region kept (BA px)
 DYNAMIC_GROW = 1  # regions (and masks moved to a new keyframe) are dilated by this many BA px
 DYNAMIC_TRACK = True  # the reference keyframe's mask also weighs the tracking flow that places a non-keyframe
+# ... and so do its movable thing segments, judged or not: a vehicle that grows to fill the view drags the tracked
+# pose, and masks judged against that pose then let it go (docs/decisions.md: TRACK_THINGS)
+TRACK_THINGS = True
 THINGS_ONLY = True  # only movable thing segments vote, each keyframe's own (ids are unique within a frame only)
 # with a segmenter, also keep every raw candidate outside the voted segments (PVO's segm_filter); false: voted
 # segments (over their judged pixels) or regions, the evidence of a run without one (docs/decisions.md:
@@ -55,6 +61,7 @@ class _KeyframeMask:
     thing_ids: Optional[torch.Tensor] = None  # int64 [K] ids of its movable thing segments
     dyn: Optional[torch.Tensor] = None  # float32 [h, w] the keyframe's mask, 1 = moving
     dyn_judged: bool = False  # dyn comes from this keyframe's own edges (else: moved from its reference's)
+    things: Optional[torch.Tensor] = None  # float32 [h, w] its movable thing segments (1), None without any
 
 
 @dataclass
@@ -94,6 +101,9 @@ class DynamicMasking:
         pixels went in it (the tracked flow's targets), along which it inherits the reference's mask."""
         seg_ba, things = segment_info(seg, h, w)
         kf = self._kfs[sid] = _KeyframeMask(seg_ba=seg_ba, thing_ids=things)
+        if seg_ba is not None and things is not None and things.numel():
+            mask = torch.isin(seg_ba, things)
+            kf.things = mask.float() if bool(mask.any()) else None
         ref = self._kfs.get(ref_sid) if ref_sid is not None else None
         if ref is not None and tracked is not None:
             m = ref.dyn
@@ -121,6 +131,7 @@ class DynamicMasking:
 
     def nbytes(self) -> int:
         n = sum(kf.seg_ba.numel() * kf.seg_ba.element_size() for kf in self._kfs.values() if kf.seg_ba is not None)
+        n += sum(kf.things.numel() * 4 for kf in self._kfs.values() if kf.things is not None)
         return n + sum(e.dynamic.numel() * 4 for e in self._edges.values() if e.dynamic is not None)
 
     # ------------------------------------------------------------------------------------------ weights --
@@ -153,11 +164,15 @@ class DynamicMasking:
         return dyn, weight
 
     def track_weights(self, sid: int, weight: torch.Tensor, graph) -> None:
-        """Apply keyframe ``sid``'s mask through eq. 4 to the weights ``[2, h, w]`` (in place) of a frame tracked
-        against it: the mapper's motion-only BA places the frame from these.  ``graph``: the last one observed."""
+        """Apply keyframe ``sid``'s mask and its movable thing segments (``TRACK_THINGS``) through eq. 4 to the weights
+        ``[2, h, w]`` (in place) of a frame tracked against it: the mapper's motion-only BA places the frame (and a
+        new keyframe's first pose) from these.  ``graph``: the last one observed."""
         if not DYNAMIC_TRACK:
             return
         dyn = self._keyframe_dynamic(sid, graph)
+        kf = self._kfs.get(sid)
+        if TRACK_THINGS and kf is not None and kf.things is not None:
+            dyn = kf.things if dyn is None else torch.maximum(dyn, kf.things)
         if dyn is not None and tuple(dyn.shape) == tuple(weight.shape[-2:]) and bool((dyn > 0).any()):
             m = dyn > 0
             weight[:, m] = observed_flow_weight(weight[:, m], dyn[m].expand(2, -1), offset=self.cfg.panoptic_offset,
