@@ -16,7 +16,8 @@ class SyntheticConfig(ReaderOptions):
     """Generate (and cache) a built-in synthetic sequence, or read one already written (``path``)."""
 
     scenario: str = Field(DEFAULT_SCENARIO, description="driving_loop | moving_vehicles | indoor_handheld | "
-                          "handheld_fast | indoor_textureless | busy_street | forward_low_parallax | driving_city")
+                          "handheld_fast | indoor_textureless | busy_street | forward_low_parallax | driving_city | "
+                          "suburban_street")
     path: Optional[str] = Field(None, description="read this existing synthetic folder instead of generating")
     num_frames: Optional[int] = Field(None, ge=1, le=MAX_FRAMES,
                                       description="frames to generate; None = the scenario's default")

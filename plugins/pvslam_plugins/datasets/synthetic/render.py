@@ -171,7 +171,55 @@ def _pow2(n: np.ndarray) -> np.ndarray:
     return np.maximum(8, 2 ** np.ceil(np.log2(np.maximum(n, 1))).astype(np.int64))
 
 
-def trace(boxes: BoxSet, c: np.ndarray, dw: np.ndarray, rects: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _ground_hits(c: np.ndarray, dw: np.ndarray, relief=None) -> np.ndarray:
+    """Ray parameter ``t`` of each ray's ground hit (inf: none): the plane z = 0, or with a ``relief``
+    (:class:`~.scene.Relief`, nonzero on ``|x - centre| < half_length`` only) the nearer of the plane's hit off
+    that stretch and the first crossing of the stretch (``RELIEF_SAMPLES`` samples along the ray, then bisection)."""
+    dz = dw[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tg = np.where(dz < -1e-9, np.float32(-c[2]) / dz, np.inf).astype(np.float32)
+    if relief is None:
+        return tg
+    shape = tg.shape
+    d = dw.reshape(-1, 3).astype(np.float64)
+    x0, x1 = relief.centre - relief.half_length, relief.centre + relief.half_length
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (x0 - c[0]) / d[:, 0], (x1 - c[0]) / d[:, 0]
+    lo = np.clip(np.nan_to_num(np.minimum(ta, tb), nan=0.0, neginf=0.0), 0.0, RELIEF_REACH)
+    hi = np.clip(np.nan_to_num(np.maximum(ta, tb), nan=RELIEF_REACH, posinf=RELIEF_REACH), 0.0, RELIEF_REACH)
+    if x0 <= c[0] <= x1:  # the camera stands on the stretch: every ray starts on it
+        lo[:] = 0.0
+    s = np.linspace(0.0, 1.0, RELIEF_SAMPLES)
+    ts = lo[:, None] + (hi - lo)[:, None] * s[None]  # [N, S]
+
+    def below(t):  # the ray's height above the ground at t
+        return c[2] + t * d[:, 2:3] - relief.z(c[0] + t * d[:, 0:1]) if t.ndim == 2 else \
+            c[2] + t * d[:, 2] - relief.z(c[0] + t * d[:, 0])
+
+    under = below(ts) <= 0.0
+    has = under.any(1) & (hi > lo)
+    k = np.argmax(under, 1)
+    n = np.arange(len(d))
+    a = np.where(k > 0, ts[n, np.maximum(k - 1, 0)], lo)
+    b = ts[n, k]
+    for _ in range(RELIEF_BISECT):
+        m = 0.5 * (a + b)
+        up = below(m) > 0.0
+        a, b = np.where(up, m, a), np.where(up, b, m)
+    plane = tg.reshape(-1).astype(np.float64)
+    xp = c[0] + plane * d[:, 0]
+    off = ~((xp > x0) & (xp < x1))  # the plane's hit lies off the stretch (before or beyond it): a hit there
+    t = np.minimum(np.where(has, 0.5 * (a + b), np.inf), np.where(off, plane, np.inf))
+    return t.reshape(shape).astype(np.float32)
+
+
+RELIEF_SAMPLES = 64  # samples of a ray over the relief's stretch (a crossing between two is found by bisection)
+RELIEF_BISECT = 24  # bisection steps: the hit to ~1e-6 of the sampled interval
+RELIEF_REACH = 2000.0  # m: the farthest a ray is followed over the relief
+
+
+def trace(boxes: BoxSet, c: np.ndarray, dw: np.ndarray, rects: np.ndarray | None,
+          relief=None) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hit per ray: ``t`` (inf = nothing) and primitive (-1 ground, -2 none, >= 0 box index).
 
     ``dw`` is ``[H, W, 3]`` float32 world rays; ``rects`` restricts each box to a pixel rectangle (None: all).
@@ -179,10 +227,8 @@ def trace(boxes: BoxSet, c: np.ndarray, dw: np.ndarray, rects: np.ndarray | None
     large ones one by one over their rectangle.
     """
     H, W = dw.shape[:2]
-    dz = dw[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tg = np.where(dz < -1e-9, np.float32(-c[2]) / dz, np.inf).astype(np.float32)
-    if c[2] <= 0:
+    tg = _ground_hits(c, dw, relief)
+    if c[2] <= 0 and relief is None:
         tg[:] = np.inf
     t = tg
     prim = np.where(np.isfinite(tg), -1, -2).astype(np.int32)
@@ -227,7 +273,7 @@ def render(scene: Scene, frame: int, T_wc: np.ndarray, cam: Camera) -> RenderOut
     boxes = scene.boxes_at(frame)
     dw = (cam.rays() @ R.T).astype(np.float32)
     rects = _screen_rects(boxes, R, c, cam)
-    t, prim = trace(boxes, c, dw, rects)
+    t, prim = trace(boxes, c, dw, rects, scene.relief)
     H, W = cam.height, cam.width
     col, pid, dyn = shade(scene, boxes, c, dw.reshape(-1, 3), t.reshape(-1), prim.reshape(-1), 1.0 / cam.fx)
     depth = np.where(np.isfinite(t), t, 0.0).astype(np.float32)
@@ -247,7 +293,7 @@ def render_points(scene: Scene, frame: int, T_wc: np.ndarray, cam: Camera, u: np
     c = np.asarray(T_wc[:3, 3], np.float64)
     boxes = scene.boxes_at(frame)
     dw = (cam.rays(u, v).reshape(1, -1, 3) @ R.T).astype(np.float32)
-    t, prim = trace(boxes, c, dw, None)
+    t, prim = trace(boxes, c, dw, None, scene.relief)
     col, pid, dyn = shade(scene, boxes, c, dw.reshape(-1, 3), t.reshape(-1), prim.reshape(-1), 1.0 / cam.fx)
     depth = np.where(np.isfinite(t), t, 0.0).astype(np.float32).reshape(-1)
     return col, depth, pid, dyn

@@ -47,6 +47,9 @@ SCENARIOS: dict[str, str] = {
                             "(little parallax in the image centre, like KITTI 01)",
     "driving_city": "car camera driving a figure-eight through a grid of city blocks (left and right turns); "
                     "revisits the middle street and its start",
+    "suburban_street": "car camera at 10 Hz on a narrow suburban street: kerbs raise the lawns and pavements, the "
+                       "road's width changes and it rises over a crest (the near ground is not one plane, like "
+                       "KITTI 06)",
 }
 DEFAULT_SCENARIO = "driving_loop"
 # Content revision of a scenario's non-zero seeds (0 = as first published).  Part of the cache key and of
@@ -73,10 +76,12 @@ def _builders() -> dict[str, Callable[..., Scenario]]:
     from .scenarios_city import driving_city
     from .scenarios_indoor import handheld_fast, indoor_textureless
     from .scenarios_street import busy_street, forward_low_parallax
+    from .scenarios_suburb import suburban_street
 
     return {"driving_loop": _driving_loop, "driving_block": _driving_block, "moving_vehicles": _moving_vehicles, "indoor_handheld": _indoor_handheld,
             "handheld_fast": handheld_fast, "indoor_textureless": indoor_textureless, "busy_street": busy_street,
-            "forward_low_parallax": forward_low_parallax, "driving_city": driving_city}
+            "forward_low_parallax": forward_low_parallax, "driving_city": driving_city,
+            "suburban_street": suburban_street}
 
 
 def build(name: str, num_frames: Optional[int] = None, width: int = 320, height: int = 240, seed: int = 0,

@@ -154,6 +154,25 @@ class GroundSample:
 GroundFn = Callable[[np.ndarray, np.ndarray, np.ndarray], GroundSample]
 
 
+@dataclass(frozen=True)
+class Relief:
+    """A gentle rise of the ground along world x: a raised cosine ``height`` m high and ``2 * half_length`` m long,
+    centred at ``x = centre`` (slopes of a few per cent: a crest a car drives over)."""
+
+    height: float
+    centre: float
+    half_length: float
+
+    def z(self, x: np.ndarray) -> np.ndarray:
+        u = np.clip((np.asarray(x, np.float64) - self.centre) / self.half_length, -1.0, 1.0)
+        return 0.5 * self.height * (1.0 + np.cos(np.pi * u))
+
+    def slope(self, x: np.ndarray) -> np.ndarray:
+        u = (np.asarray(x, np.float64) - self.centre) / self.half_length
+        inside = np.abs(u) < 1.0
+        return np.where(inside, -0.5 * self.height * np.pi / self.half_length * np.sin(np.pi * u), 0.0)
+
+
 @dataclass
 class Scene:
     static: BoxSet
@@ -163,6 +182,8 @@ class Scene:
     light: tuple[float, float, float] = (0.35, -0.5, 0.79)  # direction towards the sun (world, z up)
     ambient: float = 0.5
     look: Optional[Callable[[np.ndarray, np.ndarray, int], np.ndarray]] = None  # camera rendition (domain.Look)
+    # the ground's height along world x, ``z = relief(x)`` and its slope ``dz/dx`` (None: the plane z = 0)
+    relief: Optional["Relief"] = None
 
     def boxes_at(self, i: int) -> BoxSet:
         if not self.movers:

@@ -74,7 +74,7 @@ def test_every_scenario_changes_with_its_seed(name):
         assert len(pa) != len(pb) or np.abs(pa - pb).max() > 1.0
 
 
-@pytest.mark.parametrize("name", ["handheld_fast", "busy_street", "forward_low_parallax"])
+@pytest.mark.parametrize("name", ["handheld_fast", "busy_street", "forward_low_parallax", "suburban_street"])
 def test_a_shorter_sequence_is_a_prefix_of_the_default_one(name):
     full = scenarios.build(name, width=64, height=48, seed=4)
     short = scenarios.build(name, num_frames=20, width=64, height=48, seed=4)

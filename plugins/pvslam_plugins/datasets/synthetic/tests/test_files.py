@@ -101,7 +101,7 @@ def _file_consistency(seq: SyntheticSequence, i: int, j: int, shift=(0.0, 0.0, 0
 
 
 @pytest.mark.parametrize("name", ["driving_loop", "indoor_handheld", "handheld_fast", "indoor_textureless",
-                                  "busy_street", "forward_low_parallax", "driving_city"])
+                                  "busy_street", "forward_low_parallax", "driving_city", "suburban_street"])
 def test_files_alone_are_geometrically_consistent(tmp_path, name):
     root = generator.generate(name, tmp_path / name, num_frames=4, width=320, height=240, seed=2, progress=False)
     seq = SyntheticSequence(root)
