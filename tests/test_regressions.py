@@ -67,8 +67,7 @@ DRIVE_FRAMES = 140  # the same cached sequence as tests/test_end_to_end.py
 #   default             0.18 / 0.21 / 0.51   (full default with labels + VPS, seed 0: 0.18)
 #   BA off             11.2  / 10.8 / 12.2
 #   robust kernels off  3.14 / 2.91 / 2.42
-# The bound leaves about 3x above the worst default (the issue's audit saw 0.39-0.64 % on older trees) and 1.6x
-# below the best robust-off run.
+# The bound leaves about 3x above the worst default and 1.6x below the best robust-off run.
 DRIVE_BOUND = 1.5
 
 
@@ -121,14 +120,12 @@ def _exposure_run(out: Path, drive: Path, brightness: float):
 
 # One run of this drive is one draw of a chaotic figure: the same frames 10 % brighter or darker move the ATE by up
 # to 4x (texture term off, no exposure changes, dataset seeds 0 / 1 / 2 at brightness 0.9 / 1.0 / 1.1: 0.14-0.68 %),
-# so the test bounds the median over three brightness levels.  Measured (seed 0; images reader, no labels; session
-# 2026-12-02 g, texture term on): with the exposure changes 0.37 / 0.88 / 0.19 % (median 0.37), without 0.29 / 0.22 /
-# 0.30 % (median 0.29); the bound is 2 x 0.29 + 0.1 = 0.68 %.  With DIS's patch-mean normalisation off (what lets a
-# flow survive a gain change) tracking fails at the 0.7x step (97-99 % of the pixels fail the forward-backward check)
-# and the map re-initialises: 1.67 / 1.80 / 1.78 %; without exposure changes 0.24 / 0.27 / 0.23 %.  (An earlier
-# single draw saw 0.62 % with the photometric confidence's gain fit off, flow_ops.fit_exposure; over nine seed x
-# brightness draws, texture term off, the fit makes no measurable difference here: 0.33 % mean with it, 0.32 %
-# without; fit_exposure has its own unit test.)
+# so the test bounds the median over three brightness levels.  Measured (seed 0; images reader, no labels; texture
+# term on): with the exposure changes 0.37 / 0.88 / 0.19 % (median 0.37), without 0.29 / 0.22 / 0.30 % (median 0.29);
+# the bound is 2 x 0.29 + 0.1 = 0.68 %.  With DIS's patch-mean normalisation off (what lets a flow survive a gain
+# change) tracking fails at the 0.7x step (97-99 % of the pixels fail the forward-backward check) and the map
+# re-initialises: 1.67 / 1.80 / 1.78 %; without exposure changes 0.24 / 0.27 / 0.23 %.  The photometric confidence's
+# gain fit (flow_ops.fit_exposure) makes no measurable difference here; it has its own unit test.
 BRIGHTNESS = (0.9, 1.0, 1.1)
 EXPOSURE_BOUND = 0.68  # on the median over BRIGHTNESS
 
@@ -275,8 +272,8 @@ def test_loop_closure_keeps_the_default_map(block_on, block_off):
 
 def test_loop_test_catches_loop_closure_off(block_off, drift_off):
     """Test of the test: without loop closure, the loop test fails, on detection (the default map) and on the loop
-    gap (the drifting map: since the chain-checked initialisation, 12-03 h, the default block drive without loops
-    drifts so little that its gap, 0.34, is within the bound)."""
+    gap (the drifting map: the default block drive without loops drifts so little that its gap, 0.34, is within the
+    bound)."""
     with pytest.raises(AssertionError):
         _closes_loop(block_off)
     gap = _loop_gap(drift_off)
@@ -285,21 +282,11 @@ def test_loop_test_catches_loop_closure_off(block_off, drift_off):
 
 # --------------------------------------------------------------------------------------- dynamic masking --
 MV_FRAMES = 120  # busy_street: buses and cars up to a third of the image crossing and driving alongside
-# ATE, % of the path, oracle labels (the masking is the frontend's eq. 4 on the labelled things), 120 frames, seeds
-# 0 / 1 / 2 (measured by helper H1, session 2026-12-02, with edges.PROXIMITY_MAX_FLOW; texture term off):
-#   busy_street      masking on 7.70 / 1.27 / 3.49   off 19.64 / 2.66 / 9.55
-#   moving_vehicles  masking on 0.81 / 0.25 / 0.25   off  0.62 / 0.35 / 1.08
-# moving_vehicles was this test's street until its scale drift (long proximity edges over the near road) was
-# fixed: since then masking barely matters there, so the test runs the seed-0 busy street, where it does; the
-# bound is 1.6x above its default and 1.6x below its masking-off run.  Since the flow frontend's texture term became
-# the default (session 2026-12-02 g) it protects the busy street on its own: masking on 1.46 / 0.98 / 7.16, off
-# 2.86 / 0.99 / 4.00 (moving_vehicles on 0.62 / 0.24 / 0.18, off 0.51 / 0.22 / 0.25), so the test of the test
-# switches the texture term off to see the masking alone (it must hold with masking on, and fail with it off).
-# Since the road plane's depth prior became the default (sessions 12-03 d, e) it holds the busy street's scale on
-# its own too (masking off and texture term off: ~0.1 %), so the masking's variants also switch the road plane off.
-# Since the chain-checked initialisation became the default (12-03 h) the seed-0 street starts right without the
-# masking too: masking on (texture and road off) 1.78 %, off 11.33 % (was above 12): the bound sits between, 2.5x
-# from each.
+# The test runs the seed-0 busy street, where the masking matters (on moving_vehicles it barely does).  The flow
+# frontend's texture term and the road plane's depth prior each protect that street on their own (masking off with
+# both on: ~0.1 %), so the test of the test switches both off to see the masking alone: ATE % of the path, oracle
+# labels (the masking is the frontend's eq. 4 on the labelled things), 120 frames, masking on 1.78 %, off 11.33 %;
+# the bound sits between, 2.5x from each.
 MV_BOUND = 4.5
 
 

@@ -147,7 +147,7 @@ def test_an_ambiguous_pair_is_declined_not_started_wrong():
 
 
 def test_a_pair_that_cannot_tell_two_motions_apart_is_declined():
-    """driving_loop/102 (fresh in session 12-04 c), keyframes 0 and 4 (frames 0 and 8), with the chain check's
+    """driving_loop/102, keyframes 0 and 4 (frames 0 and 8), with the chain check's
     weights as the bootstrap passed them: the forward drive puts 109 points in front at a truncated Sampson cost of
     0.0011 px^2, a motion 50 deg to the side 110 at 0.0010; chosen, it started the map 55 deg off.  With
     ``tie_ratio`` the pair is declined (the bootstrap's next pair, 2-4, then fits the forward drive 100x better)."""
