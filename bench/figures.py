@@ -246,9 +246,9 @@ class Figure:
 FIGURES = (
     Figure("default", "default `pvslam run`: built-in driving loop, seed 0, 488 frames", "tuned on", "accuracy",
            default_run),
-    Figure("report", "matrix: 9 synthetic scenarios x seeds 3-5 + KITTI 06 / 01 excerpts, no labels",
+    Figure("report", "matrix: the synthetic scenarios x seeds 3-5 + KITTI 06 / 01 excerpts, no labels",
            "report", "report", matrix_summary),
-    Figure("heldout", "matrix: 9 synthetic scenarios x seeds 159-161, no labels", "held out", "heldout",
+    Figure("heldout", "matrix: the synthetic scenarios x seeds 159-161, no labels", "held out", "heldout",
            lambda r: matrix_summary(r, synthetic_only=True)),
     Figure("busy_street", "busy street (large vehicles, no segmenter), seeds 3 / 4 / 5", "report", "report",
            matrix_scenario("busy_street")),
