@@ -179,6 +179,8 @@ def _ground_hits(c: np.ndarray, dw: np.ndarray, relief=None) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         tg = np.where(dz < -1e-9, np.float32(-c[2]) / dz, np.inf).astype(np.float32)
     if relief is None:
+        if c[2] <= 0:  # a camera on or below the plane sees no ground
+            tg[:] = np.inf
         return tg
     shape = tg.shape
     d = dw.reshape(-1, 3).astype(np.float64)
@@ -192,11 +194,10 @@ def _ground_hits(c: np.ndarray, dw: np.ndarray, relief=None) -> np.ndarray:
     s = np.linspace(0.0, 1.0, RELIEF_SAMPLES)
     ts = lo[:, None] + (hi - lo)[:, None] * s[None]  # [N, S]
 
-    def below(t):  # the ray's height above the ground at t
-        return c[2] + t * d[:, 2:3] - relief.z(c[0] + t * d[:, 0:1]) if t.ndim == 2 else \
-            c[2] + t * d[:, 2] - relief.z(c[0] + t * d[:, 0])
+    def above(t):  # [N, k] the ray's height above the ground at t [N, k]
+        return c[2] + t * d[:, 2:3] - relief.z(c[0] + t * d[:, 0:1])
 
-    under = below(ts) <= 0.0
+    under = above(ts) <= 0.0
     has = under.any(1) & (hi > lo)
     k = np.argmax(under, 1)
     n = np.arange(len(d))
@@ -204,7 +205,7 @@ def _ground_hits(c: np.ndarray, dw: np.ndarray, relief=None) -> np.ndarray:
     b = ts[n, k]
     for _ in range(RELIEF_BISECT):
         m = 0.5 * (a + b)
-        up = below(m) > 0.0
+        up = above(m[:, None])[:, 0] > 0.0
         a, b = np.where(up, m, a), np.where(up, b, m)
     plane = tg.reshape(-1).astype(np.float64)
     xp = c[0] + plane * d[:, 0]
@@ -228,8 +229,6 @@ def trace(boxes: BoxSet, c: np.ndarray, dw: np.ndarray, rects: np.ndarray | None
     """
     H, W = dw.shape[:2]
     tg = _ground_hits(c, dw, relief)
-    if c[2] <= 0 and relief is None:
-        tg[:] = np.inf
     t = tg
     prim = np.where(np.isfinite(tg), -1, -2).astype(np.int32)
     if rects is None:

@@ -1,21 +1,19 @@
 """A suburban street whose ground is not one plane: raised lawns and pavements beside a narrow road, and a crest.
 
-* ``suburban_street``: a straight two-lane road along +x at 10 fps, 8-11 m/s (slowing down and speeding up by up
-  to about a third), the camera 1.65 m above the road (a KITTI-like car camera).  Kerbs lift the lawn on the left and the pavement (then a front lawn) on the right by
-  0.10-0.20 m; the road's half width changes from one kerb piece to the next (2.8-4.6 m: bays, narrowings,
-  driveways left open), so the share of the near ground that is road changes as the car drives.  Part-way along,
-  the road rises over a crest 0.2-0.6 m high and 40-80 m long (:class:`~.scene.Relief`, slopes up to 0.5-2.7 deg)
-  and the car pitches with it; the lawns follow it in 1 m steps, houses, trees and posts stand at z = 0 (a crest's
-  top hides their first few decimetres).  Houses are set back behind the lawns, a few cars are parked in the bays.
-  Nothing moves.
+* ``suburban_street``: a straight two-lane road along +x at 10 fps, 8-11 m/s (slowing down and speeding up by up to
+  about a third), the camera 1.65 m above the road (a KITTI-like car camera).  Kerbs lift the lawn on the left and the
+  pavement (then a front lawn) on the right by 0.10-0.20 m; the road's half width changes from one kerb piece to the
+  next (2.8-4.6 m: bays, narrowings, driveways left open), so the share of the near ground that is road changes as the
+  car drives.  Part-way along, the road rises over a crest 0.2-0.6 m high and 40-80 m long (:class:`~.scene.Relief`,
+  slopes up to 0.5-2.7 deg) and the car pitches with it; the lawns follow it in 1 m steps, houses, trees and posts
+  stand at z = 0 (a crest's top hides their first few decimetres).  Houses are set back behind the lawns, a few cars
+  are parked in the bays. Nothing moves.
 
 Why: the near ground of a real street is not one plane, across the road (kerbs) or along it (crests), where a road
 plane searched on it would read the raised surfaces and the rising road as a faster motion; the generator's other
 streets are one plane.
 """
 from __future__ import annotations
-
-from typing import Optional
 
 import numpy as np
 
@@ -43,15 +41,15 @@ def _kerb_pieces(rng: np.random.Generator, x0: float, x1: float) -> list[tuple[f
 SINK = 0.1  # m: how far a slab on a crest reaches below the ground
 
 
-def _steps(relief: Optional[Relief], xa: float, xb: float) -> list[tuple[float, float, float]]:
+def _steps(relief: Relief, xa: float, xb: float) -> list[tuple[float, float, float]]:
     """``(start, end, ground height)`` of a slab's pieces: one piece on flat ground, 1 m steps on a crest."""
-    if relief is None or xb <= relief.centre - relief.half_length or xa >= relief.centre + relief.half_length:
+    if xb <= relief.centre - relief.half_length or xa >= relief.centre + relief.half_length:
         return [(xa, xb, 0.0)]
     cuts = np.unique(np.concatenate([[xa, xb], np.arange(np.ceil(xa), xb, 1.0)]))
     return [(float(a), float(b), float(relief.z((a + b) / 2))) for a, b in zip(cuts[:-1], cuts[1:]) if b - a > 1e-6]
 
 
-def _slab(b: BoxBuilder, rng: np.random.Generator, relief: Optional[Relief], xa: float, xb: float, y_in: float,
+def _slab(b: BoxBuilder, rng: np.random.Generator, relief: Relief, xa: float, xb: float, y_in: float,
           width: float, side: float, height: float, tex: str, tint, pid: int) -> None:
     """A raised slab (lawn or pavement) from ``xa`` to ``xb``, from ``y_in`` outwards (``side`` +1 left, -1 right)."""
     tint = tuple(float(c) for c in np.clip(np.asarray(tint) + rng.uniform(-0.05, 0.05, 3), 0, 1))
@@ -119,5 +117,3 @@ def suburban_street(num_frames, cam: Camera, seed: int, laps) -> Scenario:
     pitch = pitch + np.arctan(relief.slope(x))  # the car pitches with the road
     poses = pose_matrices(camera_rotation(yaw, pitch, roll), pos)
     return Scenario("suburban_street", scene, poses, t, cam, depth_scale=256.0, loop_radius=3.0)
-
-

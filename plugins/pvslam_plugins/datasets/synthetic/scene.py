@@ -183,7 +183,7 @@ class Scene:
     ambient: float = 0.5
     look: Optional[Callable[[np.ndarray, np.ndarray, int], np.ndarray]] = None  # camera rendition (domain.Look)
     # the ground's height along world x, ``z = relief(x)`` and its slope ``dz/dx`` (None: the plane z = 0)
-    relief: Optional["Relief"] = None
+    relief: Optional[Relief] = None
 
     def boxes_at(self, i: int) -> BoxSet:
         if not self.movers:
