@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from .scene import BoxSet, Scene
+from .scene import BoxSet, Relief, Scene
 from .shading import shade
 
 NEAR = 0.05  # metres; hits closer than this are ignored
@@ -171,7 +171,12 @@ def _pow2(n: np.ndarray) -> np.ndarray:
     return np.maximum(8, 2 ** np.ceil(np.log2(np.maximum(n, 1))).astype(np.int64))
 
 
-def _ground_hits(c: np.ndarray, dw: np.ndarray, relief=None) -> np.ndarray:
+RELIEF_SAMPLES = 64  # samples of a ray over the relief's stretch (a crossing between two is found by bisection)
+RELIEF_BISECT = 24  # bisection steps: the hit to ~1e-6 of the sampled interval
+RELIEF_REACH = 2000.0  # m: the farthest a ray is followed over the relief
+
+
+def _ground_hits(c: np.ndarray, dw: np.ndarray, relief: Optional[Relief] = None) -> np.ndarray:
     """Ray parameter ``t`` of each ray's ground hit (inf: none): the plane z = 0, or with a ``relief``
     (:class:`~.scene.Relief`, nonzero on ``|x - centre| < half_length`` only) the nearer of the plane's hit off
     that stretch and the first crossing of the stretch (``RELIEF_SAMPLES`` samples along the ray, then bisection)."""
@@ -214,13 +219,8 @@ def _ground_hits(c: np.ndarray, dw: np.ndarray, relief=None) -> np.ndarray:
     return t.reshape(shape).astype(np.float32)
 
 
-RELIEF_SAMPLES = 64  # samples of a ray over the relief's stretch (a crossing between two is found by bisection)
-RELIEF_BISECT = 24  # bisection steps: the hit to ~1e-6 of the sampled interval
-RELIEF_REACH = 2000.0  # m: the farthest a ray is followed over the relief
-
-
 def trace(boxes: BoxSet, c: np.ndarray, dw: np.ndarray, rects: np.ndarray | None,
-          relief=None) -> tuple[np.ndarray, np.ndarray]:
+          relief: Optional[Relief] = None) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hit per ray: ``t`` (inf = nothing) and primitive (-1 ground, -2 none, >= 0 box index).
 
     ``dw`` is ``[H, W, 3]`` float32 world rays; ``rects`` restricts each box to a pixel rectangle (None: all).

@@ -182,7 +182,7 @@ class Scene:
     light: tuple[float, float, float] = (0.35, -0.5, 0.79)  # direction towards the sun (world, z up)
     ambient: float = 0.5
     look: Optional[Callable[[np.ndarray, np.ndarray, int], np.ndarray]] = None  # camera rendition (domain.Look)
-    # the ground's height along world x, ``z = relief(x)`` and its slope ``dz/dx`` (None: the plane z = 0)
+    # the ground's height along world x (``relief.z(x)``, its slope ``relief.slope(x)``); None: the plane z = 0
     relief: Optional[Relief] = None
 
     def boxes_at(self, i: int) -> BoxSet:
