@@ -13,10 +13,11 @@ in any order (test: results bit-equal to one thread).
 """
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import Callable, Optional, Sequence
 
 import numpy as np
@@ -67,15 +68,35 @@ class DisLanes:
         return F.compute_flow(self.dis(kind), i0, i1, init), time.perf_counter() - t
 
     def map(self, fn: Callable, items: Sequence) -> list:
-        """``[fn(item) for item in items]``, every ``threads``-th item from the first on in the caller's thread and
-        the others on the workers (``fn`` may call :meth:`flow`: each thread uses its own DIS objects)."""
+        """``[fn(item) for item in items]`` on the caller's thread and the workers together: each takes the next item
+        nobody has begun, so the caller never waits for a worker that has not started yet (it is busy with a job of
+        :meth:`submit`, or not scheduled); ``fn`` may call :meth:`flow`: each thread uses its own DIS objects."""
         pool = self._workers() if len(items) > 1 else None
         if pool is None:
             return [fn(it) for it in items]
-        k = self.threads
-        futures = {i: pool.submit(fn, it) for i, it in enumerate(items) if i % k}
-        mine = {i: fn(it) for i, it in enumerate(items) if i % k == 0}
-        return [mine[i] if i in mine else futures[i].result() for i in range(len(items))]
+        n, out = len(items), [None] * len(items)
+        claim = itertools.count()  # next() is atomic: each index is taken by one thread
+        failed = threading.Event()
+
+        def drain() -> None:
+            while not failed.is_set() and (i := next(claim)) < n:
+                try:
+                    out[i] = fn(items[i])
+                except BaseException:
+                    failed.set()  # the others take no new item
+                    raise
+
+        futures = [pool.submit(drain) for _ in range(min(self.threads - 1, n - 1))]
+        try:
+            drain()
+        finally:
+            # every item is taken now: a worker that has not begun would find nothing left (cancelled, not waited
+            # for); those that did are waited for, so no item runs after this returns
+            wait([f for f in futures if not f.cancel()])
+        for f in futures:
+            if not f.cancelled():
+                f.result()  # a worker's error
+        return out
 
     def submit(self, fn: Callable, *args) -> Future:
         """``fn(*args)`` on a worker, after the workers' earlier calls (with one thread: here, at once).  For work that

@@ -149,3 +149,39 @@ def test_a_forked_child_gets_its_own_workers():
     finally:
         os.close(r)
         lanes.close()
+
+
+def test_the_caller_does_not_wait_for_a_busy_worker():
+    """map's items go to whichever thread is free: while the only worker is held by an earlier submit, the caller
+    computes every item itself and returns, in order, without waiting for the worker."""
+    import threading
+
+    lanes = DisLanes(lambda kind: F.create_dis("ultrafast"), 2)
+    release = threading.Event()
+    try:
+        held = lanes.submit(release.wait, 30)
+        assert lanes.map(lambda x: 2 * x, [1, 2, 3, 4]) == [2, 4, 6, 8]
+        assert not held.done()  # the worker is still held: nothing above waited for it
+        release.set()
+        assert held.result(timeout=30) is True
+        calls = _calls(*_images(3))[:5]
+        assert all(np.array_equal(a, b) for a, b in zip(lanes.run(calls)[0], DisLanes(lanes._make, 1).run(calls)[0]))
+    finally:
+        release.set()
+        lanes.close()
+
+
+def test_an_error_in_an_item_reaches_the_caller():
+    lanes = DisLanes(lambda kind: F.create_dis("ultrafast"), 2)
+
+    def fn(x):
+        if x == 3:
+            raise RuntimeError("item 3")
+        return x
+
+    try:
+        with pytest.raises(RuntimeError, match="item 3"):
+            lanes.map(fn, [1, 2, 3, 4, 5])
+        assert lanes.map(fn, [1, 2]) == [1, 2]  # the lanes still work afterwards
+    finally:
+        lanes.close()
