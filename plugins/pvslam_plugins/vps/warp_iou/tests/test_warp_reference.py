@@ -10,7 +10,8 @@ from pvslam_plugins.vps.warp_iou.warp import forward_warp
 def reference_warp(ids, flow, depth, mask, splat):
     """The documented rule, one source at a time: each source claims its rounded target (bilinear: then its other
     integer neighbours, only where no source's own rounded target landed); per target the nearest depth wins
-    (unknown depth = farthest), ties and no depth go to raster order (first source with depth, last without)."""
+    (unknown depth = farthest), ties and no depth go to raster order (first source with depth, last without); a source
+    whose target is not finite writes nothing."""
     h, w = ids.shape
     cand = {}  # target -> list of (key, value), lower key wins
     own = set()
@@ -18,6 +19,8 @@ def reference_warp(ids, flow, depth, mask, splat):
     n = len(srcs)
     for k, (y, x) in enumerate(srcs):
         tx, ty = x + float(flow[0, y, x]), y + float(flow[1, y, x])
+        if not (np.isfinite(tx) and np.isfinite(ty)):
+            continue
         if depth is not None:
             z = float(depth[y, x]) if depth[y, x] > 0 else np.inf
             key = (z, k)
@@ -34,6 +37,8 @@ def reference_warp(ids, flow, depth, mask, splat):
         spill = {}
         for k, (y, x) in enumerate(srcs):
             tx, ty = x + float(flow[0, y, x]), y + float(flow[1, y, x])
+            if not (np.isfinite(tx) and np.isfinite(ty)):
+                continue
             key = (float(depth[y, x]) if depth[y, x] > 0 else np.inf, k) if depth is not None else (0.0, n - 1 - k)
             rx, ry = int(np.rint(tx)), int(np.rint(ty))
             x0, y0 = int(np.floor(tx)), int(np.floor(ty))
@@ -61,3 +66,19 @@ def test_forward_warp_matches_brute_force(seed, splat, with_depth):
     mask = rng.random((h, w)) > 0.2
     got = forward_warp(ids, flow, depth, mask, splat=splat)
     np.testing.assert_array_equal(got, reference_warp(ids, flow, depth, mask, splat))
+
+
+@pytest.mark.parametrize("splat", ["nearest", "bilinear"])
+@pytest.mark.parametrize("depth_dtype", [np.float32, np.float64, None])
+def test_every_source_written_and_odd_inputs(splat, depth_dtype):
+    """No void and no mask (every pixel a source), a flow that leaves the image and holds NaN / inf, negative
+    depths, float64 depths: still the brute-force rule."""
+    rng = np.random.default_rng(7)
+    h, w = 12, 10
+    ids = 1000 + rng.integers(1, 4, (h, w)).astype(np.int64)
+    flow = rng.normal(0, 4.0, (2, h, w)).astype(np.float32)
+    flow[0, 0, :3] = np.nan
+    flow[1, 5, 2] = np.inf
+    depth = None if depth_dtype is None else rng.choice([-1.0, 0.0, 1.0, 2.0, 2.0], (h, w)).astype(depth_dtype)
+    got = forward_warp(ids, flow, depth, None, splat=splat)
+    np.testing.assert_array_equal(got, reference_warp(ids, flow, depth, None, splat))
