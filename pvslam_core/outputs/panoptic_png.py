@@ -60,17 +60,19 @@ def _np(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
-def encode_ids(ids: Any) -> np.ndarray:
-    """int ids ``[H, W]`` (0 <= id < 2^24) -> ``uint8 [H, W, 3]`` RGB with ``id = R + 256 G + 256^2 B``."""
-    a = _np(ids).astype(np.int64)
+def encode_ids(ids: Any, bgr: bool = False) -> np.ndarray:
+    """int ids ``[H, W]`` (0 <= id < 2^24) -> ``uint8 [H, W, 3]`` RGB with ``id = R + 256 G + 256^2 B`` (``bgr``: the
+    channels in OpenCV's order, for :func:`cv2.imencode`)."""
+    a = _np(ids).astype(np.int64, copy=False)
     if a.ndim != 2:
         raise ValueError(f"encode_ids: ids must be [H, W], got {a.shape}")
     if a.size and (a.min() < 0 or a.max() > MAX_ID):
         raise ValueError(f"encode_ids: ids must be in [0, {MAX_ID}], got range [{a.min()}, {a.max()}]")
     out = np.empty(a.shape + (3,), dtype=np.uint8)
-    out[..., 0] = a & 0xFF
+    r, b = (2, 0) if bgr else (0, 2)
+    out[..., r] = a & 0xFF
     out[..., 1] = (a >> 8) & 0xFF
-    out[..., 2] = (a >> 16) & 0xFF
+    out[..., b] = (a >> 16) & 0xFF
     return out
 
 
@@ -83,10 +85,11 @@ def decode_ids(rgb: Any) -> np.ndarray:
     return a[..., 0] + 256 * a[..., 1] + 65536 * a[..., 2]
 
 
-def _png_bytes(rgb: np.ndarray) -> bytes:
+def _png_bytes(rgb: np.ndarray, bgr: bool = False) -> bytes:
+    """PNG file bytes of an RGB image (``bgr``: already in OpenCV's channel order)."""
     import cv2
 
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))  # OpenCV writes BGR
+    ok, buf = cv2.imencode(".png", rgb if bgr else np.ascontiguousarray(rgb[..., ::-1]))  # OpenCV writes BGR
     if not ok:
         raise IOError("PNG encoding failed")
     return buf.tobytes()
@@ -126,19 +129,33 @@ def _segment_keys(seg) -> np.ndarray:
 def coco_ids(seg) -> np.ndarray:
     """int64 ids ``[H, W]`` as written to the PNG: ids without a :class:`Segment` become 0 (void), so that the
     PNG and ``segments_info`` hold exactly the same ids (the COCO panoptic evaluation rejects any mismatch)."""
-    ids = _np(seg.ids).astype(np.int64)
+    return _coco(seg)[0]
+
+
+def _coco(seg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(coco ids [H, W], keys [K], rows [H, W])``: :func:`coco_ids`, the sorted segment ids and each pixel's row
+    in them (-1: void or an id without a segment)."""
+    ids = _np(seg.ids).astype(np.int64, copy=False)
     keys = _segment_keys(seg)
-    return np.where(lut(keys, np.arange(len(keys)), ids, -1) >= 0, ids, 0)
+    lab = lut(keys, np.arange(len(keys)), ids, -1)
+    return np.where(lab >= 0, ids, 0), keys, lab
 
 
 def segments_info(seg, ids: Optional[np.ndarray] = None) -> list[dict]:
     """COCO ``segments_info`` of a :class:`~pvslam_core.types.PanopticSegmentation`: one entry per non-void id
     present in the (COCO-cleaned) id map, with ``iscrowd`` 0, pixel ``area`` and ``bbox`` [x, y, w, h]."""
-    ids = coco_ids(seg) if ids is None else ids
-    h, w = ids.shape
-    keys = _segment_keys(seg)
+    if ids is None:
+        _, keys, lab = _coco(seg)
+    else:
+        keys = _segment_keys(seg)
+        lab = lut(keys, np.arange(len(keys)), ids, -1)  # [H, W] row of each pixel's segment, -1 for void / unknown
+    return _info(seg, keys, lab)
+
+
+def _info(seg, keys: np.ndarray, lab: np.ndarray) -> list[dict]:
+    """``segments_info`` from the sorted segment ids ``keys`` and each pixel's row in them ``lab [H, W]`` (-1: none)."""
+    h, w = lab.shape
     K = len(keys)
-    lab = lut(keys, np.arange(K), ids, -1)  # [H, W] row of each pixel's segment, -1 for void / unknown ids
     # area and bounding box of every segment at once from pixel counts per (segment, row) and (segment, column)
     # (bincounts instead of sorting the pixels by id: 0.3 vs 2.2 ms at 320x240)
     rows = np.bincount((lab * h + np.arange(h)[:, None])[lab >= 0], minlength=K * h).reshape(K, h) > 0
@@ -167,9 +184,9 @@ def segments_info(seg, ids: Optional[np.ndarray] = None) -> list[dict]:
 def save_panoptic(path: str | os.PathLike, seg) -> list[dict]:
     """Write ``seg.ids`` as a COCO panoptic PNG (atomically; ids without a segment as void); returns its COCO
     ``segments_info``."""
-    ids = coco_ids(seg)
-    atomic_write_bytes(path, _png_bytes(encode_ids(ids)))
-    return segments_info(seg, ids)
+    ids, keys, lab = _coco(seg)
+    atomic_write_bytes(path, _png_bytes(encode_ids(ids, bgr=True), bgr=True))
+    return _info(seg, keys, lab)
 
 
 def load_panoptic(path: str | os.PathLike, segments_info: Sequence[Any], categories: Optional[Any] = None,
