@@ -90,8 +90,8 @@ class DisLanes:
         try:
             drain()
         finally:
-            # every item is taken now: a worker that has not begun would find nothing left (cancelled, not waited
-            # for); those that did are waited for, so no item runs after this returns
+            # every item is taken now (or abandoned after an error): a worker that has not begun would find nothing
+            # to do (cancelled, not waited for); those that did are waited for, so no item runs after this returns
             wait([f for f in futures if not f.cancel()])
         for f in futures:
             if not f.cancelled():
