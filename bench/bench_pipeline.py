@@ -87,22 +87,25 @@ def pct(r) -> float:
 def speed(r) -> dict:
     """Wall and CPU figures of a run (evaluation excluded).  ``main_ms`` is the pipeline thread's CPU per frame,
     ``cpu_ms`` the whole process's (reading ahead and writing behind run on other threads); on an otherwise idle
-    2-core machine the wall time per frame is about ``max(main_ms, cpu_ms / 2)`` (``est_fps``)."""
+    2-core machine the wall time per frame is about ``max(main_ms, cpu_ms / 2)`` (``est_fps``).  ``main_idle_ms``:
+    the pipeline thread's stages' wall time beyond their CPU per frame, the time it waited (for flows begun on
+    other threads) or was not scheduled."""
     t = r.metrics["timing"]
     n = max(int(t["frames"]), 1)
     stage_cpu = t.get("stage_cpu_seconds") or {}
     main = sum(stage_cpu.values())
     cpu = float(t.get("cpu_seconds") or main)
     est = 1000.0 / max(1000 * main / n, 500 * cpu / n, 1e-9)
+    idle = max(sum((t.get("stage_seconds") or {}).values()) - main, 0.0)
     return {"frames": n, "keyframes": t["keyframes"], "fps": t["fps"], "wall_ms": 1000 * t["seconds"] / n,
-            "cpu_ms": 1000 * cpu / n, "main_ms": 1000 * main / n, "est_fps": est,
+            "cpu_ms": 1000 * cpu / n, "main_ms": 1000 * main / n, "main_idle_ms": 1000 * idle / n, "est_fps": est,
             "stage_cpu_ms": {k: round(1000 * v / n, 1) for k, v in stage_cpu.items()}}
 
 
 def print_speed(name: str, sp: dict) -> None:
     print(f"  {name}: {sp['frames']} frames, {sp['keyframes']} keyframes: {sp['fps']:.1f} frames/s wall "
-          f"({sp['wall_ms']:.1f} ms/frame); CPU {sp['cpu_ms']:.1f} ms/frame (pipeline thread {sp['main_ms']:.1f}), "
-          f"idle 2-core estimate {sp['est_fps']:.1f} frames/s")
+          f"({sp['wall_ms']:.1f} ms/frame); CPU {sp['cpu_ms']:.1f} ms/frame (pipeline thread {sp['main_ms']:.1f}, "
+          f"and {sp['main_idle_ms']:.1f} not computing), idle 2-core estimate {sp['est_fps']:.1f} frames/s")
     print(f"    CPU ms/frame per stage (pipeline thread): {json.dumps(sp['stage_cpu_ms'])}")
 
 

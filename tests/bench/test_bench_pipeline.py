@@ -93,3 +93,18 @@ def test_the_endless_input_runs_compare_peak_memory_as_a_live_source(monkeypatch
     calls.clear()
     bench_pipeline.section_flat(tmp_path, 0)  # --flat-frames 0: skipped
     assert calls == []
+
+
+def test_speed_reports_the_pipeline_threads_time_not_computing(capsys):
+    """``main_idle_ms``: the pipeline thread's stage wall time beyond its CPU, per frame (never negative)."""
+    from types import SimpleNamespace
+
+    timing = {"frames": 10, "keyframes": 4, "fps": 20.0, "seconds": 0.5, "cpu_seconds": 0.8,
+              "stage_seconds": {"map": 0.45, "outputs": 0.02}, "stage_cpu_seconds": {"map": 0.30, "outputs": 0.02}}
+    sp = bench_pipeline.speed(SimpleNamespace(metrics={"timing": timing}))
+    assert sp["main_ms"] == pytest.approx(32.0) and sp["main_idle_ms"] == pytest.approx(15.0)
+    assert sp["cpu_ms"] == pytest.approx(80.0) and sp["est_fps"] == pytest.approx(25.0)
+    bench_pipeline.print_speed("x", sp)
+    assert "(pipeline thread 32.0, and 15.0 not computing)" in capsys.readouterr().out
+    timing["stage_seconds"] = {"map": 0.1}  # a clock that disagrees: no negative idle time
+    assert bench_pipeline.speed(SimpleNamespace(metrics={"timing": timing}))["main_idle_ms"] == 0.0
