@@ -132,23 +132,24 @@ def coco_ids(seg) -> np.ndarray:
     return _coco(seg)[0]
 
 
-def _coco(seg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(coco ids [H, W], keys [K], rows [H, W])``: :func:`coco_ids`, the sorted segment ids and each pixel's row
-    in them (-1: void or an id without a segment)."""
-    ids = _np(seg.ids).astype(np.int64, copy=False)
+def _rows(seg, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(keys [K], rows [H, W])``: the sorted segment ids and each pixel's row in them (-1: void or an id without a
+    segment)."""
     keys = _segment_keys(seg)
-    lab = lut(keys, np.arange(len(keys)), ids, -1)
+    return keys, lut(keys, np.arange(len(keys)), ids, -1)
+
+
+def _coco(seg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(coco ids [H, W], keys [K], rows [H, W])``: :func:`coco_ids` and :func:`_rows` of the segmentation."""
+    ids = _np(seg.ids).astype(np.int64, copy=False)
+    keys, lab = _rows(seg, ids)
     return np.where(lab >= 0, ids, 0), keys, lab
 
 
 def segments_info(seg, ids: Optional[np.ndarray] = None) -> list[dict]:
     """COCO ``segments_info`` of a :class:`~pvslam_core.types.PanopticSegmentation`: one entry per non-void id
     present in the (COCO-cleaned) id map, with ``iscrowd`` 0, pixel ``area`` and ``bbox`` [x, y, w, h]."""
-    if ids is None:
-        _, keys, lab = _coco(seg)
-    else:
-        keys = _segment_keys(seg)
-        lab = lut(keys, np.arange(len(keys)), ids, -1)  # [H, W] row of each pixel's segment, -1 for void / unknown
+    keys, lab = _coco(seg)[1:] if ids is None else _rows(seg, ids)
     return _info(seg, keys, lab)
 
 

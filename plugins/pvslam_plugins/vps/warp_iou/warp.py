@@ -115,7 +115,7 @@ def forward_warp(
     sel = None if keep.all() else np.nonzero(keep)[0]  # None: every pixel is a source (no gathers)
     if sel is not None and len(sel) == 0:
         return out.reshape(h, w)
-    gy, gx = _flat_grid(h, w)
+    gy, gx = (g.reshape(-1) for g in _pixel_grid(h, w))  # float32 integers: exact in the float64 sums below
     f0, f1 = flow[0].reshape(-1), flow[1].reshape(-1)
     if sel is None:
         tx, ty, vals = np.add(gx, f0, dtype=np.float64), np.add(gy, f1, dtype=np.float64), src
@@ -137,23 +137,6 @@ def forward_warp(
     if splat != "nearest":
         _spill(out, ~filled, (h, w), tx, ty, rx, ry, key, vals)
     return out.reshape(h, w)
-
-
-def _flat_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Cached read-only float64 ``(ys, xs) [h * w]`` of the flattened pixel grid."""
-    g = _FLAT_GRIDS.get((h, w))
-    if g is None:
-        ys, xs = np.divmod(np.arange(h * w, dtype=np.int64), w)
-        g = (ys.astype(np.float64), xs.astype(np.float64))
-        for a in g:
-            a.setflags(write=False)
-        if len(_FLAT_GRIDS) > 8:
-            _FLAT_GRIDS.clear()
-        _FLAT_GRIDS[(h, w)] = g
-    return g
-
-
-_FLAT_GRIDS: dict = {}
 
 
 def _priority(depth: Optional[np.ndarray], sel: Optional[np.ndarray], n: int) -> np.ndarray:
