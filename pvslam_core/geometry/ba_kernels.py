@@ -11,10 +11,7 @@ Layout: ``R [E, 3, 3]``, ``t [E, 3]`` (camera i -> j), ``d [N, P]`` inverse dept
 ``d`` of each edge's source, ``rx, ry [P]`` the pixel rays, ``tgt, cf [E, 2, P]`` flow targets and confidences
 (``cf >= 0``, tiny values zeroed: denormal floats slow every product they enter), all float32; the first ``m`` edges
 have unknown source depths, in slots ``ls [m]``.  The robust kernel is Cauchy with ``inv_s2 = 1 / scale^2`` (``0``:
-none).  Results match the torch path to float32 rounding (the sums run in another order).  The helpers are inlined
-by numba (``inline="always"``), so that each entry point is one self-contained function: a freshly compiled and a
-cached entry point then run the same machine code (with LLVM inlining a cached caller could differ from a fresh one
-in the order of its sums, and a first run after installing from the runs after it)."""
+none).  Results match the torch path to float32 rounding (the sums run in another order)."""
 import numpy as np
 import numba as nb
 
@@ -22,7 +19,7 @@ f32 = np.float32
 OPTS = dict(fastmath=True, cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
 
-@nb.njit(inline="always", **OPTS)
+@nb.njit(**OPTS)
 def _pixel(rt, x0, y0, dp, tu, tv, fx, fy, cx, cy, min_depth, inv_s2, ws):
     """One pixel's projection: ``(xn, yn, iz, ru, rv, vf, vw)``, ``vf`` 1 where the point is in front (``z >
     min_depth``), ``vw = vf * ws * robust``."""
@@ -41,7 +38,7 @@ def _pixel(rt, x0, y0, dp, tu, tv, fx, fy, cx, cy, min_depth, inv_s2, ws):
     return xn, yn, iz, ru, rv, vf, vf * ws / (one + (ru * ru + rv * rv) * inv_s2)
 
 
-@nb.njit(inline="always", **OPTS)
+@nb.njit(**OPTS)
 def _edge(rt, dr, rx, ry, tu, tv, cu_, cv_, fx, fy, cx, cy, min_depth, inv_s2, ws, acc):
     """One edge's sums: ``acc[0:21]`` the upper triangle of ``J^T W J`` (row-major), ``acc[21:27]`` ``J^T W r``,
     ``acc[27]`` the plain cost.  ``J = (Ju, Jv)``: d(u, v) / d xi_j, :func:`.projective._pose_jacobian_rows`."""
@@ -115,7 +112,7 @@ def _edge(rt, dr, rx, ry, tu, tv, cu_, cv_, fx, fy, cx, cy, min_depth, inv_s2, w
         acc[k] = sums[k]
 
 
-@nb.njit(inline="always", **OPTS)
+@nb.njit(**OPTS)
 def _edge_depth(rt, dr, rx, ry, tu, tv, cu_, cv_, fx, fy, cx, cy, min_depth, inv_s2, ws, C, wd):
     """A source edge's share of its source's depth diagonal ``C += w Jd^2`` and gradient ``wd += w Jd r`` ``[P]``."""
     t0, t1, t2 = rt[9], rt[10], rt[11]
@@ -130,7 +127,7 @@ def _edge_depth(rt, dr, rx, ry, tu, tv, cu_, cv_, fx, fy, cx, cy, min_depth, inv
         wd[p] += bu * ru + bv * rv
 
 
-@nb.njit(inline="always", **OPTS)
+@nb.njit(**OPTS)
 def _edge_rows(rt, dr, rx, ry, tu, tv, cu_, cv_, fx, fy, cx, cy, min_depth, inv_s2, ws, sC, B):
     """A source edge's depth rows ``B [6, P] = (w Jdu Ju + w Jdv Jv) C^-1/2`` (:func:`.ba_schur.depth_rows`)."""
     t0, t1, t2 = rt[9], rt[10], rt[11]
@@ -152,7 +149,7 @@ def _edge_rows(rt, dr, rx, ry, tu, tv, cu_, cv_, fx, fy, cx, cy, min_depth, inv_
         B5[p] = -bu * yn + bv * xn
 
 
-@nb.njit(inline="always", **OPTS)
+@nb.njit(**OPTS)
 def _rt(R, t, e):
     return (R[e, 0, 0], R[e, 0, 1], R[e, 0, 2], R[e, 1, 0], R[e, 1, 1], R[e, 1, 2], R[e, 2, 0], R[e, 2, 1],
             R[e, 2, 2], t[e, 0], t[e, 1], t[e, 2])

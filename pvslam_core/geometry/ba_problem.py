@@ -25,7 +25,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = ["BAInputs", "DenseBAProblem", "PoseSystem", "fused_available"]
 
-FUSED_MIN_CONF = 1e-20  # confidences below this are zeroed for the compiled loops (DenseBAProblem._chunk_obs)
+FUSED_MIN_CONF = 1e-20  # confidences below this are zeroed for the compiled loops (module _obs)
 _UPPER = torch.triu_indices(6, 6)  # the order of ba_kernels' 21 block sums
 _KERNELS: list = []  # the imported ba_kernels module, or None when numba is missing
 
@@ -106,7 +106,8 @@ class DenseBAProblem:
         # chunks of whole sources (then of fixed-depth edges) with their static scatter plans (.ba docstring)
         self.chunks = plan_chunks(inp.ii, inp.jj, self.pose_map, src_map[inp.ii], Ns, F, P, opt.max_chunk_pixels)
         self.fused = fused_available(opt, self.dtype, dev, self.target, self.conf, self.d, graph.poses)
-        self.cached = self._chunk_obs(self.chunks[0]) if len(self.chunks) == 1 else None
+        self.cached = None
+        self.cached = self._obs(self.chunks[0]) if len(self.chunks) == 1 else None
         self.sparse = dev.type == "cpu" and F > ba_linalg.SPARSE_MIN_POSES
 
     def _disp_prior(self, dprior, P: int):
@@ -127,12 +128,10 @@ class DenseBAProblem:
 
     # ------------------------------------------------------------------------------------------ linearisation
     def _obs(self, ch):
-        """``target, conf [Ec, 2, P]`` of one chunk (cast once when the problem is one chunk)."""
-        return self.cached if self.cached is not None else self._chunk_obs(ch)
-
-    def _chunk_obs(self, ch):
         """``target, conf [Ec, 2, P]`` of one chunk; for the compiled loops contiguous, with the confidences below
         ``FUSED_MIN_CONF`` zeroed (denormal floats slow every product they enter; such weights change no sum)."""
+        if self.cached is not None:
+            return self.cached
         if not self.fused:
             return chunk_obs(self.target, self.conf, ch.idx, self.dtype)
         cf = self.conf[ch.idx].to(self.dtype, copy=True)
