@@ -1,5 +1,6 @@
 """Dense bundle adjustment over keyframe poses and per-pixel inverse depths (DROID-SLAM's BA, anchors 1.4),
-in plain vectorised torch.  A call's settings are one :class:`BAOptions`; the problem's state and the pieces of an
+in vectorised torch, with the per-pixel linearisation on the CPU in compiled loops (:mod:`.ba_kernels`, numba;
+the torch version stays as the reference and for float64, CUDA and the Huber kernel).  A call's settings are one :class:`BAOptions`; the problem's state and the pieces of an
 iteration live in :mod:`.ba_problem`, residuals and costs in :mod:`.ba_residuals`, the solvers in :mod:`.ba_linalg`
 and the motion-only BA of single frames in :mod:`.ba_motion`.
 
@@ -98,6 +99,8 @@ class BAOptions:
     dtype: Optional[torch.dtype] = None
     # edge-pixels linearised at once (one chunk of whole sources; a source with more is a chunk of its own)
     max_chunk_pixels: int = 500_000
+    # the per-pixel work through the compiled loops of .ba_kernels where they apply (False: the torch reference)
+    compiled: bool = True
 
 
 def dense_ba(graph: "FrameGraph", obs: EdgeObservations, free: torch.Tensor, options: Optional[BAOptions] = None, *,

@@ -7,21 +7,45 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Optional
 
+import numpy as np
 import torch
 
 from . import ba_linalg
 from .ba_distance import distance_prior_terms
 from .ba_linalg import sparse_block_matrix, sparse_solve
-from .ba_residuals import DISP_MIN, chunk_obs, cost, residuals, robust_weights
-from .ba_schur import assemble_chunk, backsub_chunk, depth_rows, plan_chunks
+from .ba_residuals import DISP_MIN, chunk_obs, cost, edge_rt, residuals, robust_weights
+from .ba_schur import assemble_chunk, backsub_chunk, depth_rows, plan_chunks, pose_blocks
 from .lie import se3_exp, se3_inv, se3_mul
+from .projective import _adjoint, _rays
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..slam.graph import FrameGraph
     from ..types import EdgeObservations
     from .ba import BAOptions
 
-__all__ = ["BAInputs", "DenseBAProblem", "PoseSystem"]
+__all__ = ["BAInputs", "DenseBAProblem", "PoseSystem", "fused_available"]
+
+FUSED_MIN_CONF = 1e-20  # confidences below this are zeroed for the compiled loops (DenseBAProblem._chunk_obs)
+_UPPER = torch.triu_indices(6, 6)  # the order of ba_kernels' 21 block sums
+_KERNELS: list = []  # the imported ba_kernels module, or None when numba is missing
+
+
+def ba_kernels():
+    """:mod:`.ba_kernels`, imported on first use (numba compiles or loads its cached loops then), or None."""
+    if not _KERNELS:
+        try:
+            from . import ba_kernels as mod
+        except ImportError:  # pragma: no cover - numba is a dependency; the torch path remains
+            mod = None
+        _KERNELS.append(mod)
+    return _KERNELS[0]
+
+
+def fused_available(opt: "BAOptions", dtype: torch.dtype, dev: torch.device, *tensors: torch.Tensor) -> bool:
+    """Whether a call's per-pixel work runs through :mod:`.ba_kernels`: float32 on the CPU without autograd, the
+    Cauchy kernel or none (Huber, float64 and CUDA take the torch path)."""
+    return (opt.compiled and dtype == torch.float32 and dev.type == "cpu" and opt.robust in (None, "none", "cauchy")
+            and not any(t.requires_grad for t in tensors) and ba_kernels() is not None)
 
 
 @dataclass
@@ -81,8 +105,8 @@ class DenseBAProblem:
         self.d = graph.disps.reshape(N, P).to(self.dtype, copy=True)
         # chunks of whole sources (then of fixed-depth edges) with their static scatter plans (.ba docstring)
         self.chunks = plan_chunks(inp.ii, inp.jj, self.pose_map, src_map[inp.ii], Ns, F, P, opt.max_chunk_pixels)
-        self.cached = chunk_obs(self.target, self.conf, self.chunks[0].idx, self.dtype) \
-            if len(self.chunks) == 1 else None
+        self.fused = fused_available(opt, self.dtype, dev, self.target, self.conf, self.d, graph.poses)
+        self.cached = self._chunk_obs(self.chunks[0]) if len(self.chunks) == 1 else None
         self.sparse = dev.type == "cpu" and F > ba_linalg.SPARSE_MIN_POSES
 
     def _disp_prior(self, dprior, P: int):
@@ -102,10 +126,22 @@ class DenseBAProblem:
         return tgt_s, alpha_s
 
     # ------------------------------------------------------------------------------------------ linearisation
+    def _obs(self, ch):
+        """``target, conf [Ec, 2, P]`` of one chunk (cast once when the problem is one chunk)."""
+        return self.cached if self.cached is not None else self._chunk_obs(ch)
+
+    def _chunk_obs(self, ch):
+        """``target, conf [Ec, 2, P]`` of one chunk; for the compiled loops contiguous, with the confidences below
+        ``FUSED_MIN_CONF`` zeroed (denormal floats slow every product they enter; such weights change no sum)."""
+        if not self.fused:
+            return chunk_obs(self.target, self.conf, ch.idx, self.dtype)
+        cf = self.conf[ch.idx].to(self.dtype, copy=True)
+        return self.target[ch.idx].to(self.dtype).contiguous(), cf.masked_fill_(~(cf >= FUSED_MIN_CONF), 0.0)
+
     def linearise(self, ch, jac):
         """Residuals, projection output, per-pixel weights ``wu, wv`` and ``conf`` of one chunk."""
         opt = self.opt
-        tgt, cf = self.cached if self.cached is not None else chunk_obs(self.target, self.conf, ch.idx, self.dtype)
+        tgt, cf = self._obs(ch)
         ru, rv, out = residuals(self.G, self.d, ch.ii, ch.jj, tgt, self.intr, self.h, self.w, opt.min_depth, jac)
         if not jac:
             return ru, rv, out, None, None, cf
@@ -115,9 +151,39 @@ class DenseBAProblem:
         vw = valid * opt.weight_scale if rw is None else valid * rw * opt.weight_scale
         return ru, rv, out, cf[:, 0] * vw, cf[:, 1] * vw, cf
 
+    def _fused_args(self, ch) -> tuple[tuple, torch.Tensor]:
+        """The arguments of :mod:`.ba_kernels`' passes for one chunk, and its adjoints ``Ad [Ec, 6, 6]`` (float64)."""
+        opt, dtype = self.opt, self.dtype
+        R, t = edge_rt(self.G, ch.ii, ch.jj, dtype)
+        fx, fy, cx, cy = (float(v) for v in self.intr.tolist())
+        rays = _rays(self.h, self.w, fx, fy, cx, cy, dtype, self.dev)
+        tgt, cf = self._obs(ch)
+        ls = ch.ls if ch.ls is not None else torch.zeros(0, dtype=torch.int64)
+        inv_s2 = 1.0 / opt.robust_scale ** 2 if opt.robust == "cauchy" else 0.0
+        args = (R.contiguous().numpy(), t.contiguous().numpy(), self.d.numpy(), ch.ii.contiguous().numpy(),
+                rays[0].numpy(), rays[1].numpy(), tgt.numpy(), cf.numpy(), fx, fy, cx, cy, opt.min_depth, inv_s2,
+                opt.weight_scale, ch.n_src, ls.contiguous().numpy())
+        return args, _adjoint(R, t, dtype, self.dev).double()
+
+    def _fused_rows(self, args: tuple, m: int, Cinv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(B, sC)``: the depth rows ``[m, 6, P]`` of a chunk's source edges (:func:`.ba_schur.depth_rows`)."""
+        sC = Cinv.sqrt()
+        B = torch.empty(m, 6, self.h * self.w, dtype=self.dtype)
+        ba_kernels().pass_rows(*args, sC.numpy(), B.numpy())
+        return B, sC
+
     def current_cost(self) -> float:
         """The reported plain cost at the current state (the flow residual's; no prior, no robust weights)."""
         total = 0.0
+        if self.fused:
+            for ch in self.chunks:
+                args, _ = self._fused_args(ch)
+                args = args[:-2] + (0, args[-1])  # no depth terms
+                acc = torch.empty(len(ch.ii), 28, dtype=self.dtype)
+                ba_kernels().pass_blocks(*args, np.empty((0, 0), np.float32), np.empty((0, 0), np.float32),
+                                         acc.numpy())
+                total += float(acc[:, 27].double().sum())
+            return total
         for ch in self.chunks:
             ru, rv, out, _, _, cf = self.linearise(ch, False)
             total += cost(cf, out["valid"], ru, rv)
@@ -142,6 +208,9 @@ class DenseBAProblem:
                           Cinv=torch.zeros(Ns, P, dtype=dtype, device=dev),
                           wd=torch.zeros(Ns, P, dtype=dtype, device=dev))
         for ci, ch in enumerate(self.chunks):
+            if self.fused:
+                self._add_chunk_fused(sysm, ch, with_cost, last=ci == len(self.chunks) - 1)
+                continue
             ru, rv, out, wu, wv, cf = self.linearise(ch, "parts")
             if with_cost:
                 sysm.cost += cost(cf, out["valid"], ru, rv)
@@ -157,14 +226,47 @@ class DenseBAProblem:
                 sysm.H.index_add_(0, dist[0], dist[1].reshape(-1, 36))
         return sysm
 
-    def _add_chunk(self, sysm: PoseSystem, ch, ru, rv, out, wu, wv, last: bool) -> None:
-        """One chunk's Schur terms into ``sysm`` (:func:`.ba_schur.assemble_chunk`)."""
+    def _depth_start(self, ch):
+        """``(eta, wd0)`` of the chunk's sources: the depth diagonal and gradient before the flow's terms (the
+        prior's curvature joins the diagonal, its pull the gradient; ``wd0`` None without a prior)."""
         s_ch = self.src[ch.s0:ch.s1]
         eta_c, wd0 = self.eta[s_ch], None
-        if self.prior is not None:  # the prior's curvature joins the depth diagonal, its pull the depth gradient
+        if self.prior is not None:
             a_ch = self.prior[1][ch.s0:ch.s1]
             eta_c, wd0 = eta_c + a_ch, a_ch * (self.prior[0][ch.s0:ch.s1] - self.d[s_ch])
+        return eta_c, wd0
+
+    def _add_chunk_fused(self, sysm: PoseSystem, ch, with_cost: bool, last: bool) -> None:
+        """:meth:`linearise` and :func:`.ba_schur.assemble_chunk` of one chunk through the compiled loops."""
+        args, Ad = self._fused_args(ch)
+        eta_c, wd0 = self._depth_start(ch)
+        C = eta_c.to(self.dtype, copy=True).contiguous()
+        wd = torch.zeros_like(C) if wd0 is None else wd0.to(C.dtype, copy=True).contiguous()
+        acc = torch.empty(len(ch.ii), 28, dtype=self.dtype)
+        ba_kernels().pass_blocks(*args, C.numpy(), wd.numpy(), acc.numpy())
+        if with_cost:
+            sysm.cost += float(acc[:, 27].double().sum())
+        Cinv = 1.0 / C.clamp(min=1e-12)
+        B = sC = None
+        if ch.ns > 0 and self.F > 0:
+            B, sC = self._fused_rows(args, ch.n_src, Cinv)
+        blocks, q = [], None
+        if self.F > 0:
+            Hjj = torch.zeros(len(ch.ii), 6, 6, dtype=torch.float64)
+            up = acc[:, :21].double()
+            Hjj[:, _UPPER[0], _UPPER[1]] = up
+            Hjj[:, _UPPER[1], _UPPER[0]] = up
+            blocks, q = pose_blocks(ch, Hjj, acc[:, 21:27].double(), Ad, B, sC, wd)
+        self._add_terms(sysm, ch, blocks, q, Ad, Cinv, wd, B if last else None)
+
+    def _add_chunk(self, sysm: PoseSystem, ch, ru, rv, out, wu, wv, last: bool) -> None:
+        """One chunk's Schur terms into ``sysm`` (:func:`.ba_schur.assemble_chunk`)."""
+        eta_c, wd0 = self._depth_start(ch)
         blocks, q, Ad, Ci, wdc, B = assemble_chunk(ch, ru, rv, wu, wv, out, eta_c, self.F, want_B=last, wd0=wd0)
+        self._add_terms(sysm, ch, blocks, q, Ad, Ci, wdc, B)
+
+    def _add_terms(self, sysm: PoseSystem, ch, blocks, q, Ad, Ci, wdc, B) -> None:
+        """A chunk's blocks, gradients and depth terms into ``sysm`` (``B``: kept for the back-substitution)."""
         if ch.ns > 0:
             sysm.Cinv[ch.s0:ch.s1], sysm.wd[ch.s0:ch.s1] = Ci, wdc
         if B is not None:
@@ -225,7 +327,12 @@ class DenseBAProblem:
             dd[s_] = backsub_chunk(done, B, Ad, xi_full, Cinv[s_], wd[s_])
             B = Ad = None
         for ch in self.chunks:
-            if ch.ns > 0 and ch is not done:
+            if ch.ns > 0 and ch is not done and self.fused:
+                s_ = slice(ch.s0, ch.s1)
+                args, Ad = self._fused_args(ch)
+                B, _ = self._fused_rows(args, ch.n_src, Cinv[s_])
+                dd[s_] = backsub_chunk(ch, B, Ad, xi_full, Cinv[s_], wd[s_])
+            elif ch.ns > 0 and ch is not done:
                 s_, m = slice(ch.s0, ch.s1), ch.n_src
                 _, _, out, wu, wv, _ = self.linearise(ch, "parts")
                 B = depth_rows(ch, out["JuT"], out["JvT"], wu[:m] * out["Jdu"][:m], wv[:m] * out["Jdv"][:m],

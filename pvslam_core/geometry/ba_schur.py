@@ -18,7 +18,7 @@ from typing import Optional, Union
 
 import torch
 
-__all__ = ["Chunk", "plan_chunks", "assemble_chunk", "depth_rows", "backsub_chunk", "rowvec"]
+__all__ = ["Chunk", "plan_chunks", "assemble_chunk", "pose_blocks", "depth_rows", "backsub_chunk", "rowvec"]
 
 
 @dataclass
@@ -171,8 +171,7 @@ def assemble_chunk(ch: Chunk, ru, rv, wu, wv, out, eta_c, F: int, want_B: bool, 
     Jacobians in ``out`` are scaled in place (by ``sqrt(w)``): ``out`` is spent afterwards."""
     JuT, JvT, Jdu, Jdv = out["JuT"], out["JvT"], out["Jdu"], out["Jdv"]  # [Ec, 6, P] x2, [Ec, P] x2
     Ad = out["Ad"].double()  # [Ec, 6, 6];  Ji = -Jj Ad is never formed
-    AdT = Ad.transpose(1, 2)
-    blocks, q, Cinv, wd, B = [], None, None, None, None
+    blocks, q, Cinv, wd, B, sC = [], None, None, None, None, None
     m = ch.n_src
     if ch.ns > 0:
         bu, bv = wu[:m] * Jdu[:m], wv[:m] * Jdv[:m]
@@ -194,21 +193,32 @@ def assemble_chunk(ch: Chunk, ru, rv, wu, wv, out, eta_c, F: int, want_B: bool, 
         Hjj = (torch.bmm(JuT, JuT.transpose(1, 2)) + torch.bmm(JvT, JvT.transpose(1, 2))).double()
         q = (rowvec(su * ru, JuT) + rowvec(sv * rv, JvT)).double()
         del su, sv
-        Hij = -torch.bmm(AdT, Hjj)
-        blocks = [-torch.bmm(Hij, Ad), Hjj, Hij, Hij.transpose(1, 2)]
-        if B is not None:
-            # g_e = sum_p Ej C^-1 w:  reduced gradients v[jj] -= g, v[ii] += Ad^T g
-            g = rowvec((sC * wd)[ch.ls], B).double()
-            q = torch.cat([q[:m] - g, q[m:]])
-            # M_ab = sum_p Ej_a C^-1 Ej_b^T for all pairs of edges of one source k; with Ei = -Ej Ad the pair adds
-            # -M_ab at (jj_a, jj_b), Ad_a^T M_ab at (k, jj_b), M_ab Ad_b at (jj_a, k), -Ad_a^T M_ab Ad_b at (k, k).
-            # The last three are summed per edge before scattering: Y_b = sum_a Ad_a^T M_ab at (k, jj_b), its
-            # transpose at (jj_b, k) (M_ba = M_ab^T) and -Y_b Ad_b at (k, k) (one [pairs] and one [edges] 6x6
-            # product instead of three [pairs] ones, and a third of the blocks to scatter)
-            M = _pair_blocks(ch, B).double()  # [pairs, 6, 6]
-            Y = torch.zeros(m, 6, 6, dtype=M.dtype, device=M.device).index_add_(0, ch.pb, torch.bmm(AdT[ch.pa], M))
-            blocks += [-M, Y, Y.transpose(1, 2), -torch.bmm(Y, Ad[:m])]
+        blocks, q = pose_blocks(ch, Hjj, q, Ad, B, sC, wd)
     return blocks, q, Ad, Cinv, wd, (B if want_B else None)
+
+
+def pose_blocks(ch: Chunk, Hjj: torch.Tensor, q: torch.Tensor, Ad: torch.Tensor, B: Optional[torch.Tensor], sC,
+                wd) -> tuple[list, torch.Tensor]:
+    """The chunk's ``6 x 6`` blocks aligned with ``ch.H_sel`` and its reduced gradients ``q [Ec, 6]`` (float64)
+    from each edge's ``Hjj = J^T W J``, ``q = J^T W r`` (d / d xi_j), the adjoints ``Ad [Ec, 6, 6]`` and, for a
+    chunk with depth unknowns, its depth rows ``B`` (:func:`depth_rows`), ``sC = C^-1/2`` and ``wd``."""
+    m = ch.n_src
+    AdT = Ad.transpose(1, 2)
+    Hij = -torch.bmm(AdT, Hjj)
+    blocks = [-torch.bmm(Hij, Ad), Hjj, Hij, Hij.transpose(1, 2)]
+    if B is not None:
+        # g_e = sum_p Ej C^-1 w:  reduced gradients v[jj] -= g, v[ii] += Ad^T g
+        g = rowvec((sC * wd)[ch.ls], B).double()
+        q = torch.cat([q[:m] - g, q[m:]])
+        # M_ab = sum_p Ej_a C^-1 Ej_b^T for all pairs of edges of one source k; with Ei = -Ej Ad the pair adds
+        # -M_ab at (jj_a, jj_b), Ad_a^T M_ab at (k, jj_b), M_ab Ad_b at (jj_a, k), -Ad_a^T M_ab Ad_b at (k, k).
+        # The last three are summed per edge before scattering: Y_b = sum_a Ad_a^T M_ab at (k, jj_b), its
+        # transpose at (jj_b, k) (M_ba = M_ab^T) and -Y_b Ad_b at (k, k) (one [pairs] and one [edges] 6x6
+        # product instead of three [pairs] ones, and a third of the blocks to scatter)
+        M = _pair_blocks(ch, B).double()  # [pairs, 6, 6]
+        Y = torch.zeros(m, 6, 6, dtype=M.dtype, device=M.device).index_add_(0, ch.pb, torch.bmm(AdT[ch.pa], M))
+        blocks += [-M, Y, Y.transpose(1, 2), -torch.bmm(Y, Ad[:m])]
+    return blocks, q
 
 
 def backsub_chunk(ch: Chunk, B: torch.Tensor, Ad: torch.Tensor, xi_full: torch.Tensor, Cinv: torch.Tensor,
