@@ -6,7 +6,7 @@ Two profiles set the defaults of the fields left at ``None`` (:meth:`RaftGruConf
   ``iters2``), every observed edge updated in every round, float32, stored correlation volumes.
 * ``fast``: the CPU profile - 2 rounds per keyframe, only the edges touching the newest ``update_window`` keyframes
   get a GRU update (the others keep their last target and weight, exactly like DROID's inactive-edge store), bf16
-  autocast.  Same network, same semantics per update; fewer of them.
+  autocast where the CPU computes bf16 natively (fp32 elsewhere).  Same network, same semantics per update; fewer of them.
 
 Units: flow thresholds are in pixels at the BA resolution (1/8 of the image: DROID's 1/8 feature resolution).
 """
@@ -71,8 +71,9 @@ class RaftGruConfig(PluginConfig):
         None, ge=1, le=16, description="observe -> BA rounds per new keyframe (Frontend.rounds); null = profile "
         "(droid 6 = DROID's iters1 4 + iters2 2; fast 2)")
     precision: Optional[Literal["fp32", "bf16"]] = Field(
-        None, description="network arithmetic: fp32, or bf16 autocast (CPUs with avx512_bf16/AMX: ~2-3x faster; "
-        "fp16 autocast on CUDA, as DROID); null = profile")
+        None, description="network arithmetic: fp32, or bf16 autocast (faster on CPUs with avx512_bf16 / AMX; on "
+        "other CPUs the network runs in fp32, as bf16 would be far slower there; fp16 autocast on CUDA, as DROID); "
+        "null = profile")
     update_window: Optional[int] = Field(
         None, ge=0, description="only edges with an end among the newest N keyframes (and new edges) get a GRU "
         "update per observe; the others return their last target/weight; 0 = every edge (DROID); null = profile")

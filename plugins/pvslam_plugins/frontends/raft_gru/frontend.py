@@ -54,7 +54,8 @@ from .edge_step import (droid_weight, keyframe_segments, motion_input, pvo_dynam
                         source_segments)
 from .encoders import STRIDE
 from .frontend_state import (  # noqa: F401  (DAMPING_INIT, STAGES, RandomWeightsWarning: re-exported)
-    DAMPING_INIT, STAGES, EdgeState, KeyframeState, RandomWeightsWarning, StageStats, load_network)
+    DAMPING_INIT, STAGES, EdgeState, KeyframeState, RandomWeightsWarning, StageStats, effective_precision,
+    load_network)
 from .net import RaftGruNet
 from .update import GateContext
 from .upsample import upsample_disp
@@ -82,7 +83,7 @@ class RaftGruFrontend(Frontend):
         if self.cfg.variant is not None and self.cfg.variant != self.variant:
             raise ValueError(f"raft_gru: variant={self.cfg.variant!r} but the network is {self.variant!r}")
         self.rounds = int(self.cfg.resolved("rounds"))
-        self.precision = self.cfg.resolved("precision")
+        self.precision = effective_precision(self.cfg.resolved("precision"), self.device)
         self.update_window = int(self.cfg.resolved("update_window"))
         self.corr_impl = self.cfg.resolved("corr_impl")
         vt = self.cfg.dynamic.vote_thresh

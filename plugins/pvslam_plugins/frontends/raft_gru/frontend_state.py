@@ -27,6 +27,24 @@ class RandomWeightsWarning(UserWarning):
     """``weights = None``: the network is randomly initialised and its flow is meaningless."""
 
 
+def cpu_bf16_native() -> bool:
+    """Whether this CPU computes bf16 convolutions natively (avx512_bf16 / AMX, through oneDNN).  Without it torch
+    runs a bf16 convolution through its reference loops, tens of times slower than fp32."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # pragma: no cover - a torch without the query: fp32 is always right
+        return False
+
+
+def effective_precision(precision: str, device: torch.device) -> str:
+    """The arithmetic the network runs in: ``precision``, except bf16 on a CPU without native bf16 runs in fp32
+    (logged), so that the CPU profile never makes the network slower than the reference."""
+    if precision == "bf16" and device.type == "cpu" and not cpu_bf16_native():
+        LOG.warning("raft_gru: this CPU has no native bf16 (avx512_bf16 / AMX): the network runs in fp32")
+        return "fp32"
+    return precision
+
+
 def load_network(cfg: RaftGruConfig, device: Any = "cpu") -> RaftGruNet:
     """The network a config asks for (eval mode, on ``device``); see ``RaftGruConfig.weights``."""
     from .checkpoint import load_model

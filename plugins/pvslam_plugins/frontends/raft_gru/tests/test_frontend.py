@@ -15,6 +15,7 @@ from pvslam_core.slam.graph import FrameGraph
 from pvslam_core.types import EdgeObservations, Frame, Intrinsics, PanopticSegmentation, Segment
 from pvslam_plugins.frontends.raft_gru import CorrVolume, RaftGruNet, coords_grid, upsample_disp
 from pvslam_plugins.frontends.raft_gru.config import RaftGruConfig
+from pvslam_plugins.frontends.raft_gru import frontend_state
 from pvslam_plugins.frontends.raft_gru.frontend import DAMPING_INIT, RaftGruFrontend, RandomWeightsWarning
 from pvslam_plugins.frontends.raft_gru.net import droid_motion
 from pvslam_core.slam.confidence import panoptic_aware_weight
@@ -328,8 +329,24 @@ def test_config_dynamic_table_and_old_keys():
             RaftGruConfig(weights="random", **{key: other})
 
 
-def test_corr_impls_agree_and_bf16_is_close(net, rgb):
-    """The memory-light on-the-fly lookup gives the stored volume's numbers; bf16 autocast stays near fp32."""
+def test_bf16_runs_only_where_the_cpu_computes_it_natively(net, monkeypatch, caplog):
+    """The fast profile's bf16 falls back to fp32 on a CPU without native bf16 (there torch's reference loops make a
+    bf16 convolution tens of times slower than fp32), with a warning; fp32 configs and native CPUs are unchanged."""
+    assert isinstance(frontend_state.cpu_bf16_native(), bool)  # the real query answers on this machine
+    monkeypatch.setattr(frontend_state, "cpu_bf16_native", lambda: False)
+    with caplog.at_level("WARNING", logger="pvslam.frontend.raft_gru"):
+        assert frontend(net, profile="fast").precision == "fp32"
+    assert "no native bf16" in caplog.text
+    assert frontend(net, profile="droid").precision == "fp32"
+    monkeypatch.setattr(frontend_state, "cpu_bf16_native", lambda: True)
+    assert frontend(net, profile="fast").precision == "bf16"
+    assert frontend_state.effective_precision("bf16", torch.device("cuda")) == "bf16"  # autocast on CUDA: its own
+
+
+def test_corr_impls_agree_and_bf16_is_close(net, rgb, monkeypatch):
+    """The memory-light on-the-fly lookup gives the stored volume's numbers; bf16 autocast stays near fp32 (bf16
+    forced on CPUs without native bf16, so that its arithmetic is tested everywhere)."""
+    monkeypatch.setattr(frontend_state, "cpu_bf16_native", lambda: True)
     ii, jj = torch.tensor([0, 1, 2, 1]), torch.tensor([1, 2, 0, 0])
     out = {}
     for name, kw in (("volume", {"corr_impl": "volume"}), ("onthefly", {"corr_impl": "onthefly"}),
