@@ -6,7 +6,8 @@ Two profiles set the defaults of the fields left at ``None`` (:meth:`RaftGruConf
   ``iters2``), every observed edge updated in every round, float32, stored correlation volumes.
 * ``fast``: the CPU profile - 2 rounds per keyframe, only the edges touching the newest ``update_window`` keyframes
   get a GRU update (the others keep their last target and weight, exactly like DROID's inactive-edge store), bf16
-  autocast where the CPU computes bf16 natively (fp32 elsewhere).  Same network, same semantics per update; fewer of them.
+  autocast where the CPU computes bf16 natively (fp32 elsewhere).  Same network, same semantics per update; fewer of
+  them.
 
 Units: flow thresholds are in pixels at the BA resolution (1/8 of the image: DROID's 1/8 feature resolution).
 """

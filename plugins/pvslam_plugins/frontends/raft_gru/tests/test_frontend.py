@@ -13,9 +13,8 @@ from pvslam_core.geometry.lie import se3_exp
 from pvslam_core.geometry.projective import reproject
 from pvslam_core.slam.graph import FrameGraph
 from pvslam_core.types import EdgeObservations, Frame, Intrinsics, PanopticSegmentation, Segment
-from pvslam_plugins.frontends.raft_gru import CorrVolume, RaftGruNet, coords_grid, upsample_disp
+from pvslam_plugins.frontends.raft_gru import CorrVolume, RaftGruNet, coords_grid, frontend_state, upsample_disp
 from pvslam_plugins.frontends.raft_gru.config import RaftGruConfig
-from pvslam_plugins.frontends.raft_gru import frontend_state
 from pvslam_plugins.frontends.raft_gru.frontend import DAMPING_INIT, RaftGruFrontend, RandomWeightsWarning
 from pvslam_plugins.frontends.raft_gru.net import droid_motion
 from pvslam_core.slam.confidence import panoptic_aware_weight
