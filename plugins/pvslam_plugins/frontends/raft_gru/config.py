@@ -72,9 +72,8 @@ class RaftGruConfig(PluginConfig):
         None, ge=1, le=16, description="observe -> BA rounds per new keyframe (Frontend.rounds); null = profile "
         "(droid 6 = DROID's iters1 4 + iters2 2; fast 2)")
     precision: Optional[Literal["fp32", "bf16"]] = Field(
-        None, description="network arithmetic: fp32, or bf16 autocast (faster on CPUs with avx512_bf16 / AMX; on "
-        "other CPUs the network runs in fp32, as bf16 would be far slower there; fp16 autocast on CUDA, as DROID); "
-        "null = profile")
+        None, description="network arithmetic: fp32, or bf16 autocast (faster on CPUs with avx512_bf16 / AMX; other "
+        "CPUs run fp32, bf16 being far slower there; fp16 autocast on CUDA, as DROID); null = profile")
     update_window: Optional[int] = Field(
         None, ge=0, description="only edges with an end among the newest N keyframes (and new edges) get a GRU "
         "update per observe; the others return their last target/weight; 0 = every edge (DROID); null = profile")
