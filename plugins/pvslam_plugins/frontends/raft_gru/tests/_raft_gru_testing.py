@@ -6,8 +6,7 @@ import torch
 # Fixture README "Observed tolerances": per-op recomputation spread <= 6e-6; the target is <= 1e-5 absolute.
 ATOL = 1e-5
 # ... and about 1e-4 for a whole chain of ops computed in another order: the encoders' outputs (a dozen convolutions
-# and norms) differ by ~2e-5 from the fixture on a CPU whose convolution kernels sum in another order than the
-# machine that recorded it.
+# and norms) on a CPU whose convolution kernels sum in another order than the machine that recorded the fixture.
 CHAIN_ATOL = 1e-4
 ETA_RTOL = 1e-5  # eta is O(1e-2): compared relatively
 
