@@ -277,16 +277,17 @@ class RoadPlane:
 
 class RoadChain:
     """Each keyframe's camera pose relative to the road, chained from the plane motions found while tracking: a
-    rotation and a translation in units of the camera height, in the frame of the chain's first keyframe.  The
-    ``prior`` of a pair far apart is their relative ``v = t_b - R_ab t_a`` (translations compose like the
+    rotation and a translation in units of the camera height, in the frame of the keyframe that began the chain.
+    The ``prior`` of a pair far apart is their relative ``v = t_b - R_ab t_a`` (translations compose like the
     keyframes' positions because the camera height is the same all along).  A keyframe tracked without a plane
     motion (none found, and no velocity to bridge with) starts a new chain; pairs in different chains have no
-    prior.  A removed keyframe's pose is kept (the newest ``keep`` of them): a frame tracked against a keyframe
+    prior.  A chain may also grow backwards (:meth:`prepend`, ``RoadPrior.extend_back``).  A removed keyframe's pose is kept (the newest ``keep`` of them): a frame tracked against a keyframe
     that the map then dropped still chains through it."""
 
     def __init__(self, keep: int = 256):
         self._pose: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # kf id -> (chain, rot [3, 3], trans [3])
         self._removed: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # the same, of removed keyframes
+        self._first: dict[int, int] = {}  # chain -> its first keyframe's id
         self._keep = int(keep)
         self._chains = 0
 
@@ -295,6 +296,7 @@ class RoadChain:
         if ref_id is None or v is None or R is None:
             self._chains += 1
             self._pose[kf_id] = (self._chains, np.eye(3), np.zeros(3))
+            self._first[self._chains] = kf_id
             return
         ref = self._pose.get(ref_id, self._removed.get(ref_id))
         if ref is None:
@@ -302,6 +304,25 @@ class RoadChain:
             return
         c, rot, tr = ref
         self._pose[kf_id] = (c, R @ rot, R @ tr + v)
+
+    def prepend(self, kf_id: int, next_id: int, R: np.ndarray, v: np.ndarray) -> None:
+        """Keyframe ``kf_id``, the first of a chain of its own, joins the chain of ``next_id`` (that chain's first
+        keyframe) before it, with ``(R, v)`` the plane motion ``kf_id -> next_id``: ``next`` is ``(R rot, R tr + v)``
+        of ``kf_id``'s pose ``(rot, tr)``, solved for it."""
+        c, rot, tr = self._pose[next_id]
+        self._first.pop(self._pose[kf_id][0], None)
+        self._pose[kf_id] = (c, R.T @ rot, R.T @ (tr - v))
+        self._first[c] = kf_id
+
+    def first(self, kf_id: int) -> bool:
+        """Whether keyframe ``kf_id`` is the first of its chain."""
+        pose = self._pose.get(kf_id)
+        return pose is not None and self._first.get(pose[0]) == kf_id
+
+    def same(self, a: int, b: int) -> bool:
+        """Whether keyframes ``a`` and ``b`` are in one chain."""
+        pa, pb = self._pose.get(a), self._pose.get(b)
+        return pa is not None and pb is not None and pa[0] == pb[0]
 
     def remove(self, kf_id: int) -> None:
         pose = self._pose.pop(kf_id, None)

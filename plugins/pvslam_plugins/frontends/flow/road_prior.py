@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from typing import Optional
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -71,6 +71,10 @@ ROAD_DIST_LOOKBACK = 64  # ... its three pairs among this many newest keyframes 
 # docs/decisions.md: ROAD_BACKOFF_AFTER)
 ROAD_BACKOFF_AFTER = 8
 ROAD_BACKOFF_MAX = 8  # ... at most this many: a road coming into view is found within 9 frames (0.3 s at 30 Hz)
+# when the tracking's first plane motion begins a chain, the keyframes before it that have none (the plane from
+# scratch lost to DIS's flow, as on a highway's first frames) are searched backwards from its velocity, so the distance
+# prior holds the map's first stretch too (docs/decisions.md: ROAD_BACKWARD)
+ROAD_BACKWARD = True
 
 RoadMotion = tuple[Optional[np.ndarray], Optional[np.ndarray]]  # (rotation [3, 3], plane motion v [3]) of a frame
 
@@ -190,6 +194,38 @@ class RoadPrior:
             if keep.any():
                 self._weights[sid] = torch.from_numpy(np.where(keep, wsum / np.maximum(frac, 1e-6), 0.0)
                                                       .astype(np.float32))
+
+    def extend_back(self, sid: int, gray_of: Callable[[int], np.ndarray], graph) -> int:
+        """``ROAD_BACKWARD``: when keyframe ``sid`` has just joined the keyframe before it, the first of a new chain,
+        the consecutive keyframes before that one that begin chains of their own (at most ``ROAD_MAX_GAP`` frames
+        apart) join it, newest first, each through a search from the chain's velocity with the map's rotation (kept
+        only near that prior, as a tracking search from the velocity).  ``gray_of(kf id)``: a keyframe's gray image;
+        ``graph``: the map the rotations come from.  Returns how many joined."""
+        if not ROAD_BACKWARD or self._vel is None or graph is None or self._K_flow is None:
+            return 0
+        order = list(self._frames)  # kf ids in time order
+        k = order.index(sid)
+        if k < 2 or not (self._chain.first(order[k - 1]) and self._chain.same(order[k - 1], sid)):
+            return 0
+        joined, ref = 0, order[k - 1]
+        for p in reversed(order[:k - 1]):
+            gap = self._frames[ref] - self._frames[p]
+            if not (0 < gap <= ROAD_MAX_GAP and self._chain.first(p)) or self._chain.same(p, ref):
+                break
+            try:
+                two = graph.poses[[graph.index_of(p), graph.index_of(ref)]].detach().double().cpu()
+            except KeyError:  # not in the map (anymore)
+                break
+            R = edge_transforms(two, torch.tensor([0]), torch.tensor([1]))[0][0].numpy()
+            prior = self._vel[1] * gap
+            found = self._plane.search(gray_of(p), gray_of(ref), self._K_flow, R, prior)
+            if found is None or not np.linalg.norm(found[0] - prior) <= self._plane.prior_tol * np.linalg.norm(prior):
+                break
+            self._chain.prepend(p, ref, R, found[0])
+            joined, ref = joined + 1, p
+        if joined:
+            LOG.info("road plane: %d earlier keyframes joined the road's chain backwards", joined)
+        return joined
 
     def remove_keyframe(self, kf_id: int) -> None:
         self._frames.pop(kf_id, None)
