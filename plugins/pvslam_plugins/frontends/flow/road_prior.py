@@ -26,7 +26,9 @@ them are ``h |v|`` apart (``v``: the road's translation in camera heights; ``h``
 motion over the road's alone), a BA prior on the distance between their camera centres
 (:meth:`RoadPrior.distance_prior`).  On a highway the keyframes are several metres apart and the near road, whose
 flow tells the speed, has left the view by the next keyframe: no keyframe edge holds the scale there, and the road
-depth never agrees with the motion (the gate above stays closed), but the frame-to-frame plane motions do.
+depth never agrees with the motion (the gate above stays closed), but the frame-to-frame plane motions do.  The
+keyframes tracked before the road was first found join its chain backwards, each searched from the chain's velocity
+(:meth:`RoadPrior.extend_back`), so the map's first stretch does not keep the initialisation's scale.
 
 :class:`RoadPrior` owns the search's state across frames (the plane velocity, the back-off, the chain of road poses),
 the keyframes' road pixels and the measured camera heights.  Gray images and flows are at the flow resolution.
