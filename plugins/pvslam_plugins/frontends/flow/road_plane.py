@@ -281,8 +281,9 @@ class RoadChain:
     The ``prior`` of a pair far apart is their relative ``v = t_b - R_ab t_a`` (translations compose like the
     keyframes' positions because the camera height is the same all along).  A keyframe tracked without a plane
     motion (none found, and no velocity to bridge with) starts a new chain; pairs in different chains have no
-    prior.  A chain may also grow backwards (:meth:`prepend`, ``RoadPrior.extend_back``).  A removed keyframe's pose is kept (the newest ``keep`` of them): a frame tracked against a keyframe
-    that the map then dropped still chains through it."""
+    prior.  A chain may also grow backwards (:meth:`prepend`, ``RoadPrior.extend_back``).  A removed keyframe's pose
+    is kept (the newest ``keep`` of them): a frame tracked against a keyframe that the map then dropped still chains
+    through it."""
 
     def __init__(self, keep: int = 256):
         self._pose: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # kf id -> (chain, rot [3, 3], trans [3])
