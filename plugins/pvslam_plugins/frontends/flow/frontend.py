@@ -285,8 +285,7 @@ class FlowFrontend(Frontend):
         self._kfs[sid] = _Keyframe(gray=p.gray, frame_index=frame.index)
         if self.road is not None:
             self.road.add_keyframe(sid, frame.index, p.last_sid, p.road, p.plane, p.ba_shape)
-            if p.road is not None and p.road[1] is not None:
-                self.road.extend_back(sid, lambda k: self._kfs[k].gray, self._graph)
+            self.road.extend_back(sid, p.last_sid, lambda k: self._kfs[k].gray, self._graph)
         if self.masking is not None:
             self.masking.add_keyframe(sid, seg, h, w, p.last_sid, None if p.fwd is None else p.fwd[0])
         self._pending = None

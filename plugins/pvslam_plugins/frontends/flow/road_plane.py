@@ -136,6 +136,10 @@ class RoadPlane:
                     break
         return v, cost
 
+    def near_prior(self, v: np.ndarray, prior: np.ndarray) -> bool:
+        """Whether a search from ``prior`` stayed near it (within ``prior_tol`` of its length)."""
+        return bool(np.linalg.norm(v - prior) <= self.prior_tol * max(np.linalg.norm(prior), 1e-9))
+
     def _grid_starts(self, g1f: np.ndarray, K: np.ndarray, level) -> list[np.ndarray]:
         """The best few distinct candidates of a grid: |v| on a log scale along -z (forward) and +z (reversing,
         straight only), the direction within ~7 deg of the optical axis.  The cost is noisy every 4th pixel of
@@ -257,7 +261,7 @@ class RoadPlane:
             if not cost < self._dis_cost(g0, g1, fwd, r0)[0]:
                 self.stats["worse_than_dis"] += 1
                 return none
-        elif not np.linalg.norm(v - prior) <= self.prior_tol * max(np.linalg.norm(prior), 1e-9):
+        elif not self.near_prior(v, prior):
             # from a prior (a pair far apart: its rows near the horizon are mostly not road, where DIS's flow is
             # right and the plane's is not, so the comparison above would reject the road too) it must stay near it
             self.stats["left_prior"] += 1

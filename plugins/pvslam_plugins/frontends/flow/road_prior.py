@@ -197,31 +197,29 @@ class RoadPrior:
                 self._weights[sid] = torch.from_numpy(np.where(keep, wsum / np.maximum(frac, 1e-6), 0.0)
                                                       .astype(np.float32))
 
-    def extend_back(self, sid: int, gray_of: Callable[[int], np.ndarray], graph) -> int:
-        """``ROAD_BACKWARD``: when keyframe ``sid`` has just joined the keyframe before it, the first of a new chain,
-        the consecutive keyframes before that one that begin chains of their own (at most ``ROAD_MAX_GAP`` frames
-        apart) join it, newest first, each through a search from the chain's velocity with the map's rotation (kept
-        only near that prior, as a tracking search from the velocity).  ``gray_of(kf id)``: a keyframe's gray image;
-        ``graph``: the map the rotations come from.  Returns how many joined."""
+    def extend_back(self, sid: int, ref: Optional[int], gray_of: Callable[[int], np.ndarray], graph) -> int:
+        """``ROAD_BACKWARD``: when keyframe ``sid`` has just joined its tracking reference ``ref``, the first of a new
+        chain, the consecutive keyframes before ``ref`` that begin chains of their own (at most ``ROAD_MAX_GAP``
+        frames apart) join it, newest first, each through a search from the chain's velocity with the map's rotation
+        (kept only near that prior, as a tracking search from the velocity).  ``gray_of(kf id)``: a keyframe's gray
+        image; ``graph``: the map the rotations come from.  Returns how many joined."""
         if not ROAD_BACKWARD or self._vel is None or graph is None or self._K_flow is None:
             return 0
-        order = list(self._frames)  # kf ids in time order
-        k = order.index(sid)
-        if k < 2 or not (self._chain.first(order[k - 1]) and self._chain.same(order[k - 1], sid)):
+        if ref is None or not (self._chain.first(ref) and self._chain.same(ref, sid)):
             return 0
-        joined, ref = 0, order[k - 1]
-        for p in reversed(order[:k - 1]):
+        order = list(self._frames)  # kf ids in time order
+        joined = 0
+        for p in reversed(order[:order.index(ref)]):
             gap = self._frames[ref] - self._frames[p]
             if not (0 < gap <= ROAD_MAX_GAP and self._chain.first(p)) or self._chain.same(p, ref):
                 break
             try:
-                two = graph.poses[[graph.index_of(p), graph.index_of(ref)]].detach().double().cpu()
+                R = _map_rotation(graph, graph.index_of(p), graph.index_of(ref))
             except KeyError:  # not in the map (anymore)
                 break
-            R = edge_transforms(two, torch.tensor([0]), torch.tensor([1]))[0][0].numpy()
             prior = self._vel[1] * gap
             found = self._plane.search(gray_of(p), gray_of(ref), self._K_flow, R, prior)
-            if found is None or not np.linalg.norm(found[0] - prior) <= self._plane.prior_tol * np.linalg.norm(prior):
+            if found is None or not self._plane.near_prior(found[0], prior):
                 break
             self._chain.prepend(p, ref, R, found[0])
             joined, ref = joined + 1, p
@@ -380,7 +378,12 @@ class RoadPrior:
         gap = self._frames[b] - self._frames[a]
         if gap <= 0:
             return np.eye(3)
-        two = graph.poses[[ia, ib]].detach().double().cpu()  # only these two (a copy of every pose costs O(N) a frame)
-        R_ab = edge_transforms(two, torch.tensor([0]), torch.tensor([1]))[0][0]
-        rvec = cv2.Rodrigues(R_ab.numpy())[0] * ((index - self._frames[b]) / gap)
+        rvec = cv2.Rodrigues(_map_rotation(graph, ia, ib))[0] * ((index - self._frames[b]) / gap)
         return cv2.Rodrigues(rvec)[0]
+
+
+def _map_rotation(graph, ia: int, ib: int) -> np.ndarray:
+    """The map's rotation ``[3, 3]`` from keyframe ``ia``'s camera to ``ib``'s (graph indices; only these two poses
+    are copied: a copy of every pose would cost O(N) a frame)."""
+    two = graph.poses[[ia, ib]].detach().double().cpu()
+    return edge_transforms(two, torch.tensor([0]), torch.tensor([1]))[0][0].numpy()
