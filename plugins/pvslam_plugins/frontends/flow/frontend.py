@@ -47,7 +47,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 import torch
@@ -111,7 +111,9 @@ class _Tracked:
     flows: Optional[tuple[np.ndarray, np.ndarray]] = None  # the DIS flows (fwd, bwd) [Hf, Wf, 2]
     ba_shape: Optional[tuple[int, int]] = None
     road: Optional[RoadMotion] = None  # the road plane's motion (RoadPrior.track)
-    plane: Plane = None  # the road plane's pixels in the frame (the backward direction)
+    # the road plane's pixels in the frame (the backward direction; as RoadPrior.track returns them, a function:
+    # their verification runs only if the frame becomes a keyframe)
+    plane: Union[Plane, Callable[[], Plane]] = None
 
 
 class FlowFrontend(Frontend):
@@ -276,15 +278,16 @@ class FlowFrontend(Frontend):
         p = pend if pend is not None else _Tracked(frame.index, self.pairs.gray(frame.image))
         h, w = self._ba_shape_for(frame)
         sid = int(kf_id)
+        plane = p.plane() if callable(p.plane) else p.plane
         if p.last_sid is not None and REUSE_TRACK_FLOW and p.last_sid == self._last_id():
             a = p.last_sid
             (tf, wf), (fwd, bwd) = p.fwd, p.flows
-            tb, wb, _ = self.pairs.direction(p.gray, self._kfs[a].gray, bwd, fwd, *p.ba_shape, p.plane)
+            tb, wb, _ = self.pairs.direction(p.gray, self._kfs[a].gray, bwd, fwd, *p.ba_shape, plane)
             self._put_edge((a, sid), tf, wf)
             self._put_edge((sid, a), tb, wb)
         self._kfs[sid] = _Keyframe(gray=p.gray, frame_index=frame.index)
         if self.road is not None:
-            self.road.add_keyframe(sid, frame.index, p.last_sid, p.road, p.plane, p.ba_shape)
+            self.road.add_keyframe(sid, frame.index, p.last_sid, p.road, plane, p.ba_shape)
             self.road.extend_back(sid, p.last_sid, lambda k: self._kfs[k].gray, self._graph)
         if self.masking is not None:
             self.masking.add_keyframe(sid, seg, h, w, p.last_sid, None if p.fwd is None else p.fwd[0])

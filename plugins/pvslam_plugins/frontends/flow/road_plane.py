@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from . import flow_ops as F
+from . import road_kernels
 
 _N = np.array([0.0, 1.0, 0.0])  # ground normal in the camera frame (x right, y down, z forward)
 _REMAP_MAX = 32766  # cv2.remap asserts that each side of its maps is below SHRT_MAX
@@ -110,14 +111,11 @@ class RoadPlane:
         A, B, ref, _ = level
         H, W = g1f.shape
         KV = (V @ K.T).astype(np.float32)  # [M, 3]
-        z = A[2][None] + KV[:, 2:3] * B[None]  # [M, N]
-        inv = np.reciprocal(np.where(z > 1e-6, z, np.float32(np.nan)))
-        mx = (A[0][None] + KV[:, 0:1] * B[None]) * inv
-        my = (A[1][None] + KV[:, 1:2] * B[None]) * inv
-        inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)  # NaN (behind the camera) compares False
+        # [M, N] each: x, y = (A + KV B) / z for z > 1e-6, else NaN (behind the camera), and inside the image
+        mx, my, inside = road_kernels.candidate_maps(A, B, KV, np.float32(W - 1), np.float32(H - 1))
         s = _remap(g1f, mx, my, cv2.BORDER_CONSTANT)
         n_in = inside.sum(1)
-        c = np.where(inside, np.abs(s - ref[None]), 0.0).sum(1) / np.maximum(n_in, 1)
+        c = road_kernels.masked_abs_diff(s, ref, inside).sum(1) / np.maximum(n_in, 1)
         return np.where(n_in >= self.min_inside * B.size, c, np.inf)
 
     def _pattern(self, g1f: np.ndarray, K: np.ndarray, v: np.ndarray, level, step0: float) -> tuple[np.ndarray, float]:
@@ -240,7 +238,7 @@ class RoadPlane:
         return (float(d[inside].mean()) if inside.any() else np.inf), inside
 
     def apply(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, K: np.ndarray, R: np.ndarray,
-              prior: Optional[np.ndarray] = None, verify: Optional[Callable] = None):
+              prior: Optional[np.ndarray] = None, verify: Optional[Callable] = None, defer_backward: bool = False):
         """Both DIS flows of a pair with the road's plane flow merged in: ``(fwd, bwd, use_f, use_b, v, res_f,
         res_b)``; the flows unchanged and the rest None when no plane was found or it explains its rows worse
         than DIS's flow does (its mean brightness residual over the searched rows that stay in view).
@@ -250,7 +248,9 @@ class RoadPlane:
         so a forward-backward check cannot tell a wrong plane pixel (a curb, a parked car's flank, a plane from
         a poor prior); instead DIS runs between ``g0`` and ``g1`` warped into ``g0``'s view by the merged flow:
         where that flow is right, the views agree and DIS finds ~0.  ``res_f`` / ``res_b`` are the lengths of
-        those residual flows (flow px, float32 [H, W]; None without ``verify``)."""
+        those residual flows (flow px, float32 [H, W]; None without ``verify``).  ``defer_backward``: ``res_b`` is
+        a function that runs the backward verification when called (a tracked frame needs it only if it becomes a
+        keyframe)."""
         none = (fwd, bwd, None, None, None, None, None)
         found = self.search(g0, g1, K, R, prior)
         if found is None:
@@ -274,8 +274,14 @@ class RoadPlane:
         self.stats["accepted"] += 1
         res_f = res_b = None
         if verify is not None:
-            rf, rb = verify([(g0, _warp(g1, fwd2)), (g1, _warp(g0, bwd2))])
-            res_f, res_b = np.linalg.norm(rf, axis=-1), np.linalg.norm(rb, axis=-1)
+            def residual(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarray:
+                return road_kernels.flow_length(verify([(a, _warp(b, flow))])[0])
+
+            if defer_backward:
+                res_f, res_b = residual(g0, g1, fwd2), functools.partial(residual, g1, g0, bwd2)
+            else:
+                rf, rb = verify([(g0, _warp(g1, fwd2)), (g1, _warp(g0, bwd2))])
+                res_f, res_b = road_kernels.flow_length(rf), road_kernels.flow_length(rb)
         return fwd2, bwd2, use_f, use_b, v, res_f, res_b
 
 

@@ -93,6 +93,7 @@ class RoadPrior:
         self._chain = RoadChain()  # the keyframes' poses relative to the road (priors of pairs far apart)
         self._vel: Optional[tuple[int, np.ndarray]] = None  # (frame index, plane motion per frame) last tracked
         self._K_flow: Optional[np.ndarray] = None  # K at the flow resolution, from the first tracked frame
+        self._rotation = _MapRotation()  # the tracking's predicted rotation reads it every frame
         self._weights: dict[int, torch.Tensor] = {}  # kf id -> float32 [h, w] weight of its road pixels (BA res)
         self.height: Optional[float] = None  # the camera height in map units for the depth prior, once measured
         # the depth prior's gate: its measurements (keyframes, by motion, by depth), the newest 64; how many there were
@@ -113,13 +114,13 @@ class RoadPrior:
 
     # ------------------------------------------------------------------------------------------ flows --
     def merge(self, g0: np.ndarray, g1: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, R: Optional[np.ndarray],
-              prior: Optional[np.ndarray] = None, lanes: bool = False):
+              prior: Optional[np.ndarray] = None, lanes: bool = False, defer_backward: bool = False):
         """A pair's DIS flows with the road plane's flow merged in: ``(fwd, bwd, v, plane_f, plane_b)``, ``v`` the
         plane motion and per direction the plane's pixels for :meth:`.FlowPairs.direction`; unchanged and Nones
         without a rotation ``R`` or an accepted plane.  ``lanes``: the verification's two DIS calls run on both
         lanes (only from the pipeline thread: an edge job already runs on a lane, and a nested map there would wait
         on the worker it occupies); each lane's DIS objects give the same flow, so the result does not depend on
-        it."""
+        it.  ``defer_backward``: ``plane_b`` is a function that computes it (its verification runs when called)."""
         if self._K_flow is None or R is None:
             return fwd, bwd, None, None, None
         verify = None
@@ -129,18 +130,26 @@ class RoadPrior:
                 p = self._pairs
                 out = p.map(p.lane_flow, calls) if lanes else [p.lane_flow(c) for c in calls]
                 return [f for f, _ in out]
-        f, b, use_f, use_b, v, res_f, res_b = self._plane.apply(g0, g1, fwd, bwd, self._K_flow, R, prior, verify)
+        f, b, use_f, use_b, v, res_f, res_b = self._plane.apply(g0, g1, fwd, bwd, self._K_flow, R, prior, verify,
+                                                                defer_backward)
         if v is None or res_f is None:  # (without verification the texture term weighs the plane's pixels too)
             return f, b, v, None, None
         s2 = 2.0 * self._pairs.sigma ** 2
-        return f, b, v, (use_f, np.exp(-res_f ** 2 / s2).astype(np.float32)), \
-            (use_b, np.exp(-res_b ** 2 / s2).astype(np.float32))
+
+        def weight(res: np.ndarray) -> np.ndarray:
+            return np.exp(-res ** 2 / s2).astype(np.float32)
+
+        if defer_backward:
+            return f, b, v, (use_f, weight(res_f)), lambda: (use_b, weight(res_b()))
+        return f, b, v, (use_f, weight(res_f)), (use_b, weight(res_b))
 
     def track(self, ref_sid: int, g_ref: np.ndarray, ref_index: int, gray: np.ndarray, frame: Frame, fwd: np.ndarray,
               bwd: np.ndarray, graph) -> tuple[np.ndarray, np.ndarray, RoadMotion, tuple[Plane, Plane]]:
         """The tracking flows of ``frame`` (gray ``gray``) against keyframe ``ref_sid`` (gray ``g_ref``, frame
         ``ref_index``) with the road's: ``(fwd, bwd, road, plane)``; ``road = (R, v)`` for the keyframe chain,
-        ``plane`` the directions' road pixels or Nones.  ``graph``: the last one observed (the predicted rotation)."""
+        ``plane`` the directions' road pixels or Nones, the backward one as a function that computes them (its
+        verification is needed only if the frame becomes a keyframe).  ``graph``: the last one observed (the
+        predicted rotation)."""
         if self._K_flow is None:
             i = frame.intrinsics
             self._K_flow = flow_intrinsics(i.fx, i.fy, i.cx, i.cy, gray.shape[1] / frame.width,
@@ -152,9 +161,10 @@ class RoadPrior:
             return fwd, bwd, (None, None), (None, None)  # no plane motion: the keyframe chain starts anew
         R = self._predicted_rotation(graph, ref_sid, frame.index)
         gap = frame.index - ref_index
-        fwd, bwd, v, *plane = self.merge(g_ref, gray, fwd, bwd, R, None if vel is None else vel[1] * gap, lanes=True)
+        fwd, bwd, v, *plane = self.merge(g_ref, gray, fwd, bwd, R, None if vel is None else vel[1] * gap, lanes=True,
+                                         defer_backward=True)
         if v is None and vel is not None:  # the velocity's start did not hold: search from scratch
-            fwd, bwd, v, *plane = self.merge(g_ref, gray, fwd, bwd, R, lanes=True)
+            fwd, bwd, v, *plane = self.merge(g_ref, gray, fwd, bwd, R, lanes=True, defer_backward=True)
         self._misses = 0 if v is not None else self._misses + 1
         if self._misses >= ROAD_BACKOFF_AFTER:
             self._skip = min(2 ** (self._misses - ROAD_BACKOFF_AFTER), ROAD_BACKOFF_MAX)
@@ -378,12 +388,31 @@ class RoadPrior:
         gap = self._frames[b] - self._frames[a]
         if gap <= 0:
             return np.eye(3)
-        rvec = cv2.Rodrigues(_map_rotation(graph, ia, ib))[0] * ((index - self._frames[b]) / gap)
+        rvec = cv2.Rodrigues(self._rotation(graph, ia, ib))[0] * ((index - self._frames[b]) / gap)
         return cv2.Rodrigues(rvec)[0]
+
+
+class _MapRotation:
+    """:func:`_map_rotation` that recomputes only when the two poses differ from the last call's (between keyframes
+    the map does not move, and the rotation is the same number)."""
+
+    def __init__(self) -> None:
+        self._last: Optional[tuple[bytes, np.ndarray]] = None
+
+    def __call__(self, graph, ia: int, ib: int) -> np.ndarray:
+        two = graph.poses[[ia, ib]].detach().cpu()
+        key = two.numpy().tobytes()
+        if self._last is None or self._last[0] != key:
+            self._last = (key, _rotation_of(two))
+        return self._last[1]
+
+
+def _rotation_of(two: torch.Tensor) -> np.ndarray:
+    """The rotation ``[3, 3]`` from the first of two poses' cameras to the second's (``[2, 7]``, float64 maths)."""
+    return edge_transforms(two.double(), torch.tensor([0]), torch.tensor([1]))[0][0].numpy()
 
 
 def _map_rotation(graph, ia: int, ib: int) -> np.ndarray:
     """The map's rotation ``[3, 3]`` from keyframe ``ia``'s camera to ``ib``'s (graph indices; only these two poses
     are copied: a copy of every pose would cost O(N) a frame)."""
-    two = graph.poses[[ia, ib]].detach().double().cpu()
-    return edge_transforms(two, torch.tensor([0]), torch.tensor([1]))[0][0].numpy()
+    return _rotation_of(graph.poses[[ia, ib]].detach().cpu())
