@@ -34,7 +34,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .render import render
 from .scenarios import Scenario, revisit_pairs
@@ -64,6 +63,8 @@ def decode_panoptic(rgb: np.ndarray) -> np.ndarray:
 
 def pose_to_tum(T: np.ndarray) -> list[float]:
     """``[tx, ty, tz, qx, qy, qz, qw]`` of a 4x4 pose (quaternion with qw >= 0)."""
+    from scipy.spatial.transform import Rotation  # here: every run registers this plugin, few generate
+
     q = Rotation.from_matrix(T[:3, :3]).as_quat()
     if q[3] < 0:
         q = -q
