@@ -28,7 +28,6 @@ import cv2
 import numpy as np
 
 from . import flow_ops as F
-from . import road_kernels
 
 _N = np.array([0.0, 1.0, 0.0])  # ground normal in the camera frame (x right, y down, z forward)
 _REMAP_MAX = 32766  # cv2.remap asserts that each side of its maps is below SHRT_MAX
@@ -39,6 +38,13 @@ _OFFS = np.concatenate([np.eye(3), -np.eye(3)])  # the pattern search's neighbou
 def flow_intrinsics(fx: float, fy: float, cx: float, cy: float, sx: float, sy: float) -> np.ndarray:
     """``K [3, 3]`` of an image resized by ``(sx, sy)`` (pixel centres kept: ``c' = (c + 0.5) s - 0.5``)."""
     return np.array([[fx * sx, 0.0, (cx + 0.5) * sx - 0.5], [0.0, fy * sy, (cy + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def _kernels():
+    """:mod:`.road_kernels`, imported on first use: numba loads there, not when the plugins register."""
+    from . import road_kernels
+
+    return road_kernels
 
 
 def _warp(g1: np.ndarray, flow: np.ndarray) -> np.ndarray:
@@ -112,10 +118,10 @@ class RoadPlane:
         H, W = g1f.shape
         KV = (V @ K.T).astype(np.float32)  # [M, 3]
         # [M, N] each: x, y = (A + KV B) / z for z > 1e-6, else NaN (behind the camera), and inside the image
-        mx, my, inside = road_kernels.candidate_maps(A, B, KV, np.float32(W - 1), np.float32(H - 1))
+        mx, my, inside = _kernels().candidate_maps(A, B, KV, np.float32(W - 1), np.float32(H - 1))
         s = _remap(g1f, mx, my, cv2.BORDER_CONSTANT)
         n_in = inside.sum(1)
-        c = road_kernels.masked_abs_diff(s, ref, inside).sum(1) / np.maximum(n_in, 1)
+        c = _kernels().masked_abs_diff(s, ref, inside).sum(1) / np.maximum(n_in, 1)
         return np.where(n_in >= self.min_inside * B.size, c, np.inf)
 
     def _pattern(self, g1f: np.ndarray, K: np.ndarray, v: np.ndarray, level, step0: float) -> tuple[np.ndarray, float]:
@@ -275,13 +281,13 @@ class RoadPlane:
         res_f = res_b = None
         if verify is not None:
             def residual(a: np.ndarray, b: np.ndarray, flow: np.ndarray) -> np.ndarray:
-                return road_kernels.flow_length(verify([(a, _warp(b, flow))])[0])
+                return _kernels().flow_length(verify([(a, _warp(b, flow))])[0])
 
             if defer_backward:
                 res_f, res_b = residual(g0, g1, fwd2), functools.partial(residual, g1, g0, bwd2)
             else:
                 rf, rb = verify([(g0, _warp(g1, fwd2)), (g1, _warp(g0, bwd2))])
-                res_f, res_b = road_kernels.flow_length(rf), road_kernels.flow_length(rb)
+                res_f, res_b = _kernels().flow_length(rf), _kernels().flow_length(rb)
         return fwd2, bwd2, use_f, use_b, v, res_f, res_b
 
 
