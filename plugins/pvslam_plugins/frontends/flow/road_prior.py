@@ -394,7 +394,7 @@ class RoadPrior:
 
 class _MapRotation:
     """:func:`_map_rotation` that recomputes only when the two poses differ from the last call's (between keyframes
-    the map does not move, and the rotation is the same number)."""
+    the map does not move, and the rotation is the same number); the array it returns is shared: read-only."""
 
     def __init__(self) -> None:
         self._last: Optional[tuple[bytes, np.ndarray]] = None
@@ -403,7 +403,9 @@ class _MapRotation:
         two = graph.poses[[ia, ib]].detach().cpu()
         key = two.numpy().tobytes()
         if self._last is None or self._last[0] != key:
-            self._last = (key, _rotation_of(two))
+            rot = _rotation_of(two)
+            rot.setflags(write=False)
+            self._last = (key, rot)
         return self._last[1]
 
 

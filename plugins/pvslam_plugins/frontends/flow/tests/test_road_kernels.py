@@ -96,7 +96,7 @@ def test_map_rotation_is_reused_until_a_pose_moves():
     rot = _MapRotation()
     first = rot(g, 0, 1)
     assert np.array_equal(first, _map_rotation(g, 0, 1))
-    assert rot(g, 0, 1) is first  # the same poses: not recomputed
+    assert rot(g, 0, 1) is first and not first.flags.writeable  # the same poses: not recomputed; shared
     g.poses = g.poses.clone()
     g.poses[1, 3:] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=g.poses.dtype)  # the second camera turns
     again = rot(g, 0, 1)
