@@ -224,7 +224,7 @@ class RoadPrior:
             if not (0 < gap <= ROAD_MAX_GAP and self._chain.first(p)) or self._chain.same(p, ref):
                 break
             try:
-                R = _map_rotation(graph, graph.index_of(p), graph.index_of(ref))
+                R = self._rotation(graph, graph.index_of(p), graph.index_of(ref))
             except KeyError:  # not in the map (anymore)
                 break
             prior = self._vel[1] * gap
@@ -393,8 +393,9 @@ class RoadPrior:
 
 
 class _MapRotation:
-    """:func:`_map_rotation` that recomputes only when the two poses differ from the last call's (between keyframes
-    the map does not move, and the rotation is the same number); the array it returns is shared: read-only."""
+    """The map's rotation ``[3, 3]`` from keyframe ``ia``'s camera to ``ib``'s (graph indices; only these two poses are
+    copied: a copy of every pose would cost O(N) a frame), recomputed only when the two poses differ from the last
+    call's (between keyframes the map does not move); the array it returns is shared: read-only."""
 
     def __init__(self) -> None:
         self._last: Optional[tuple[bytes, np.ndarray]] = None
@@ -403,18 +404,7 @@ class _MapRotation:
         two = graph.poses[[ia, ib]].detach().cpu()
         key = two.numpy().tobytes()
         if self._last is None or self._last[0] != key:
-            rot = _rotation_of(two)
+            rot = edge_transforms(two.double(), torch.tensor([0]), torch.tensor([1]))[0][0].numpy()
             rot.setflags(write=False)
             self._last = (key, rot)
         return self._last[1]
-
-
-def _rotation_of(two: torch.Tensor) -> np.ndarray:
-    """The rotation ``[3, 3]`` from the first of two poses' cameras to the second's (``[2, 7]``, float64 maths)."""
-    return edge_transforms(two.double(), torch.tensor([0]), torch.tensor([1]))[0][0].numpy()
-
-
-def _map_rotation(graph, ia: int, ib: int) -> np.ndarray:
-    """The map's rotation ``[3, 3]`` from keyframe ``ia``'s camera to ``ib``'s (graph indices; only these two poses
-    are copied: a copy of every pose would cost O(N) a frame)."""
-    return _rotation_of(graph.poses[[ia, ib]].detach().cpu())
