@@ -4,6 +4,7 @@
     python bench/bench_dynamic_masks.py --runs moving_vehicles:162 --segmenters panoptic_fpn --frames 150
     python bench/bench_dynamic_masks.py --runs kitti:06 --segmenters panoptic_fpn none   # ATE and masked share only
     python bench/bench_dynamic_masks.py --domain heldout --runs moving_vehicles:174 --segmenters panoptic_fpn none
+    python bench/bench_dynamic_masks.py --report --jobs 2     # the held-out report of the current-figures page
 
 For every edge the BA observes (each observation counted: an edge observed on 6 BA rounds counts 6 times), at the BA
 resolution, each pixel of the edge's source keyframe is either *removed* (its eq. 4 mask is set: weight ~ c e^-eta)
@@ -21,18 +22,23 @@ and the run's Sim(3) ATE.  ``--trace`` also prints, per keyframe in time order, 
 from the latest mask of each of its edges (averaged over them), the share of the moving pixels the masks hold and the
 share of the view they mark that does not move: where a mover fills the view, a mask that lets go of it and marks the
 background instead shows there.  Last, per segmenter, each run's ATE against ``none`` on the same sequence and how many
-runs are more than 5 % worse (the target: none on held-out looks, ``--domain heldout``).  Results: ``--json`` (default
+runs are more than 5 % worse (the target: none on held-out looks, ``--domain heldout``), each scenario's mean ATE per
+segmenter and, on the scenarios whose vehicles move, the share of the oracle ``labels``' gain over ``none`` that the
+segmenter reaches.  ``--report``: those figures on the ledger's ``segmenter`` seeds (bench/seeds.toml) of
+``REPORT_SCENARIOS``, in the held-out looks, each scenario at its own length.  Results: ``--json`` (default
 runs/bench/results_dynamic_masks.json) with the commit of the measured code (:mod:`bench.provenance`).  Torch runs with
-one thread.
+one thread per process; ``--jobs`` runs that many at once.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import sys
 import tempfile
 import time
 from collections import defaultdict
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Optional
 
@@ -41,12 +47,16 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-from bench import provenance  # noqa: E402
+from bench import provenance, seeds  # noqa: E402
 
 # held-out of panoptic_fpn's training (seeds 1-8) and of the seed ledger's tune/report sets (bench/seeds.toml)
 DEFAULT_RUNS = ["moving_vehicles:162", "moving_vehicles:163", "moving_vehicles:164", "driving_block:162",
                 "indoor_handheld:162"]
 SCALE_BEARING = ("road", "sidewalk", "building", "wall", "floor", "terrain")
+# the held-out report (--report): where a segmenter can only cost the map (parked cars; a room held in the hand) and
+# where it should pay (streets whose vehicles move), in looks the shipped segmenter never saw
+REPORT_SCENARIOS = ("driving_block", "indoor_handheld", "moving_vehicles", "busy_street")
+MOVING = ("moving_vehicles", "busy_street")
 
 
 class Tally:
@@ -233,12 +243,91 @@ def against_none(results: list[dict]) -> list[dict]:
     return rows
 
 
+def per_scenario(results: list[dict]) -> dict[str, dict[str, float]]:
+    """Each scenario's mean ATE (m) per segmenter, over the seeds that every segmenter of the results ran."""
+    ate = {(r["scenario"], str(r["seed"]), r["segmenter"]): float(r["ate"]["rmse"]) for r in results}
+    segms = list(dict.fromkeys(r["segmenter"] for r in results))
+    out: dict[str, dict[str, float]] = {}
+    for sc in dict.fromkeys(r["scenario"] for r in results):
+        both = [sd for sd in dict.fromkeys(str(r["seed"]) for r in results if r["scenario"] == sc)
+                if all((sc, sd, g) in ate for g in segms)]
+        if both:
+            out[sc] = {g: sum(ate[(sc, sd, g)] for sd in both) / len(both) for g in segms}
+    return out
+
+
+def oracle_share(scenarios: dict[str, dict[str, float]], segmenter: str, moving=MOVING) -> Optional[float]:
+    """The share of the oracle ``labels``' gain over ``none`` that ``segmenter`` reaches on the ``moving`` scenarios'
+    mean ATE: 1 as good as the oracle, 0 no better than ``none``, negative worse; None where the oracle gains
+    nothing or a scenario lacks a segmenter."""
+    rows = [scenarios[sc] for sc in moving if sc in scenarios]
+    if not rows or any(k not in r for r in rows for k in ("none", "labels", segmenter)):
+        return None
+    mean = {k: sum(r[k] for r in rows) / len(rows) for k in ("none", "labels", segmenter)}
+    gain = mean["none"] - mean["labels"]
+    return (mean["none"] - mean[segmenter]) / gain if gain > 0 else None
+
+
 def print_against_none(rows: list[dict]) -> None:
     for r in rows:
         each = ", ".join(f"{run} {x:.2f}x" for run, x in zip(r["runs"], r["ratios"]))
         print(f"== {r['segmenter']} against none: {r['worse']} of {len(r['ratios'])} runs more than "
               f"{100 * (WORSE - 1):.0f} % worse; mean ATE {r['mean_ate']:.4f} m against {r['mean_ate_none']:.4f} m "
               f"({each})")
+
+
+def report_problem(r: dict) -> Optional[str]:
+    """What keeps a result file from being the current-figures report (bench/figures.py), or None."""
+    if not r.get("report") or r.get("overrides"):
+        return "not the held-out report (run with --report and no --set)"
+    missing = [f"{sc}:{sd}" for sc, sd in (x.split(":") for x in report_runs())
+               if {(sc, str(sd), g) for g in ("panoptic_fpn", "labels", "none")}
+               - {(x["scenario"], str(x["seed"]), x["segmenter"]) for x in r.get("runs", [])}]
+    return f"runs missing: {', '.join(missing)}" if missing else None
+
+
+def figure(r: dict) -> tuple[str, str]:
+    """The report as one row of the current-figures page: the shipped segmenter's mean ATE per scenario beside the
+    oracle's and ``none``'s, its runs more than ``WORSE`` x worse than ``none``, and its share of the oracle's gain."""
+    scen = r["scenarios"]
+    each = "; ".join(f"{sc} {m['panoptic_fpn']:.3f} / {m['labels']:.3f} / {m['none']:.3f}" for sc, m in scen.items())
+    row = next(x for x in r["against_none"] if x["segmenter"] == "panoptic_fpn")
+    worse = [f"{run} {x:.2f}x" for run, x in zip(row["runs"], row["ratios"]) if x > WORSE]
+    share = r["oracle_share"].get("panoptic_fpn")
+    gain = "-" if share is None else f"{100 * share:.0f} %"
+    value = (f"mean ATE m, `panoptic_fpn` / oracle `labels` / `none`: {each}; `panoptic_fpn` more than "
+             f"{100 * (WORSE - 1):.0f} % worse than `none` on **{row['worse']} of {len(row['ratios'])}** runs"
+             f"{' (' + ', '.join(worse) + ')' if worse else ''}; on {' and '.join(MOVING)} it reaches {gain} of the "
+             f"oracle's gain")
+    return value, "targets: no run worse than `none`; better than `none` on the moving-vehicle scenarios' mean"
+
+
+def report_runs() -> list[str]:
+    """``--report``'s sequences: ``REPORT_SCENARIOS`` x the seed ledger's ``segmenter`` set."""
+    return [f"{sc}:{sd}" for sc in REPORT_SCENARIOS for sd in seeds.load().sets["segmenter"]]
+
+
+def run_cell(job: tuple) -> dict:
+    """One (sequence, segmenter) run in its own temporary folder: ``job = (scenario, seed, segmenter, frames,
+    overrides, threads)``; the result of :func:`run_one` with its process CPU seconds."""
+    scenario, seed, segm, frames, overrides, threads = job
+    torch.set_num_threads(threads)
+    t0 = time.process_time()
+    with tempfile.TemporaryDirectory() as tmp:
+        res = run_one(scenario, seed, segm, frames, Path(tmp), overrides)
+    res["cpu_s"] = time.process_time() - t0
+    return res
+
+
+def _cells(jobs: list[tuple], n: int):
+    """The results of :func:`run_cell` over ``jobs`` as they finish, on ``n`` processes (1: this one)."""
+    if n <= 1:
+        for job in jobs:
+            yield run_cell(job)
+        return
+    with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as ex:
+        for fut in as_completed([ex.submit(run_cell, job) for job in jobs]):
+            yield fut.result()
 
 
 def main(argv=None) -> int:
@@ -248,37 +337,48 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=150, help="frames of a synthetic run (0: the scenario's own)")
     ap.add_argument("--domain", choices=["train", "heldout"], help="the generator's restyled looks (dataset.domain): "
                     "'heldout' are texture families and sizes the shipped segmenter never saw")
+    ap.add_argument("--report", action="store_true", help="the held-out report: REPORT_SCENARIOS x the ledger's "
+                    "'segmenter' seeds, held-out looks, each at its own length, the three segmenters")
     ap.add_argument("--trace", action="store_true", help="also print each keyframe's moving share and how much of "
                     "it the masks hold (the JSON has it always)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="extra config override")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--jobs", type=int, default=1, help="runs at once, each in its own process (default 1)")
     ap.add_argument("--json", default=str(provenance.RESULTS_DIR / "results_dynamic_masks.json"))
     args = ap.parse_args(argv)
+    if args.report:
+        args.runs, args.domain, args.frames = report_runs(), "heldout", 0
+        args.segmenters = ["panoptic_fpn", "labels", "none"]
     try:
         prov = provenance.check(args.json)
     except provenance.ProvenanceError as exc:
         return provenance.fail(exc)
-    torch.set_num_threads(args.threads)
     overrides = [*([f'dataset.domain="{args.domain}"'] if args.domain else []), *args.overrides]
+    jobs = [(sc, sd, segm, args.frames, overrides, args.threads)
+            for sc, sd in (spec.split(":") for spec in args.runs) for segm in args.segmenters
+            if not (sc == "kitti" and segm == "labels")]  # no panoptic ground truth
+    order = {job[:3]: k for k, job in enumerate(jobs)}
     results, rows = [], []
-    with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.runs:
-            scenario, seed = spec.split(":")
-            for segm in args.segmenters:
-                t0 = time.process_time()
-                if scenario == "kitti" and segm == "labels":
-                    continue  # no panoptic ground truth
-                res = run_one(scenario, seed, segm, args.frames, Path(tmp), overrides)
-                res["cpu_s"] = time.process_time() - t0
-                print_summary(f"{scenario} seed {seed}, segmenter {segm} ({res['cpu_s']:.0f} CPU s, busy machine)",
-                              res, res["ate"])
-                if args.trace:
-                    print_trace(res["trace"])
-                results.append(res)
-                rows = against_none(results)  # written after every run: an interrupted bench keeps what it ran
-                out = {"domain": args.domain, "runs": results, "against_none": rows}
-                provenance.write_json(args.json, json.loads(json.dumps(out, default=float)), prov)
+    for res in _cells(jobs, args.jobs):
+        print_summary(f"{res['scenario']} seed {res['seed']}, segmenter {res['segmenter']} ({res['cpu_s']:.0f} CPU s)",
+                      res, res["ate"])
+        if args.trace:
+            print_trace(res["trace"])
+        results.append(res)
+        results.sort(key=lambda r: order[(r["scenario"], r["seed"], r["segmenter"])])
+        rows, scen = against_none(results), per_scenario(results)
+        # written after every run: an interrupted bench keeps what it ran
+        out = {"domain": args.domain, "report": args.report, "overrides": args.overrides, "runs": results,
+               "against_none": rows, "scenarios": scen,
+               "oracle_share": {g: oracle_share(scen, g) for g in args.segmenters if g not in ("none", "labels")}}
+        provenance.write_json(args.json, json.loads(json.dumps(out, default=float)), prov)
     print_against_none(rows)
+    for sc, means in per_scenario(results).items():
+        print(f"== {sc}: mean ATE " + ", ".join(f"{g} {a:.4f} m" for g, a in means.items()))
+    for g in args.segmenters:
+        share = oracle_share(per_scenario(results), g) if g not in ("none", "labels") else None
+        if share is not None:
+            print(f"== {g}: {100 * share:.0f} % of the oracle labels' gain over none on {', '.join(MOVING)}")
     print(f"written {args.json}")
     return 0
 

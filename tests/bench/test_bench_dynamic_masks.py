@@ -83,3 +83,55 @@ def test_the_domain_option_reaches_the_run_config(monkeypatch, tmp_path):
     assert B.main(["--runs", "moving_vehicles:5", "--segmenters", "none", "--domain", "heldout",
                    "--json", str(tmp_path / "x.json")]) == 0
     assert seen == [['dataset.domain="heldout"']]
+
+
+def test_scenario_means_and_the_share_of_the_oracles_gain():
+    runs = [_run("moving_vehicles", "1", "none", 2.0), _run("moving_vehicles", "1", "labels", 1.0),
+            _run("moving_vehicles", "1", "panoptic_fpn", 1.5),
+            _run("moving_vehicles", "2", "none", 4.0), _run("moving_vehicles", "2", "labels", 1.0),
+            _run("moving_vehicles", "2", "panoptic_fpn", 4.5),
+            _run("moving_vehicles", "3", "none", 9.0),  # not run by every segmenter: left out of the means
+            _run("driving_block", "1", "none", 0.5), _run("driving_block", "1", "labels", 0.4),
+            _run("driving_block", "1", "panoptic_fpn", 0.6)]
+    scen = B.per_scenario(runs)
+    assert scen["moving_vehicles"] == {"none": 3.0, "labels": 1.0, "panoptic_fpn": 3.0}
+    assert scen["driving_block"] == {"none": 0.5, "labels": 0.4, "panoptic_fpn": 0.6}
+    assert B.oracle_share(scen, "panoptic_fpn") == 0.0  # no better than none on the moving scenario's mean
+    scen["moving_vehicles"]["panoptic_fpn"] = 1.5
+    assert B.oracle_share(scen, "panoptic_fpn") == 0.75
+    scen["moving_vehicles"]["panoptic_fpn"] = 4.0
+    assert B.oracle_share(scen, "panoptic_fpn") == -0.5  # worse than none
+    scen["moving_vehicles"]["labels"] = 3.5  # the oracle gains nothing: no share
+    assert B.oracle_share(scen, "panoptic_fpn") is None
+    assert B.oracle_share({"driving_block": scen["driving_block"]}, "panoptic_fpn") is None  # no moving scenario
+
+
+def test_the_report_runs_the_ledgers_segmenter_seeds_in_held_out_looks_and_renders_one_figure(monkeypatch, tmp_path):
+    seeds = B.seeds.load().sets["segmenter"]
+    seen, written = [], {}
+    ate = {"panoptic_fpn": 1.2, "labels": 0.5, "none": 1.0}
+
+    def run_one(sc, sd, segm, frames, out, ov):
+        seen.append((sc, sd, segm, frames, ov))
+        return {"ate": {"rmse": ate[segm] * (2.0 if sc == "driving_block" else 1.0)}, "scenario": sc, "seed": sd,
+                "segmenter": segm}
+
+    monkeypatch.setattr(B, "run_one", run_one)
+    monkeypatch.setattr(B, "print_summary", lambda *a: None)
+    monkeypatch.setattr(B.provenance, "check", lambda path: {})
+    monkeypatch.setattr(B.provenance, "write_json", lambda path, data, prov: written.update(data))
+    assert B.main(["--report", "--json", str(tmp_path / "x.json")]) == 0
+    assert {(sc, int(sd)) for sc, sd, *_ in seen} == {(sc, s) for sc in B.REPORT_SCENARIOS for s in seeds}
+    assert all(segm in ("panoptic_fpn", "labels", "none") and frames == 0 and ov == ['dataset.domain="heldout"']
+               for _, _, segm, frames, ov in seen) and len(seen) == 3 * len(B.REPORT_SCENARIOS) * len(seeds)
+    assert written["report"] and B.report_problem(written) is None
+    assert written["scenarios"]["driving_block"] == {"panoptic_fpn": 2.4, "labels": 1.0, "none": 2.0}
+    assert abs(written["oracle_share"]["panoptic_fpn"] - (-0.4)) < 1e-9  # (1.0 - 1.2) / (1.0 - 0.5)
+    value, compared = B.figure(written)
+    n = len(B.REPORT_SCENARIOS) * len(seeds)
+    assert f"**{n} of {n}** runs" in value and "driving_block 2.400 / 1.000 / 2.000" in value
+    assert "it reaches -40 % of the oracle's gain" in value and "no run worse than `none`" in compared
+    # a part of the report, or one measured with overrides, is not the report
+    partial = dict(written, runs=[r for r in written["runs"] if r["scenario"] != "busy_street"])
+    assert "busy_street:" in B.report_problem(partial)
+    assert "not the held-out report" in B.report_problem(dict(written, overrides=["x=1"]))
