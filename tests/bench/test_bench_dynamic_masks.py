@@ -134,4 +134,5 @@ def test_the_report_runs_the_ledgers_segmenter_seeds_in_held_out_looks_and_rende
     # a part of the report, or one measured with overrides, is not the report
     partial = dict(written, runs=[r for r in written["runs"] if r["scenario"] != "busy_street"])
     assert "busy_street:" in B.report_problem(partial)
+    assert "the oracle itself is no better than `none`" in B.figure(dict(written, oracle_share={"panoptic_fpn": None}))[0]
     assert "not the held-out report" in B.report_problem(dict(written, overrides=["x=1"]))
