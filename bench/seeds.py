@@ -95,10 +95,11 @@ def main(argv=None) -> int:
         for s in args.which:
             print(f"{s}: {led.set_of(s)}")
         return 0
+    width = max(len("spent"), *map(len, led.sets)) + 1
     for name, seeds in led.sets.items():
-        print(f"{name:<8} {', '.join(map(str, seeds))}")
+        print(f"{name:<{width}}{', '.join(map(str, seeds))}")
     for r in led.spent:
-        print(f"spent    {r.first}-{r.last}: {r.use}")
+        print(f"{'spent':<{width}}{r.first}-{r.last}: {r.use}")
     print(f"next fresh: {', '.join(map(str, led.fresh(3)))}")
     return 0
 

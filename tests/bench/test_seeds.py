@@ -50,6 +50,10 @@ def test_an_inconsistent_ledger_is_refused(tmp_path, body, message):
 def test_the_command_prints_sets_and_fresh_seeds(capsys):
     assert seeds.main([]) == 0
     out = capsys.readouterr().out
-    assert "report   3, 4, 5" in out and "next fresh:" in out
+    lines = out.splitlines()
+    assert "next fresh:" in out and any(ln.split(None, 1) == ["report", "3, 4, 5"] for ln in lines)
+    # one column for the seeds, whatever the longest set name
+    starts = {len(ln) - len(ln.split(None, 1)[1]) for ln in lines if not ln.startswith("next")}
+    assert len(starts) == 1
     assert seeds.main(["--fresh", "2"]) == 0
     assert capsys.readouterr().out.split() == [str(s) for s in seeds.load().fresh(2)]
