@@ -303,6 +303,14 @@ def figure(r: dict) -> tuple[str, str]:
     return value, "targets: no run worse than `none`; better than `none` on the moving-vehicle scenarios' mean"
 
 
+def _summary(results: list[dict], segmenters: list[str]) -> dict:
+    """The figures over ``results``: :func:`against_none`, :func:`per_scenario` and each learned segmenter's
+    :func:`oracle_share`."""
+    scen = per_scenario(results)
+    return {"against_none": against_none(results), "scenarios": scen,
+            "oracle_share": {g: oracle_share(scen, g) for g in segmenters if g not in ("none", "labels")}}
+
+
 def report_runs() -> list[str]:
     """``--report``'s sequences: ``REPORT_SCENARIOS`` x the seed ledger's ``segmenter`` set."""
     return [f"{sc}:{sd}" for sc in REPORT_SCENARIOS for sd in seeds.load().sets["segmenter"]]
@@ -359,7 +367,7 @@ def main(argv=None) -> int:
             for sc, sd in (spec.split(":") for spec in args.runs) for segm in args.segmenters
             if not (sc == "kitti" and segm == "labels")]  # no panoptic ground truth
     order = {job[:3]: k for k, job in enumerate(jobs)}
-    results, rows = [], []
+    results, summary = [], _summary([], args.segmenters)
     for res in _cells(jobs, args.jobs):
         print_summary(f"{res['scenario']} seed {res['seed']}, segmenter {res['segmenter']} ({res['cpu_s']:.0f} CPU s)",
                       res, res["ate"])
@@ -367,17 +375,14 @@ def main(argv=None) -> int:
             print_trace(res["trace"])
         results.append(res)
         results.sort(key=lambda r: order[(r["scenario"], r["seed"], r["segmenter"])])
-        rows, scen = against_none(results), per_scenario(results)
+        summary = _summary(results, args.segmenters)
         # written after every run: an interrupted bench keeps what it ran
-        out = {"domain": args.domain, "report": args.report, "overrides": args.overrides, "runs": results,
-               "against_none": rows, "scenarios": scen,
-               "oracle_share": {g: oracle_share(scen, g) for g in args.segmenters if g not in ("none", "labels")}}
+        out = {"domain": args.domain, "report": args.report, "overrides": args.overrides, "runs": results, **summary}
         provenance.write_json(args.json, json.loads(json.dumps(out, default=float)), prov)
-    print_against_none(rows)
-    for sc, means in per_scenario(results).items():
+    print_against_none(summary["against_none"])
+    for sc, means in summary["scenarios"].items():
         print(f"== {sc}: mean ATE " + ", ".join(f"{g} {a:.4f} m" for g, a in means.items()))
-    for g in args.segmenters:
-        share = oracle_share(per_scenario(results), g) if g not in ("none", "labels") else None
+    for g, share in summary["oracle_share"].items():
         if share is not None:
             print(f"== {g}: {100 * share:.0f} % of the oracle labels' gain over none on {', '.join(MOVING)}")
     print(f"written {args.json}")
