@@ -4,6 +4,7 @@ frames of the plain generator's validation seeds (and, between them, frames of i
 
     python bench/bench_domain.py --model old=runs/old_reduced_synthetic.pth --model new=runs/pfpn_dr/model_final.pth
     python bench/bench_domain.py                      # the shipped weights only
+    python bench/bench_domain.py --set segmenter      # the current figure: the ledger's segmenter seeds, held out
 
 Prints one table per frame set (a row per model: PQ, SQ, RQ, things, stuff, PQ with ground-truth segments under
 64 px as void) and writes them with the commit of the measured code (:mod:`bench.provenance`) to ``--json`` (default
@@ -22,11 +23,14 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-from bench import provenance  # noqa: E402
+from bench import provenance, seeds  # noqa: E402
 
 HELD_OUT = "heldout"
 SEEN = "train_split"
 PLAIN = "plain"
+FIGURE_SET = "segmenter"  # the ledger's set of the current figure (bench/figures.py): seeds no choice was made on
+FRAMES = 8  # frames per scenario and seed
+TARGET_PQ = 0.55  # the held-out families' PQ the shipped segmenter should reach
 
 
 def frame_sets(heldout_seeds: Sequence[int], plain_seeds: Sequence[int], frames: int,
@@ -90,16 +94,42 @@ def load_models(specs: Sequence[str]) -> dict[str, torch.nn.Module]:
     return out
 
 
+def report_problem(r: dict) -> Optional[str]:
+    """What keeps a result file from being the current figure (bench/figures.py), or None."""
+    want = list(seeds.load().sets[FIGURE_SET])
+    if r.get("models") != ["shipped"] or r.get("set") != FIGURE_SET or list(r.get("heldout_seeds") or []) != want \
+            or r.get("frames_per_sequence") != FRAMES:
+        return f"not the shipped weights on the ledger's {FIGURE_SET!r} seeds {want} (run with --set {FIGURE_SET})"
+    return None
+
+
+def figure(r: dict) -> tuple[str, str]:
+    """The shipped weights' PQ (things / stuff) on the held-out families, on the training families at the same
+    seeds and on the plain generator, as one row of the current-figures page."""
+    def pq(name: str) -> str:
+        p = r["results"][name]["shipped"]["pq"]
+        return f"{100 * p['pq']:.1f} ({100 * p['things']['pq']:.1f} / {100 * p['stuff']['pq']:.1f})"
+
+    value = (f"PQ (things / stuff): held-out families and sizes **{pq(HELD_OUT)}**; training families, the same "
+             f"seeds {pq(SEEN)}; plain generator, validation seeds {', '.join(map(str, r['plain_seeds']))} "
+             f"{pq(PLAIN)}")
+    return value, f"target: PQ >= {100 * TARGET_PQ:.0f} on the held-out families"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", action="append", default=[], help="NAME=PATH of weights to compare (repeatable)")
     ap.add_argument("--heldout-seeds", type=int, nargs="+", default=[400, 401])
+    ap.add_argument("--set", choices=sorted(seeds.load().sets), default=None,
+                    help="held-out seeds from this set of bench/seeds.toml instead of --heldout-seeds")
     ap.add_argument("--plain-seeds", type=int, nargs="+", default=[100, 101],
                     help="the trainer's validation seeds by default")
-    ap.add_argument("--frames", type=int, default=8, help="frames per scenario and seed")
+    ap.add_argument("--frames", type=int, default=FRAMES, help="frames per scenario and seed")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=str(provenance.RESULTS_DIR / "domain_pq.json"), help="result file")
     args = ap.parse_args(argv)
+    if args.set:
+        args.heldout_seeds = list(seeds.load().sets[args.set])
     try:
         prov = provenance.check(args.json)
     except provenance.ProvenanceError as exc:
@@ -111,7 +141,7 @@ def main(argv=None) -> int:
     results = compare(models, sets)
     table = format_tables(results)
     print(table)
-    payload = {"models": args.model or ["shipped"], "heldout_seeds": args.heldout_seeds,
+    payload = {"models": args.model or ["shipped"], "set": args.set, "heldout_seeds": args.heldout_seeds,
                "plain_seeds": args.plain_seeds, "frames_per_sequence": args.frames, "results": results,
                "seconds": time.perf_counter() - t0}
     provenance.write_json(args.json, payload, prov)

@@ -101,6 +101,8 @@ BENCHES = {b.key: b for b in (
     Bench("real", ("bench/bench_real.py", "--json", "{json}"), check=_real_check),
     Bench("segmenter", ("bench/bench_dynamic_masks.py", "--report", "--jobs", "{jobs}", "--json", "{json}"),
           check=lambda r: _dynamic_masks().report_problem(r)),
+    Bench("segmenter_pq", ("bench/bench_domain.py", "--set", "segmenter", "--json", "{json}"),
+          check=lambda r: _domain().report_problem(r)),
 )}
 
 
@@ -108,6 +110,12 @@ def _dynamic_masks():
     from bench import bench_dynamic_masks
 
     return bench_dynamic_masks
+
+
+def _domain():
+    from bench import bench_domain
+
+    return bench_domain
 
 
 # ------------------------------------------------------------------------------------------------ figures
@@ -277,6 +285,9 @@ FIGURES = (
     Figure("segmenter", "the shipped segmenter in looks it never saw: parked cars, a hand-held room, moving vehicles",
            f"held out (seeds {', '.join(map(str, seeds.load().sets['segmenter']))})", "segmenter",
            lambda r: _dynamic_masks().figure(r)),
+    Figure("segmenter_pq", "the shipped segmenter's panoptic quality in looks it never saw (8 scenarios, 8 frames "
+           "each)", f"held out (seeds {', '.join(map(str, seeds.load().sets['segmenter']))})", "segmenter_pq",
+           lambda r: _domain().figure(r)),
 )
 
 
