@@ -4,15 +4,18 @@ frames of the plain generator's validation seeds (and, between them, frames of i
 
     python bench/bench_domain.py --model old=runs/old_reduced_synthetic.pth --model new=runs/pfpn_dr/model_final.pth
     python bench/bench_domain.py                      # the shipped weights only
-    python bench/bench_domain.py --set segmenter      # the current figure: the ledger's segmenter seeds, held out
+    python bench/bench_domain.py --set segmenter --vps   # the current figure: the ledger's segmenter seeds, with VPQ
 
 Prints one table per frame set (a row per model: PQ, SQ, RQ, things, stuff, PQ with ground-truth segments under
-64 px as void) and writes them with the commit of the measured code (:mod:`bench.provenance`) to ``--json`` (default
+64 px as void); with ``--vps``, also the VPS heads' VPQ on the held-out looks of the scenes with moving vehicles (the
+shipped weights through :func:`bench.bench_vps.run_sequence`).  It writes them with the commit of the measured code
+(:mod:`bench.provenance`) to ``--json`` (default
 ``runs/bench/domain_pq.json``) and the Markdown beside it.  Torch runs with one thread (``--threads``).
 """
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -31,6 +34,8 @@ PLAIN = "plain"
 FIGURE_SET = "segmenter"  # the ledger's set of the current figure (bench/figures.py): seeds no choice was made on
 FRAMES = 8  # frames per scenario and seed
 TARGET_PQ = 0.55  # the held-out families' PQ the shipped segmenter should reach
+VPS_SCENARIOS = ("moving_vehicles", "busy_street")  # where ids must stay consistent across moving things
+VPS_FRAMES = 80  # frames per VPS sequence
 
 
 def frame_sets(heldout_seeds: Sequence[int], plain_seeds: Sequence[int], frames: int,
@@ -94,12 +99,26 @@ def load_models(specs: Sequence[str]) -> dict[str, torch.nn.Module]:
     return out
 
 
+def vps_section(heldout_seeds: Sequence[int], frames: int = VPS_FRAMES) -> dict:
+    """VPQ of each VPS head (``bench_vps.HEADS``) on ``VPS_SCENARIOS`` x ``heldout_seeds`` in the held-out looks, per
+    run and its mean over the runs."""
+    from bench import bench_vps
+
+    runs = [bench_vps.run_sequence(sc, seed, frames, {}, "heldout") for sc in VPS_SCENARIOS for seed in heldout_seeds]
+    for r in runs:
+        print(f"{r['scenario']:16s} seed {r['seed']}: " + "  ".join(
+            f"{h} VPQ {100 * r['heads'][h]['vpq']:.1f}" for h in bench_vps.HEADS), flush=True)
+    return {"scenarios": list(VPS_SCENARIOS), "frames": frames, "runs": runs,
+            "vpq": {h: statistics.mean(r["heads"][h]["vpq"] for r in runs) for h in bench_vps.HEADS}}
+
+
 def report_problem(r: dict) -> Optional[str]:
     """What keeps a result file from being the current figure (bench/figures.py), or None."""
     want = list(seeds.load().sets[FIGURE_SET])
     if r.get("models") != ["shipped"] or r.get("set") != FIGURE_SET or list(r.get("heldout_seeds") or []) != want \
-            or r.get("frames_per_sequence") != FRAMES:
-        return f"not the shipped weights on the ledger's {FIGURE_SET!r} seeds {want} (run with --set {FIGURE_SET})"
+            or r.get("frames_per_sequence") != FRAMES or not r.get("vps"):
+        return (f"not the shipped weights on the ledger's {FIGURE_SET!r} seeds {want} with VPQ (run with --set "
+                f"{FIGURE_SET} --vps)")
     return None
 
 
@@ -110,10 +129,14 @@ def figure(r: dict) -> tuple[str, str]:
         p = r["results"][name]["shipped"]["pq"]
         return f"{100 * p['pq']:.1f} ({100 * p['things']['pq']:.1f} / {100 * p['stuff']['pq']:.1f})"
 
+    v = r["vps"]["vpq"]
     value = (f"PQ (things / stuff): held-out families and sizes **{pq(HELD_OUT)}**; training families, the same "
              f"seeds {pq(SEEN)}; plain generator, validation seeds {', '.join(map(str, r['plain_seeds']))} "
-             f"{pq(PLAIN)}")
-    return value, f"target: PQ >= {100 * TARGET_PQ:.0f} on the held-out families"
+             f"{pq(PLAIN)}. VPQ in the held-out looks ({' and '.join(r['vps']['scenarios'])}, "
+             f"{r['vps']['frames']} frames): `fusion` {100 * v['fusion']:.1f}, `warp_iou` {100 * v['warp_iou']:.1f}, "
+             f"per-frame ids {100 * v['none']:.1f}")
+    return value, (f"targets: PQ >= {100 * TARGET_PQ:.0f} and VPQ `fusion` >= `warp_iou` on the held-out "
+                   "families")
 
 
 def main(argv=None) -> int:
@@ -126,8 +149,12 @@ def main(argv=None) -> int:
                     help="the trainer's validation seeds by default")
     ap.add_argument("--frames", type=int, default=FRAMES, help="frames per scenario and seed")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--vps", action="store_true",
+                    help="also the VPS heads' VPQ on the held-out looks (the shipped weights)")
     ap.add_argument("--json", default=str(provenance.RESULTS_DIR / "domain_pq.json"), help="result file")
     args = ap.parse_args(argv)
+    if args.vps and args.model:
+        ap.error("--vps measures the shipped weights only: leave out --model")
     if args.set:
         args.heldout_seeds = list(seeds.load().sets[args.set])
     try:
@@ -141,8 +168,9 @@ def main(argv=None) -> int:
     results = compare(models, sets)
     table = format_tables(results)
     print(table)
+    vps = vps_section(args.heldout_seeds) if args.vps else None
     payload = {"models": args.model or ["shipped"], "set": args.set, "heldout_seeds": args.heldout_seeds,
-               "plain_seeds": args.plain_seeds, "frames_per_sequence": args.frames, "results": results,
+               "plain_seeds": args.plain_seeds, "frames_per_sequence": args.frames, "results": results, "vps": vps,
                "seconds": time.perf_counter() - t0}
     provenance.write_json(args.json, payload, prov)
     provenance.write_text(Path(args.json).with_suffix(".md"), table + "\n", prov)

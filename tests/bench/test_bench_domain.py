@@ -49,24 +49,49 @@ def _result(**kw):
     p = {"pq": 0.412, "things": {"pq": 0.45}, "stuff": {"pq": 0.40}}
     r = {"models": ["shipped"], "set": B.FIGURE_SET, "heldout_seeds": list(B.seeds.load().sets[B.FIGURE_SET]),
          "plain_seeds": [100, 101], "frames_per_sequence": B.FRAMES,
-         "results": {s: {"shipped": {"pq": p}} for s in (B.HELD_OUT, B.SEEN, B.PLAIN)}}
+         "results": {s: {"shipped": {"pq": p}} for s in (B.HELD_OUT, B.SEEN, B.PLAIN)},
+         "vps": {"scenarios": ["moving_vehicles", "busy_street"], "frames": 80,
+                 "vpq": {"none": 0.301, "warp_iou": 0.352, "fusion": 0.348}}}
     return {**r, **kw}
 
 
 def test_the_figure_is_the_shipped_weights_on_the_ledger_set_and_names_the_target():
     assert B.report_problem(_result()) is None
     for bad in (_result(models=["a=x.pth"]), _result(set=None), _result(heldout_seeds=[400, 401]),
-                _result(frames_per_sequence=2)):
-        assert "run with --set segmenter" in B.report_problem(bad)
+                _result(frames_per_sequence=2), _result(vps=None)):
+        assert "run with --set segmenter --vps" in B.report_problem(bad)
     value, compared = B.figure(_result())
     assert value.startswith("PQ (things / stuff): held-out families and sizes **41.2 (45.0 / 40.0)**")
-    assert "validation seeds 100, 101 41.2" in value and compared == "target: PQ >= 55 on the held-out families"
+    assert "validation seeds 100, 101 41.2" in value
+    assert value.endswith("(moving_vehicles and busy_street, 80 frames): `fusion` 34.8, `warp_iou` 35.2, per-frame "
+                          "ids 30.1")
+    assert compared == "targets: PQ >= 55 and VPQ `fusion` >= `warp_iou` on the held-out families"
+
+
+def test_vps_section_runs_each_scenario_and_seed_in_the_held_out_looks(monkeypatch):
+    from bench import bench_vps
+
+    calls = []
+
+    def fake(scenario, seed, frames, fusion_cfg, domain):
+        calls.append((scenario, seed, frames, domain))
+        return {"scenario": scenario, "seed": seed, "heads": {h: {"vpq": 0.1 * seed} for h in bench_vps.HEADS}}
+
+    monkeypatch.setattr(bench_vps, "run_sequence", fake)
+    out = B.vps_section([1, 3], frames=5)
+    assert calls == [(sc, s, 5, "heldout") for sc in B.VPS_SCENARIOS for s in (1, 3)]
+    assert out["vpq"]["fusion"] == pytest.approx(0.2) and len(out["runs"]) == 4
 
 
 def test_set_reads_the_ledger_seeds(monkeypatch, tmp_path):
     seen = {}
     monkeypatch.setattr(B, "frame_sets", lambda held, plain, frames: seen.update(held=held, frames=frames) or {})
     monkeypatch.setattr(B, "load_models", lambda specs: {})
-    assert B.main(["--set", "segmenter", "--json", str(tmp_path / "d.json")]) == 0
-    assert seen == {"held": list(B.seeds.load().sets["segmenter"]), "frames": B.FRAMES}
-    assert B.report_problem(B.provenance.read_json(tmp_path / "d.json")) is None
+    monkeypatch.setattr(B, "vps_section", lambda held: {"held": held})
+    assert B.main(["--set", "segmenter", "--vps", "--json", str(tmp_path / "d.json")]) == 0
+    held = list(B.seeds.load().sets["segmenter"])
+    assert seen == {"held": held, "frames": B.FRAMES}
+    r = B.provenance.read_json(tmp_path / "d.json")
+    assert r["vps"] == {"held": held} and B.report_problem(r) is None
+    with pytest.raises(SystemExit):
+        B.main(["--set", "segmenter", "--vps", "--model", "a=b.pth", "--json", str(tmp_path / "e.json")])
