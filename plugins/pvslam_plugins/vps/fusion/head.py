@@ -46,7 +46,7 @@ from .layer import FeatureFusion, load_fusion
 #: fusion weights trained here for the shipped reduced segmenter (``pvslam train vps --plugin fusion``)
 SHIPPED_FUSION = Path(__file__).with_name("weights") / "fusion_reduced.pth"
 #: sha256 of the shipped file: other bytes (a truncated copy, a Git LFS pointer) are refused, never loaded
-SHIPPED_FUSION_SHA256 = "da5e3bf41e7eeac4518183191ef01886c58d5bbadd04002b0dc10eec6b111e10"
+SHIPPED_FUSION_SHA256 = "ca45f137999c5a26152d9a1cc5d6efde8391eee8826c9f90d8962ce1020bce6c"
 
 
 def motion_field(prev_panoptic: PanopticSegmentation, cue: MotionCue, frame_hw: tuple[int, int],
