@@ -9,8 +9,7 @@ frames of the plain generator's validation seeds (and, between them, frames of i
 Prints one table per frame set (a row per model: PQ, SQ, RQ, things, stuff, PQ with ground-truth segments under
 64 px as void); with ``--vps``, also the VPS heads' VPQ on the held-out looks of the scenes with moving vehicles (the
 shipped weights through :func:`bench.bench_vps.run_sequence`).  It writes them with the commit of the measured code
-(:mod:`bench.provenance`) to ``--json`` (default
-``runs/bench/domain_pq.json``) and the Markdown beside it.  Torch runs with one thread (``--threads``).
+(:mod:`bench.provenance`) to ``--json`` (default ``runs/bench/domain_pq.json``) and the PQ tables beside it.  Torch runs with one thread (``--threads``).
 """
 from __future__ import annotations
 
@@ -124,7 +123,7 @@ def report_problem(r: dict) -> Optional[str]:
 
 def figure(r: dict) -> tuple[str, str]:
     """The shipped weights' PQ (things / stuff) on the held-out families, on the training families at the same
-    seeds and on the plain generator, as one row of the current-figures page."""
+    seeds and on the plain generator, and the VPS heads' mean VPQ, as one row of the current-figures page."""
     def pq(name: str) -> str:
         p = r["results"][name]["shipped"]["pq"]
         return f"{100 * p['pq']:.1f} ({100 * p['things']['pq']:.1f} / {100 * p['stuff']['pq']:.1f})"
