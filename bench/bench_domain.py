@@ -9,7 +9,8 @@ frames of the plain generator's validation seeds (and, between them, frames of i
 Prints one table per frame set (a row per model: PQ, SQ, RQ, things, stuff, PQ with ground-truth segments under
 64 px as void); with ``--vps``, also the VPS heads' VPQ on the held-out looks of the scenes with moving vehicles (the
 shipped weights through :func:`bench.bench_vps.run_sequence`).  It writes them with the commit of the measured code
-(:mod:`bench.provenance`) to ``--json`` (default ``runs/bench/domain_pq.json``) and the PQ tables beside it.  Torch runs with one thread (``--threads``).
+(:mod:`bench.provenance`) to ``--json`` (default ``runs/bench/domain_pq.json``) and the PQ tables beside it.  Torch
+runs with one thread (``--threads``).
 """
 from __future__ import annotations
 
