@@ -26,7 +26,7 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-from bench import provenance, seeds  # noqa: E402
+from bench import bench_vps, provenance, seeds  # noqa: E402
 
 HELD_OUT = "heldout"
 SEEN = "train_split"
@@ -34,8 +34,6 @@ PLAIN = "plain"
 FIGURE_SET = "segmenter"  # the ledger's set of the current figure (bench/figures.py): seeds no choice was made on
 FRAMES = 8  # frames per scenario and seed
 TARGET_PQ = 0.55  # the held-out families' PQ the shipped segmenter should reach
-VPS_SCENARIOS = ("moving_vehicles", "busy_street")  # where ids must stay consistent across moving things
-VPS_FRAMES = 80  # frames per VPS sequence
 
 
 def frame_sets(heldout_seeds: Sequence[int], plain_seeds: Sequence[int], frames: int,
@@ -99,16 +97,15 @@ def load_models(specs: Sequence[str]) -> dict[str, torch.nn.Module]:
     return out
 
 
-def vps_section(heldout_seeds: Sequence[int], frames: int = VPS_FRAMES) -> dict:
-    """VPQ of each VPS head (``bench_vps.HEADS``) on ``VPS_SCENARIOS`` x ``heldout_seeds`` in the held-out looks, per
-    run and its mean over the runs."""
-    from bench import bench_vps
-
-    runs = [bench_vps.run_sequence(sc, seed, frames, {}, "heldout") for sc in VPS_SCENARIOS for seed in heldout_seeds]
+def vps_section(heldout_seeds: Sequence[int], frames: int = bench_vps.FRAMES) -> dict:
+    """VPQ of each VPS head (``bench_vps.HEADS``) on ``bench_vps.SCENARIOS`` x ``heldout_seeds`` in the held-out
+    looks, per run and its mean over the runs."""
+    runs = [bench_vps.run_sequence(sc, seed, frames, {}, "heldout") for sc in bench_vps.SCENARIOS
+            for seed in heldout_seeds]
     for r in runs:
         print(f"{r['scenario']:16s} seed {r['seed']}: " + "  ".join(
             f"{h} VPQ {100 * r['heads'][h]['vpq']:.1f}" for h in bench_vps.HEADS), flush=True)
-    return {"scenarios": list(VPS_SCENARIOS), "frames": frames, "runs": runs,
+    return {"scenarios": list(bench_vps.SCENARIOS), "frames": frames, "runs": runs,
             "vpq": {h: statistics.mean(r["heads"][h]["vpq"] for r in runs) for h in bench_vps.HEADS}}
 
 
@@ -143,7 +140,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", action="append", default=[], help="NAME=PATH of weights to compare (repeatable)")
     ap.add_argument("--heldout-seeds", type=int, nargs="+", default=[400, 401])
-    ap.add_argument("--set", choices=sorted(seeds.load().sets), default=None,
+    ledger = seeds.load()
+    ap.add_argument("--set", choices=sorted(ledger.sets), default=None,
                     help="held-out seeds from this set of bench/seeds.toml instead of --heldout-seeds")
     ap.add_argument("--plain-seeds", type=int, nargs="+", default=[100, 101],
                     help="the trainer's validation seeds by default")
@@ -156,7 +154,7 @@ def main(argv=None) -> int:
     if args.vps and args.model:
         ap.error("--vps measures the shipped weights only: leave out --model")
     if args.set:
-        args.heldout_seeds = list(seeds.load().sets[args.set])
+        args.heldout_seeds = list(ledger.sets[args.set])
     try:
         prov = provenance.check(args.json)
     except provenance.ProvenanceError as exc:

@@ -35,6 +35,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from bench import provenance  # noqa: E402
 HEADS = ("none", "warp_iou", "fusion")
+SCENARIOS = ("moving_vehicles", "busy_street")  # the scenes with moving vehicles: ids must stay consistent there
+FRAMES = 80  # frames per sequence
 
 
 class _Recorder:
@@ -207,9 +209,9 @@ def section_timing(reps: int, fusion_cfg: dict) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenarios", nargs="+", default=["moving_vehicles", "busy_street"])
+    ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     ap.add_argument("--seeds", nargs="+", type=int, default=[200, 201, 202])
-    ap.add_argument("--frames", type=int, default=80)
+    ap.add_argument("--frames", type=int, default=FRAMES)
     ap.add_argument("--domain", choices=["train", "heldout"],
                     help="render the scenes in the generator's training or held-out look (texture families and "
                          "thing sizes no training frame has: dataset.domain); default: the plain generator")

@@ -259,6 +259,9 @@ class Figure:
     render: Callable[[dict], tuple[str, str]]
 
 
+# the data column of the two segmenter rows: the ledger's seeds that no choice was made on
+_SEGMENTER_SEEDS = f"held out (seeds {', '.join(map(str, seeds.load().sets['segmenter']))})"
+
 FIGURES = (
     Figure("default", "default `pvslam run`: built-in driving loop, seed 0, 488 frames", "tuned on", "accuracy",
            default_run),
@@ -283,11 +286,11 @@ FIGURES = (
     Figure("real", "KITTI 00 / 06 / 01 excerpts (real; 160 / 51 / 51 frames) as a user runs them, ATE Sim(3)",
            "00 chosen on, 06 / 01 seen while tuning", "real", real_peers),
     Figure("segmenter", "the shipped segmenter in looks it never saw: parked cars, a hand-held room, moving vehicles",
-           f"held out (seeds {', '.join(map(str, seeds.load().sets['segmenter']))})", "segmenter",
+           _SEGMENTER_SEEDS, "segmenter",
            lambda r: _dynamic_masks().figure(r)),
     Figure("segmenter_pq", "the shipped segmenter's panoptic quality in looks it never saw (8 scenarios, 8 frames "
            "each) and the VPS heads' video panoptic quality",
-           f"held out (seeds {', '.join(map(str, seeds.load().sets['segmenter']))})", "segmenter_pq",
+           _SEGMENTER_SEEDS, "segmenter_pq",
            lambda r: _domain().figure(r)),
 )
 

@@ -79,7 +79,7 @@ def test_vps_section_runs_each_scenario_and_seed_in_the_held_out_looks(monkeypat
 
     monkeypatch.setattr(bench_vps, "run_sequence", fake)
     out = B.vps_section([1, 3], frames=5)
-    assert calls == [(sc, s, 5, "heldout") for sc in B.VPS_SCENARIOS for s in (1, 3)]
+    assert calls == [(sc, s, 5, "heldout") for sc in bench_vps.SCENARIOS for s in (1, 3)]
     assert out["vpq"]["fusion"] == pytest.approx(0.2) and len(out["runs"]) == 4
 
 
