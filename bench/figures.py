@@ -103,7 +103,14 @@ BENCHES = {b.key: b for b in (
           check=lambda r: _dynamic_masks().report_problem(r)),
     Bench("segmenter_pq", ("bench/bench_domain.py", "--set", "segmenter", "--vps", "--json", "{json}"),
           check=lambda r: _domain().report_problem(r)),
+    Bench("loops_real", ("bench/loops_real.py", "--json", "{json}"), check=lambda r: _loops_real().report_problem(r)),
 )}
+
+
+def _loops_real():
+    from bench import loops_real
+
+    return loops_real
 
 
 def _dynamic_masks():
@@ -292,6 +299,9 @@ FIGURES = (
            "each) and the VPS heads' video panoptic quality",
            _SEGMENTER_SEEDS, "segmenter_pq",
            lambda r: _domain().figure(r)),
+    Figure("loops_real", "the loop detectors on real frames: KITTI 00 / 06 / 01 excerpts (none revisits a place) and "
+           "a revisit built from KITTI 00", "real (thresholds chosen on the generator)", "loops_real",
+           lambda r: _loops_real().figure(r)),
 )
 
 

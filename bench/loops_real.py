@@ -206,10 +206,39 @@ def _lines(excerpts: list[dict], revisits: list[dict]) -> list[str]:
     return out
 
 
+PLUGINS = ("classical", "deit")  # the figure's detectors: the default and the paper's
+SEQUENCES = ("00", "06", "01")
+
+
+def report_problem(r: dict) -> Optional[str]:
+    """What keeps a result file from being the current figure (bench/figures.py), or None."""
+    plugins, seqs = tuple(r.get("plugins") or ()), tuple(r.get("sequences") or ())
+    if plugins != PLUGINS or seqs != SEQUENCES:
+        return (f"not every detector {list(PLUGINS)} on every excerpt {list(SEQUENCES)} (run without --plugins, "
+                "--sequences)")
+    return None
+
+
+def figure(r: dict) -> tuple[str, str]:
+    """False loops per detector on the excerpts, the best-scoring pair of different places against the threshold,
+    and the revisit's precision and recall, as one row of the current-figures page."""
+    parts = []
+    for plugin in PLUGINS:
+        ex = [e for e in r["excerpts"] if e["plugin"] == plugin]
+        false = " / ".join(str(len(e["false_loops"])) for e in ex)
+        best = max((e["best_wrong"] for e in ex if e.get("best_wrong")), key=lambda b: b["score"] - b["threshold"])
+        rv = next(x for x in r["revisits"] if x["plugin"] == plugin)
+        parts.append(f"`{plugin}`: false loops {false}, best wrong pair {best['score']:.3f} against its threshold "
+                     f"{best['threshold']:.3f} ({'accepted' if best['accepted'] else 'rejected by verification'}); "
+                     f"revisit precision {rv['precision']:.2f}, recall {rv['recall']:.2f} "
+                     f"({rv['queries_with_a_revisit']} revisiting keyframes)")
+    return "; ".join(parts), "targets: no false loop on any excerpt; revisit precision 1.0, recall >= 0.8"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--plugins", nargs="+", default=["classical", "deit"], help="loop detectors (default both)")
-    ap.add_argument("--sequences", nargs="+", default=["00", "06", "01"], help="KITTI excerpts (default 00 06 01)")
+    ap.add_argument("--plugins", nargs="+", default=list(PLUGINS), help="loop detectors (default both)")
+    ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), help="KITTI excerpts (default 00 06 01)")
     ap.add_argument("--json", help="result file with provenance (not into bench/)")
     args = ap.parse_args(argv)
     if not (KITTI / "sequences").is_dir():
@@ -226,7 +255,8 @@ def main(argv=None) -> int:
     lines = _lines(excerpts, revisits)
     print("\n".join(lines))
     if args.json:
-        path = provenance.write_json(args.json, {"excerpts": excerpts, "revisits": revisits, "table": lines}, prov)
+        path = provenance.write_json(args.json, {"plugins": list(args.plugins), "sequences": list(args.sequences),
+                                                 "excerpts": excerpts, "revisits": revisits, "table": lines}, prov)
         print(f"wrote {path}")
     return 0
 

@@ -68,7 +68,7 @@ def results(tmp_path):
 def test_every_figure_is_read_or_tbd_with_its_command(results):
     rows, got = figures.load(results)
     by = {r.figure.key: r for r in rows}
-    assert set(got) == {"report", "accuracy", "long"} and len(rows) == len(figures.FIGURES) <= 14
+    assert set(got) == {"report", "accuracy", "long"} and len(rows) == len(figures.FIGURES) <= 15
     flat = {"base": {"frames": 3000, "keyframes": 300, "peak_mb": 768.0, "ate_pct": 0.0072},
             "long": {"frames": 10000, "keyframes": 330, "peak_mb": 806.4, "ate_pct": 0.0031}}
     assert figures.endless({**_long(), "flat": flat}) == (
@@ -81,7 +81,8 @@ def test_every_figure_is_read_or_tbd_with_its_command(results):
     assert by["busy_street"].value == "0.100 / 0.100 / 0.100 %"
     assert by["default"].value.startswith("0.044 % of 325 m") and "textbook VO 2.60 %" == by["default"].compared
     assert by["long"].value == "0.0077 % of 2.0 km; 1 map, 118 loops" and by["long"].commit == SHA[:7]
-    for key in ("heldout", "throughput", "long_speed", "endless", "segmenter", "segmenter_pq"):  # endless: no "flat"
+    for key in ("heldout", "throughput", "long_speed", "endless", "segmenter", "segmenter_pq",
+                "loops_real"):  # endless: no "flat"
         assert by[key].value == figures.TBD and not by[key].commit
     table = figures.status_table(rows)
     assert len(table) == 2 + len(figures.FIGURES)

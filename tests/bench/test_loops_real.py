@@ -57,3 +57,31 @@ def test_a_real_revisit_is_found_without_a_false_loop(kitti, plugin):
     assert r["queries_with_a_revisit"] >= 15
     assert r["false_loops"] == [] and r["precision"] == 1.0
     assert r["recall"] >= 0.8, r["missed_frames"]
+
+
+def _result(plugins=loops_real.PLUGINS, sequences=loops_real.SEQUENCES, accepted=False):
+    def best(score):
+        return {"frame_i": 9, "frame_j": 1, "score": score, "threshold": 0.75, "distance_m": 60.0,
+                "accepted": accepted, "inliers": 0, "matches": 7}
+
+    excerpts = [{"plugin": p, "sequence": q, "false_loops": [[9, 1]] if accepted and q == "06" else [],
+                 "best_wrong": best(0.70 + 0.01 * k)} for p in plugins for k, q in enumerate(sequences)]
+    revisits = [{"plugin": p, "queries_with_a_revisit": 35, "precision": 1.0, "recall": 0.9 + 0.05 * k}
+                for k, p in enumerate(plugins)]
+    return {"plugins": list(plugins), "sequences": list(sequences), "excerpts": excerpts, "revisits": revisits}
+
+
+def test_the_figure_row_states_false_loops_the_closest_wrong_pair_and_the_revisit():
+    r = _result()
+    assert loops_real.report_problem(r) is None
+    value, compared = loops_real.figure(r)
+    assert value.startswith("`classical`: false loops 0 / 0 / 0, best wrong pair 0.720 against its threshold 0.750 "
+                            "(rejected by verification); revisit precision 1.00, recall 0.90 (35 revisiting "
+                            "keyframes); `deit`:")
+    assert compared == "targets: no false loop on any excerpt; revisit precision 1.0, recall >= 0.8"
+    assert "false loops 0 / 1 / 0" in loops_real.figure(_result(accepted=True))[0]
+
+
+@pytest.mark.parametrize("kw", [{"plugins": ("classical",)}, {"sequences": ("00", "06")}])
+def test_a_result_without_every_detector_or_excerpt_is_no_figure(kw):
+    assert "not every detector" in loops_real.report_problem(_result(**kw))
