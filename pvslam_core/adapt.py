@@ -125,6 +125,8 @@ def _fit_segmenter(resolved: ResolvedConfig, info: SequenceInfo, registry) -> tu
             pcfg.vps = Component(plugin=DISABLED)
             models["vps"] = None
         note = (f"segmenter: none ({why}): segmentation, video panoptic segmentation and panoptic evaluation are "
-                "off; for panoptic output install a learned segmenter and set segmenter.plugin")
+                "off; for panoptic output fetch detectron2's COCO model (`pvslam weights fetch "
+                "panoptic-fpn-r50-3x-coco`) and set segmenter.plugin = \"panoptic_fpn\", segmenter.preset = "
+                "\"coco_r50\"")
     NOTICE.warning(note)
     return ResolvedConfig(pcfg, models, resolved.source), [note]
