@@ -46,6 +46,8 @@ REVISIT_GAP_S = 10.0  # seconds between the end of the first pass and the start 
 # keyframe spacing on the excerpts in frames (the default run makes nearly every frame a keyframe)
 EXCERPT_STRIDE = {"00": 1, "06": 1, "01": 1}
 REVISIT = {"first_stride": 2, "second_start": 21, "second_stride": 4}
+PLUGINS = ("classical", "deit")  # the detectors of the current figure: the default and the paper's
+SEQUENCES = ("00", "06", "01")  # the KITTI excerpts in ../shared/data
 
 
 def read_frames(seq: str, indices: list[int]) -> list[Any]:
@@ -204,10 +206,6 @@ def _lines(excerpts: list[dict], revisits: list[dict]) -> list[str]:
         out.append(f"| {r['plugin']} | {r['keyframes']} | {r['queries_with_a_revisit']} | {r['verified']} | "
                    f"{r['verified_true']} | {r['precision']:.3f} | {r['recall']:.3f} |")
     return out
-
-
-PLUGINS = ("classical", "deit")  # the figure's detectors: the default and the paper's
-SEQUENCES = ("00", "06", "01")
 
 
 def report_problem(r: dict) -> Optional[str]:
