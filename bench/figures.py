@@ -19,6 +19,7 @@ the pages are then not written (the results measured are kept) unless ``--allow-
 from __future__ import annotations
 
 import argparse
+import importlib
 import math
 import shutil
 import statistics
@@ -100,29 +101,18 @@ BENCHES = {b.key: b for b in (
           check=_pipeline_check("throughput")),
     Bench("real", ("bench/bench_real.py", "--json", "{json}"), check=_real_check),
     Bench("segmenter", ("bench/bench_dynamic_masks.py", "--report", "--jobs", "{jobs}", "--json", "{json}"),
-          check=lambda r: _dynamic_masks().report_problem(r)),
+          check=lambda r: _tool("bench_dynamic_masks").report_problem(r)),
     Bench("segmenter_pq", ("bench/bench_domain.py", "--set", "segmenter", "--vps", "--json", "{json}"),
-          check=lambda r: _domain().report_problem(r)),
-    Bench("loops_real", ("bench/loops_real.py", "--json", "{json}"), check=lambda r: _loops_real().report_problem(r)),
+          check=lambda r: _tool("bench_domain").report_problem(r)),
+    Bench("loops_real", ("bench/loops_real.py", "--json", "{json}"),
+          check=lambda r: _tool("loops_real").report_problem(r)),
 )}
 
 
-def _loops_real():
-    from bench import loops_real
-
-    return loops_real
-
-
-def _dynamic_masks():
-    from bench import bench_dynamic_masks
-
-    return bench_dynamic_masks
-
-
-def _domain():
-    from bench import bench_domain
-
-    return bench_domain
+def _tool(name: str):
+    """The bench tool ``bench/<name>.py`` (its ``report_problem`` and ``figure``), imported on first use: torch loads
+    then, not when the page is only rendered."""
+    return importlib.import_module(f"bench.{name}")
 
 
 # ------------------------------------------------------------------------------------------------ figures
@@ -294,14 +284,14 @@ FIGURES = (
            "00 chosen on, 06 / 01 seen while tuning", "real", real_peers),
     Figure("segmenter", "the shipped segmenter in looks it never saw: parked cars, a hand-held room, moving vehicles",
            _SEGMENTER_SEEDS, "segmenter",
-           lambda r: _dynamic_masks().figure(r)),
+           lambda r: _tool("bench_dynamic_masks").figure(r)),
     Figure("segmenter_pq", "the shipped segmenter's panoptic quality in looks it never saw (8 scenarios, 8 frames "
            "each) and the VPS heads' video panoptic quality",
            _SEGMENTER_SEEDS, "segmenter_pq",
-           lambda r: _domain().figure(r)),
+           lambda r: _tool("bench_domain").figure(r)),
     Figure("loops_real", "the loop detectors on real frames: KITTI 00 / 06 / 01 excerpts (none revisits a place) and "
            "a revisit built from KITTI 00", "real (thresholds chosen on the generator)", "loops_real",
-           lambda r: _loops_real().figure(r)),
+           lambda r: _tool("loops_real").figure(r)),
 )
 
 
