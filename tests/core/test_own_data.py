@@ -143,6 +143,21 @@ def test_cli_runs_a_users_video_with_an_orb_slam_calibration(data, tmp_path, cap
     ts, poses = read_tum(run / "trajectory.txt")
     assert len(ts) == N and np.ptp(poses[:, :3], axis=0).max() > 0  # real motion, not placeholders
     assert "segmenter: none" in (run / "log.txt").read_text()
+    _advice_is_what_the_plugin_and_the_catalogue_have(err)
+
+
+def _advice_is_what_the_plugin_and_the_catalogue_have(err: str) -> None:
+    """The notice spells out a catalogue name and a preset of ``panoptic_fpn`` (the core cannot import the plugin):
+    they must be the catalogue entry that preset loads by default."""
+    import re
+
+    from pvslam_core import weights as W
+    from pvslam_plugins.segmenters.panoptic_fpn.segmenter import DEFAULT_WEIGHTS
+
+    name = re.search(r"pvslam weights fetch ([\w.-]+)`", err).group(1)
+    preset = re.search(r'segmenter\.preset = "(\w+)"', err).group(1)
+    assert DEFAULT_WEIGHTS[preset] == name
+    assert W.find(name, W.catalog_weights()) is not None
 
 
 def test_api_run_path_on_an_image_folder_with_overrides(data, tmp_path):
