@@ -224,10 +224,13 @@ def figure(r: dict) -> tuple[str, str]:
     for plugin in PLUGINS:
         ex = [e for e in r["excerpts"] if e["plugin"] == plugin]
         false = " / ".join(str(len(e["false_loops"])) for e in ex)
-        best = max((e["best_wrong"] for e in ex if e.get("best_wrong")), key=lambda b: b["score"] - b["threshold"])
+        best = max((e["best_wrong"] for e in ex if e.get("best_wrong")), key=lambda b: b["score"] - b["threshold"],
+                   default=None)
+        closest = ("no pair of different places scored" if best is None else
+                   f"best wrong pair {best['score']:.3f} against its threshold {best['threshold']:.3f} "
+                   f"({'accepted' if best['accepted'] else 'rejected by verification'})")
         rv = next(x for x in r["revisits"] if x["plugin"] == plugin)
-        parts.append(f"`{plugin}`: false loops {false}, best wrong pair {best['score']:.3f} against its threshold "
-                     f"{best['threshold']:.3f} ({'accepted' if best['accepted'] else 'rejected by verification'}); "
+        parts.append(f"`{plugin}`: false loops {false}, {closest}; "
                      f"revisit precision {rv['precision']:.2f}, recall {rv['recall']:.2f} "
                      f"({rv['queries_with_a_revisit']} revisiting keyframes)")
     return "; ".join(parts), "targets: no false loop on any excerpt; revisit precision 1.0, recall >= 0.8"

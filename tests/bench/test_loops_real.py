@@ -82,6 +82,16 @@ def test_the_figure_row_states_false_loops_the_closest_wrong_pair_and_the_revisi
     assert "false loops 0 / 1 / 0" in loops_real.figure(_result(accepted=True))[0]
 
 
+def test_a_detector_that_scored_no_wrong_pair_still_gets_its_figure_row():
+    r = _result()
+    for e in r["excerpts"]:
+        if e["plugin"] == "deit":
+            e["best_wrong"] = None
+    value, _ = loops_real.figure(r)
+    assert "`deit`: false loops 0 / 0 / 0, no pair of different places scored; revisit precision 1.00" in value
+    assert "`classical`: false loops 0 / 0 / 0, best wrong pair 0.720" in value
+
+
 @pytest.mark.parametrize("kw", [{"plugins": ("classical",)}, {"sequences": ("00", "06")}])
 def test_a_result_without_every_detector_or_excerpt_is_no_figure(kw):
     assert "not every detector" in loops_real.report_problem(_result(**kw))
