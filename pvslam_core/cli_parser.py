@@ -109,7 +109,8 @@ def _add_train(sub) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="override one training parameter (repeatable)")
     p.add_argument("--out", help="output folder (default: runs/train-INTERFACE-PLUGIN-TIME)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint, with "
+                   "its saved configuration (--config / --set change single keys of it)")
 
 
 def _add_weights(sub) -> None:

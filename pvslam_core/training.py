@@ -4,7 +4,9 @@ A learned plugin registers a :class:`Trainer` with its component (``register(nam
 Trainer(TrainConfig, run))``).  The core only loads the training config (TOML + ``--set``, validated by the
 trainer's own pydantic model with the usual error messages), creates the output folder, saves the resolved config
 there (``train_config.json``) and calls ``run(config, out_dir, resume)``; what the trainer does (data, losses,
-checkpoints, logs) is the plugin's.  Trainers write into ``out_dir`` only and resume from it when asked.
+checkpoints, logs) is the plugin's.  Trainers write into ``out_dir`` only and resume from it when asked; a resumed
+run starts from the configuration saved there, and what ``--config`` and ``--set`` give replaces single keys of it
+(more iterations, say), each change named on the console.
 
 The trainers share one optimisation loop, :class:`TrainingLoop` (resume, CSV logs, schedule, gradient step,
 progress bar, validation, checkpoints): each subclasses it with its batches, losses and schedule.
@@ -12,12 +14,15 @@ progress bar, validation, checkpoints): each subclasses it with its batches, los
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional
 
 from .config import ConfigError, apply_overrides, format_validation_error, read_toml, _normalise_overrides
+
+NOTICE = logging.getLogger("pvslam.notice")  # choices made for the user; the CLI shows them on the console
 
 
 @dataclass(frozen=True)
@@ -42,11 +47,24 @@ def find_trainer(interface: str, plugin: str, registry=None) -> Trainer:
     return trainer
 
 
-def load_train_config(trainer: Trainer, path: Optional[str | Path], overrides=None):
+def _dotted(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A TOML table as dotted-key overrides (``{"a": {"b": 1}}`` -> ``{"a.b": 1}``)."""
+    out: dict[str, Any] = {}
+    for k, v in table.items():
+        out.update(_dotted(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def load_train_config(trainer: Trainer, path: Optional[str | Path], overrides=None,
+                      base: Optional[tuple[dict[str, Any], str]] = None):
+    """The trainer's validated config: its defaults, or ``base`` (``(raw, source)``: a resumed run's saved config),
+    with the TOML file ``path`` and the ``--set`` overrides on top."""
     from pydantic import ValidationError
 
-    raw: dict[str, Any] = read_toml(path) if path is not None else {}
-    source = str(path) if path is not None else "<defaults>"
+    raw, source = base if base is not None else ({}, "<defaults>")
+    if path is not None:
+        raw = apply_overrides(raw, _dotted(read_toml(path))) if base is not None else read_toml(path)
+        source = str(path) if base is None else f"{source} with {path}"
     ov = _normalise_overrides(overrides)
     if ov:
         raw = apply_overrides(raw, ov)
@@ -63,20 +81,42 @@ def train(interface: str, plugin: str, config: Optional[str | Path] = None, over
     from .outputs.metrics import write_json_atomic
 
     trainer = find_trainer(interface, plugin, registry)
-    cfg = load_train_config(trainer, config, overrides)
     if out_dir is None:
         if resume:
             raise ValueError("--resume needs --out (the folder of the run to continue)")
         out_dir = Path("runs") / f"train-{interface}-{plugin}-{time.strftime('%Y%m%d-%H%M%S')}"
     out = Path(out_dir)
-    if resume and not out.is_dir():
-        raise FileNotFoundError(f"--resume: {out} does not exist")
+    if resume:
+        cfg = _resumed_config(trainer, out, interface, plugin, config, overrides)
+    else:
+        cfg = load_train_config(trainer, config, overrides)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "train_config.json", {"interface": interface, "plugin": plugin,
                                                   "config": json.loads(cfg.model_dump_json())})
     summary = trainer.run(cfg, out, resume) or {}
     write_json_atomic(out / "summary.json", summary)
     return out, summary
+
+
+def _resumed_config(trainer: Trainer, out: Path, interface: str, plugin: str, config, overrides):
+    """A resumed run's config: the one saved in ``out/train_config.json`` with ``config`` / ``overrides`` on top (a
+    resume without them continues exactly the run that was started, not the trainer's defaults)."""
+    saved = out / "train_config.json"
+    if not out.is_dir():
+        raise FileNotFoundError(f"--resume: {out} does not exist")
+    if not saved.is_file():
+        raise FileNotFoundError(f"--resume: {saved} not found ({out} is not the folder of a training run)")
+    data = json.loads(saved.read_text())
+    if (data.get("interface"), data.get("plugin")) != (interface, plugin):
+        raise ValueError(f"--resume: {out} holds a run of {data.get('interface')} --plugin {data.get('plugin')}, "
+                         f"not {interface} --plugin {plugin}")
+    before = data.get("config") or {}
+    cfg = load_train_config(trainer, config, overrides, base=(before, str(saved)))
+    after = json.loads(cfg.model_dump_json())
+    for key in sorted(set(before) | set(after)):
+        if before.get(key) != after.get(key):
+            NOTICE.warning("resuming %s: %s changed from %r to %r", out, key, before.get(key), after.get(key))
+    return cfg
 
 
 def prepare_run(cfg: Any, out_dir: str | Path) -> tuple[Path, Path]:

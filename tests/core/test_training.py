@@ -45,6 +45,22 @@ def test_train_dispatch_config_and_resume(tmp_path, registry):
     assert json.loads((out / "summary.json").read_text())["steps_run"] == 5
     _, again = train("loop", "toy", cfg, ["steps=7"], out, resume=True, registry=registry)
     assert again["steps_run"] == 2  # continued from step 5
+    assert again["lr"] == 0.5  # the saved config, not the trainer's default
+
+
+def test_a_resume_continues_the_saved_config_and_names_what_it_changes(tmp_path, registry, caplog):
+    out, _ = train("loop", "toy", None, ["lr=0.5", "steps=2"], tmp_path / "t", registry=registry)
+    _, same = train("loop", "toy", None, None, out, resume=True, registry=registry)
+    assert same == {"steps_run": 0, "lr": 0.5}  # no --set: exactly the run that was started
+    assert not [r for r in caplog.records if "changed" in r.getMessage()]
+    more = tmp_path / "more.toml"
+    more.write_text("steps = 4\n")
+    _, longer = train("loop", "toy", more, None, out, resume=True, registry=registry)
+    assert longer == {"steps_run": 2, "lr": 0.5}
+    assert json.loads((out / "train_config.json").read_text())["config"] == {"steps": 4, "lr": 0.5}
+    assert any("steps changed from 2 to 4" in r.getMessage() for r in caplog.records)
+    with pytest.raises(ConfigError, match="unknown key 'stepz'"):
+        train("loop", "toy", None, ["stepz=5"], out, resume=True, registry=registry)
 
 
 def test_train_errors(tmp_path, registry):
@@ -54,8 +70,16 @@ def test_train_errors(tmp_path, registry):
         train("loop", "toy", bad, registry=registry, out_dir=tmp_path / "x")
     with pytest.raises(PluginError, match="has no trainer; trainable plugins: .*loop toy"):
         train("frontend", "flow", registry=build_registry(extra_modules=(ToyPlugin(),)))
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
         train("loop", "toy", resume=True, out_dir=tmp_path / "missing", registry=registry)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="train_config.json not found"):
+        train("loop", "toy", resume=True, out_dir=tmp_path / "empty", registry=registry)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "train_config.json").write_text(json.dumps({"interface": "segmenter", "plugin": "x",
+                                                                      "config": {}}))
+    with pytest.raises(ValueError, match="holds a run of segmenter --plugin x, not loop --plugin toy"):
+        train("loop", "toy", resume=True, out_dir=tmp_path / "other", registry=registry)
 
 
 def test_prepare_run_sets_threads_seed_and_cache(tmp_path):
