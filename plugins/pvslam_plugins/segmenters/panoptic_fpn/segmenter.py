@@ -39,7 +39,7 @@ __all__ = ["PanopticFPNSegmenterConfig", "PanopticFPNSegmenter", "DeferredPanopt
 #: the reduced configuration trained here on the synthetic scenarios (``pvslam train segmenter``), shipped in the package
 SHIPPED_WEIGHTS = Path(__file__).with_name("weights") / "reduced_synthetic.pth"
 #: sha256 of the shipped file: other bytes (a truncated copy, a Git LFS pointer) are refused, never loaded
-SHIPPED_SHA256 = "9ffb8a0fc0d89e62e585c10c5a759a24f79209dc58c48e68c162b2523dc2c2cb"
+SHIPPED_SHA256 = "6e0e80ec13e4236c3f7038596a4c33c7a9d59293db002cf0967ca77768da3cee"
 #: default ``weights`` per preset: the shipped file, or a catalogue name (``pvslam weights list``)
 DEFAULT_WEIGHTS = {"reduced": str(SHIPPED_WEIGHTS), "coco_r50": "panoptic-fpn-r50-3x-coco",
                    "vkitti2_r50": "pvo-panfpn-vkitti2"}
