@@ -51,7 +51,8 @@ def _dotted(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """A TOML table as dotted-key overrides (``{"a": {"b": 1}}`` -> ``{"a.b": 1}``)."""
     out: dict[str, Any] = {}
     for k, v in table.items():
-        out.update(_dotted(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        # an empty table stays a value, so the trainer's model still rejects an unknown one
+        out.update(_dotted(v, f"{prefix}{k}.") if isinstance(v, dict) and v else {f"{prefix}{k}": v})
     return out
 
 
@@ -63,7 +64,7 @@ def load_train_config(trainer: Trainer, path: Optional[str | Path], overrides=No
 
     raw, source = base if base is not None else ({}, "<defaults>")
     if path is not None:
-        raw = apply_overrides(raw, _dotted(read_toml(path))) if base is not None else read_toml(path)
+        raw = apply_overrides(raw, _dotted(read_toml(path)))
         source = str(path) if base is None else f"{source} with {path}"
     ov = _normalise_overrides(overrides)
     if ov:
