@@ -10,19 +10,18 @@ Each benchmark is one bench tool command writing one result file into ``--result
 ``runs/bench/figures/``, ignored by git); the file records the commit it measured (:mod:`bench.provenance`).  Each
 figure is one row read from a result: what, on which data (``tuned on``: the defaults were chosen on it; ``report``
 and ``held out``: never tuned on, see ``bench/seeds.toml``), the figure, what it is compared with, the command, and
-the commit.  A figure without its result file shows TBD and its command.  Results of a dirty checkout or of a
-benchmark run with other settings (overrides, another seed set) are refused.  Speed figures depend on the machine
-and its load: ``--skip-speed`` leaves them as they are.  Result files stay on the machine that measured them, so on
-another machine a part of the set (``--only``, ``--skip-speed``) would turn every figure it did not measure to TBD:
-the pages are then not written (the results measured are kept) unless ``--allow-tbd``.
+the commit.  Results of a dirty checkout or of a benchmark run with other settings (overrides, another seed set)
+are refused.  Speed figures depend on the machine and its load: ``--skip-speed`` leaves them as they are.  Result
+files stay on the machine that measured them (a fresh checkout has none), so a figure without its result file here
+keeps the row, the per-cell section and the *Results* line the pages show now, with the commit they name: a part of
+the set (``--only``) updates its figures and leaves the others as they were.  A figure the pages never showed
+measured is TBD with its command.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
-import math
 import shutil
-import statistics
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -33,6 +32,8 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from bench import provenance, seeds  # noqa: E402
+from bench.figure_rows import (_name, _pct, _ratio, ablation, default_run, endless, kitti, long_run,  # noqa: E402
+                               long_speed, matrix_scenario, matrix_summary, real_peers, throughput)
 
 PAGE = ROOT / "bench" / "RESULTS.md"
 README = ROOT / "README.md"
@@ -116,137 +117,6 @@ def _tool(name: str):
 
 
 # ------------------------------------------------------------------------------------------------ figures
-def _pct(x: Optional[float], digits: int = 3) -> str:
-    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}f}"
-
-
-def _cells(r: dict, synthetic_only: bool = False) -> list[dict]:
-    rows = [c for c in r["rows"] if "error" not in c and "error" not in c.get("pvslam", {})]
-    return [c for c in rows if c["seed"] is not None] if synthetic_only else rows
-
-
-def _ratio(c: dict) -> Optional[float]:
-    pv, vo = c["pvslam"].get("ate_pct"), (c.get("vo") or {}).get("ate_pct")
-    return vo / pv if pv and vo is not None and pv > 0 else None
-
-
-def _name(c: dict) -> str:
-    return c["scenario"] + ("" if c["seed"] is None else f"/{c['seed']}")
-
-
-def matrix_summary(r: dict, synthetic_only: bool = False) -> tuple[str, str]:
-    """Median / mean ATE, cells >= 3x below the textbook VO, initialisation; compared: the VO, the closest cell."""
-    cells, n_all = _cells(r, synthetic_only), len([c for c in r["rows"] if c["seed"] is not None or not synthetic_only])
-    pv = [c["pvslam"]["ate_pct"] for c in cells]
-    ok3 = [c for c in cells if (_ratio(c) or 0) >= 3.0]
-    init = [c for c in cells if c["pvslam"].get("init_s") is not None and c["pvslam"]["init_s"] <= 2.0
-            and c["pvslam"]["posed"] >= c["frames"]]
-    closest = min(cells, key=lambda c: _ratio(c) or 0.0)
-    vo = [c["vo"]["ate_pct"] for c in cells if (c.get("vo") or {}).get("ate_pct") is not None]
-    fig = (f"median {_pct(statistics.median(pv))} %, mean {_pct(statistics.fmean(pv))} %; **{len(ok3)} / {n_all}** "
-           f"cells >= 3x below the VO; {len(init)} / {n_all} initialised within 2 s, every frame posed")
-    return fig, (f"textbook VO median {_pct(statistics.median(vo), 2)} %; closest cell {_name(closest)} "
-                 f"({_pct(_ratio(closest), 1)}x)")
-
-
-def matrix_scenario(scenario: str) -> Callable[[dict], tuple[str, str]]:
-    def render(r: dict) -> tuple[str, str]:
-        cells = [c for c in _cells(r) if c["scenario"] == scenario]
-        pv = " / ".join(_pct(c["pvslam"]["ate_pct"]) for c in cells)
-        vo = " / ".join(_pct(c["vo"].get("ate_pct"), 2) for c in cells)
-        return f"{pv} %", f"textbook VO {vo} %"
-    return render
-
-
-def kitti(r: dict) -> tuple[str, str]:
-    cells = {c["scenario"]: c for c in _cells(r) if c["seed"] is None}
-    if not cells:
-        raise KeyError("no KITTI cells (excerpts not found when it ran)")
-    order = [k for k in ("kitti_06", "kitti_01") if k in cells]
-    fig = " / ".join(_pct(cells[k]["pvslam"]["ate_pct"]) for k in order)
-    vo = " / ".join(_pct(cells[k]["vo"].get("ate_pct"), 2) for k in order)
-    line = " / ".join(_pct(cells[k]["line"].get("ate_pct"), 2) for k in order)
-    return f"{fig} %", f"textbook VO {vo} %; constant-velocity line {line} %"
-
-
-def default_run(r: dict) -> tuple[str, str]:
-    m = r["accuracy"]["online_ba+loop"]
-    pan, lp = m.get("panoptic") or {}, m.get("loops") or {}
-    fig = (f"{_pct(m['ate']['rmse_percent_of_path'])} % of {m['ate']['path_length']:.0f} m; loops P "
-           f"{_pct(lp.get('precision'), 2)} R {_pct(lp.get('recall'), 2)}; PQ {_pct(pan.get('pq'), 3)} / VPQ "
-           f"{_pct(pan.get('vpq'), 3)} (oracle labels)")
-    return fig, f"textbook VO {_pct(r['peers']['textbook_vo']['ate_pct'], 2)} %"
-
-
-def ablation(r: dict) -> tuple[str, str]:
-    a = {k: v["ate"]["rmse_percent_of_path"] for k, v in r["accuracy"].items()}
-    fig = (f"loop closure off {_pct(a['online_ba, no loop'])} %; offline BA + loop {_pct(a['offline_ba+loop'])} %; "
-           f"offline, no loop {_pct(a['offline_ba, no loop'])} %")
-    return fig, f"the default (online BA + loop) {_pct(a['online_ba+loop'])} %, from frame 1 " \
-                f"{_pct(a['online_ba+loop (start 1)'])} %"
-
-
-def long_run(r: dict) -> tuple[str, str]:
-    d = r["long"]
-    maps = d["unmerged"]
-    fig = (f"{_pct(d['ate_pct'], 4)} % of {d['path_m'] / 1000:.1f} km; {maps} map{'s' if maps != 1 else ''}, "
-           f"{d['loops']} loops")
-    cut = (r.get("forced_loss") or {}).get("cut")
-    extra = f"; 30 frames cut from driving_block: {cut['separate_maps']} map after the re-initialisation" if cut else ""
-    return fig, f"target <= 0.5 %, one map{extra}"
-
-
-def long_speed(r: dict) -> tuple[str, str]:
-    d = r["long"]
-    return (f"CPU per frame last / first 500 frames {d['last_cpu'] / d['first_cpu']:.2f}; peak memory "
-            f"{d['peak_mb'] / 1024:.2f} GB", "targets <= 1.2 and < 2 GB")
-
-
-def endless(r: dict) -> Optional[tuple[str, str]]:
-    if "flat" not in r:
-        return None  # measured without the endless-input runs (--flat-frames 0)
-    base, d = r["flat"]["base"], r["flat"]["long"]
-    return (f"peak memory {base['peak_mb'] / 1024:.2f} / {d['peak_mb'] / 1024:.2f} GB at {base['frames']} / "
-            f"{d['frames']} frames ({d['peak_mb'] / base['peak_mb']:.2f}x); {base['keyframes']} / {d['keyframes']} "
-            f"keyframes; ATE {_pct(base['ate_pct'], 4)} / {_pct(d['ate_pct'], 4)} %", "target: within 1.10x")
-
-
-def throughput(r: dict) -> tuple[str, str]:
-    parts = []
-    for key, label in (("speed_driving_loop_320x240", "driving loop"), ("speed_indoor_handheld_320x240", "indoor"),
-                       ("speed_kitti_06", "KITTI 06"), ("speed_kitti_01", "KITTI 01")):
-        if key in r:
-            parts.append(f"{label} {r[key]['fps']:.1f} ({r[key]['cpu_ms']:.0f} ms CPU)")
-    return "frames/s: " + ", ".join(parts), "targets 30 frames/s at 320x240, 10 on KITTI, 2 cores"
-
-
-def _real_rows(r: dict) -> dict[tuple[str, str], list[dict]]:
-    return {(row["sequence"], row["method"]): row.get("runs") or [] for row in r["rows"]}
-
-
-def real_peers(r: dict) -> tuple[str, str]:
-    """The real excerpts beside ORB-SLAM3 (bench_real.py): ATE m per excerpt, over all frames and over ORB-SLAM3's."""
-    from bench.bench_real import SAME_FRAMES, SEQUENCES as seqs, span
-
-    runs = _real_rows(r)
-
-    def each(method: str, key: str, fmt: str) -> str:
-        return " / ".join(span([x.get(key) for x in runs.get((q, method), [])], fmt) for q in seqs)
-
-    sizes = f" (its processing size and {r['size_spread']:g} % per side either way)" if r.get("size_spread") else ""
-    first = " / ".join(str((runs.get((q, "pvslam")) or [{}])[0].get("first", 0)) for q in seqs)
-    value = (f"scored from frame {first} (the measured ground truth): pvslam {each('pvslam', 'ate_m', '.3f')} m"
-             f"{sizes}; on ORB-SLAM3's frames {each(SAME_FRAMES, 'ate_m', '.3f')} m; all frames "
-             f"{each('pvslam', 'ate_all_m', '.3f')} m; CPU {each('pvslam', 'cpu_ms_per_frame', '.0f')} ms per frame")
-    if not any(runs.get((q, "orbslam3")) for q in seqs):
-        orb = "ORB-SLAM3 not run (" + next((row.get("note") or "?" for row in r["rows"]
-                                            if row["method"] == "orbslam3"), "?") + ")"
-    else:
-        orb = (f"ORB-SLAM3, {r['orb_runs']} runs each: {each('orbslam3', 'ate_m', '.3f')} m on "
-               f"{each('orbslam3', 'posed', 'd')} frames, {each('orbslam3', 'cpu_ms_per_frame', '.0f')} ms")
-    return value, f"{orb}; textbook VO {each('textbook_vo', 'ate_m', '.2f')} m"
-
-
 @dataclass(frozen=True)
 class Figure:
     key: str
@@ -302,7 +172,7 @@ class Row:
     value: str
     compared: str
     commit: str     # short hash, "" when TBD
-    note: str = ""  # why it is TBD
+    note: str = ""  # why it is TBD, or where it was kept from
 
 
 def load(results: Path, allow_dirty: bool = False) -> tuple[list[Row], dict[str, dict]]:
@@ -363,7 +233,49 @@ def _matrix_cells(r: dict) -> list[str]:
     return out
 
 
-def page(rows: list[Row], got: dict[str, dict]) -> str:
+def _sections(text: str) -> dict[str, list[str]]:
+    """The ``## `` sections of a page: title -> its lines between the heading and the next, blank lines around them
+    dropped (a missing page has none)."""
+    out: dict[str, list[str]] = {}
+    for chunk in ("\n" + text).split("\n## ")[1:]:
+        title, _, body = chunk.partition("\n")
+        out[title] = body.strip("\n").splitlines()
+    return out
+
+
+def _real_section(real: dict) -> list[str]:
+    table = [t for t in real.get("table", []) if t.startswith("|")]
+    details = [t for t in real.get("table", []) if not t.startswith("|")]
+    sizes = (f", and with the processing area {real['size_spread']:g} % per side smaller and larger "
+             "(`--size-spread`)") if real.get("size_spread") else ""
+    return [f"pvslam is run as `pvslam run SEQUENCE --calib SEQUENCE/calib.txt`{sizes}; ORB-SLAM3 with a vocabulary "
+            "trained on the other excerpts; ATE and RPE after Sim(3) alignment over the frames each posed "
+            "(ORB-SLAM3: its largest map) from the first frame with measured ground truth on (KITTI's poses "
+            "begin 00 and 06 with a constant-velocity extrapolation; "
+            "docs/decisions.md: MEASURED GROUND TRUTH), the ATE over every frame beside; CPU per frame with "
+            "start-up.", "", *table, "", *(f"- {t}" for t in details)]
+
+
+def _accuracy_section(acc: dict) -> list[str]:
+    lines = ["| variant | ATE % | loops detected | loop precision / recall | keyframes |", "|---|---:|---:|---:|---:|"]
+    for name, m in acc["accuracy"].items():
+        lp = m.get("loops") or {}
+        lines.append(f"| {name} | {_pct(m['ate']['rmse_percent_of_path'])} | {lp.get('num_detected', 0)} | "
+                     f"{_pct(lp.get('precision'), 2)} / {_pct(lp.get('recall'), 2)} | "
+                     f"{m['timing']['keyframes']} |")
+    return lines
+
+
+#: the page's sections under the summary: result key, title, lines from the result
+SECTIONS = (("report", "Report matrix, per cell", _matrix_cells),
+            ("heldout", "Held-out matrix, per cell", _matrix_cells),
+            ("accuracy", "Default run and its ablation (driving loop, seed 0)", _accuracy_section),
+            ("real", "Real sequences beside ORB-SLAM3 and the textbook VO (`bench/bench_real.py`)", _real_section))
+
+
+def page(rows: list[Row], got: dict[str, dict], old_page: str = "") -> str:
+    """The page of current figures; a section or *Results* line whose result file is not here is kept from
+    ``old_page`` (the page as it is now)."""
     lines = [
         "# Current figures",
         "",
@@ -380,53 +292,48 @@ def page(rows: list[Row], got: dict[str, dict]) -> str:
         "",
         *status_table(rows),
     ]
-    for key, title in (("report", "Report matrix, per cell"), ("heldout", "Held-out matrix, per cell")):
-        if key in got:
-            lines += ["", f"## {title}", "", *_matrix_cells(got[key])]
-    if "accuracy" in got:
-        lines += ["", "## Default run and its ablation (driving loop, seed 0)", "",
-                  "| variant | ATE % | loops detected | loop precision / recall | keyframes |", "|---|---:|---:|---:|---:|"]
-        for name, m in got["accuracy"]["accuracy"].items():
-            lp = m.get("loops") or {}
-            lines.append(f"| {name} | {_pct(m['ate']['rmse_percent_of_path'])} | {lp.get('num_detected', 0)} | "
-                         f"{_pct(lp.get('precision'), 2)} / {_pct(lp.get('recall'), 2)} | "
-                         f"{m['timing']['keyframes']} |")
-    if "real" in got:
-        real = got["real"]
-        table = [t for t in real.get("table", []) if t.startswith("|")]
-        details = [t for t in real.get("table", []) if not t.startswith("|")]
-        sizes = (f", and with the processing area {real['size_spread']:g} % per side smaller and larger "
-                 "(`--size-spread`)") if real.get("size_spread") else ""
-        lines += ["", "## Real sequences beside ORB-SLAM3 and the textbook VO (`bench/bench_real.py`)", "",
-                  f"pvslam is run as `pvslam run SEQUENCE --calib SEQUENCE/calib.txt`{sizes}; ORB-SLAM3 with a "
-                  "vocabulary "
-                  "trained on the other excerpts; ATE and RPE after Sim(3) alignment over the frames each posed "
-                  "(ORB-SLAM3: its largest map) from the first frame with measured ground truth on (KITTI's poses "
-                  "begin 00 and 06 with a constant-velocity extrapolation; "
-                  "docs/decisions.md: MEASURED GROUND TRUTH), the ATE over every frame beside; CPU per frame with "
-                  "start-up.", "", *table, "",
-                  *(f"- {t}" for t in details)]
+    old = _sections(old_page)
+    for key, title, render in SECTIONS:
+        body = render(got[key]) if key in got else old.get(title)
+        if body:
+            lines += ["", f"## {title}", "", *body]
     lines += ["", "## Results", "",
               "| result | command | commit | dirty | machine | started | finished |", "|---|---|---|---|---|---|---|"]
-    for key, r in got.items():
-        p = r["provenance"]
-        lines.append(f"| {key} | `{BENCHES[key].shown()}` | {p['commit']} | {p.get('dirty')} | "
-                     f"{p.get('host', '?')}, {p.get('cpus', '?')} CPUs, torch {(p.get('libraries') or {}).get('torch')}"
-                     f" | {p.get('started', '?')} | {p.get('finished', '?')} |")
-    missing = [k for k in BENCHES if k not in got]
+    kept = {line.split("|")[1].strip(): line for line in old.get("Results", []) if line.startswith("| ")}
+    for key in BENCHES:
+        if key in got:
+            p = got[key]["provenance"]
+            lines.append(f"| {key} | `{BENCHES[key].shown()}` | {p['commit']} | {p.get('dirty')} | "
+                         f"{p.get('host', '?')}, {p.get('cpus', '?')} CPUs, torch "
+                         f"{(p.get('libraries') or {}).get('torch')} | {p.get('started', '?')} | "
+                         f"{p.get('finished', '?')} |")
+        elif key in kept and any(r.commit and r.figure.bench == key for r in rows):
+            lines.append(kept[key])
+    missing = sorted({r.figure.bench for r in rows if not r.commit}, key=list(BENCHES).index)
     if missing:
         lines += ["", "Not measured yet (TBD): " + ", ".join(f"`{BENCHES[k].shown()}`" for k in missing) + "."]
     return "\n".join(lines) + "\n"
 
 
-def measured_now(text: str) -> set[str]:
-    """The figures (their ``what``) that the README's Status table in ``text`` shows with a commit, i.e. measured."""
+def shown_rows(text: str) -> dict[str, tuple[str, str, str]]:
+    """The figures the README's Status table in ``text`` shows measured (with a commit): what -> (figure, compared
+    with, commit)."""
     if BEGIN not in text or END not in text:
-        return set()
+        return {}
     block = text.split(BEGIN, 1)[1].split(END, 1)[0]
-    cells = [[c.strip() for c in line.strip().strip("|").split("|")] for line in block.splitlines()
-             if line.startswith("|") and not line.startswith("|---")]
-    return {c[0] for c in cells[1:] if len(c) >= 2 and c[-1] not in ("", "-")}
+    out = {}
+    for line in block.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("| ") and len(cells) == 6 and cells[0] != "what" and cells[-1] not in ("", "-"):
+            out[cells[0]] = (cells[2], "" if cells[3] == "-" else cells[3], cells[5])
+    return out
+
+
+def kept_rows(rows: list[Row], readme: str) -> list[Row]:
+    """``rows`` where a figure without a result file here takes the row the README shows measured now."""
+    shown = shown_rows(readme)
+    return [Row(r.figure, *shown[r.figure.what], note="kept: no result file here")
+            if r.note == "no result" and r.figure.what in shown else r for r in rows]
 
 
 def readme_with(text: str, rows: list[Row]) -> str:
@@ -465,8 +372,6 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=2, help="parallel cells of the matrices (default 2)")
     ap.add_argument("--allow-dirty", action="store_true", help="accept results of a checkout with changes "
                     "(marked +dirty; not for a committed page)")
-    ap.add_argument("--allow-tbd", action="store_true", help="write the pages even where a figure they show measured "
-                    "has no result file here (it becomes TBD)")
     ap.add_argument("--list", action="store_true", help="print the benchmarks and their commands")
     args = ap.parse_args(argv)
     if args.list:
@@ -490,20 +395,16 @@ def main(argv=None) -> int:
     except (provenance.ProvenanceError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    # result files are per machine (ignored by git): on another machine a part of the set would wipe the rest
+    # result files are per machine (ignored by git): what was not measured here keeps the row the pages show now
     readme = README.read_text(encoding="utf-8")
-    shown = measured_now(readme)
-    lost = [r.figure for r in rows if not r.commit and r.figure.what in shown]
-    if lost and not args.allow_tbd:
-        print(f"error: {args.results} has no result for the figures {', '.join(f.key for f in lost)}, which the pages "
-              f"show measured now: writing them would turn those to TBD. Measure them here too (python "
-              f"bench/figures.py --only {' '.join(dict.fromkeys(f.bench for f in lost))}) or pass --allow-tbd; the "
-              f"results measured so far stay in {args.results}", file=sys.stderr)
-        return 2
-    PAGE.write_text(page(rows, got), encoding="utf-8")
+    rows = kept_rows(rows, readme)
+    old_page = PAGE.read_text(encoding="utf-8") if PAGE.is_file() else ""
+    PAGE.write_text(page(rows, got, old_page), encoding="utf-8")
     README.write_text(readme_with(readme, rows), encoding="utf-8")
     tbd = [r.figure.key for r in rows if not r.commit]
+    kept = [r.figure.key for r in rows if r.note.startswith("kept")]
     print(f"wrote {PAGE} and the Status table of {README} ({len(rows)} figures"
+          + (f"; kept as the pages showed them: {', '.join(kept)}" if kept else "")
           + (f"; TBD: {', '.join(tbd)}" if tbd else "") + ")")
     return 0
 

@@ -142,30 +142,59 @@ def test_render_only_writes_both_pages(results, tmp_path, monkeypatch, capsys):
     assert "TBD: heldout" in capsys.readouterr().out
 
 
-def test_the_figures_measured_now_are_read_from_the_readme_table(results):
+def test_the_figures_shown_measured_are_read_from_the_readme_table(results):
     rows, _ = figures.load(results)
     text = figures.readme_with(f"x\n{figures.BEGIN}\n{figures.END}\n", rows)
-    shown = figures.measured_now(text)
-    assert shown == {r.figure.what for r in rows if r.commit} and len(shown) >= 3
+    shown = figures.shown_rows(text)
+    assert set(shown) == {r.figure.what for r in rows if r.commit} and len(shown) >= 3
     assert any(not r.commit for r in rows)  # the TBD rows (commit "-") are not among them
-    assert figures.measured_now("no table here\n") == set()
+    by = {r.figure.what: r for r in rows}
+    assert all(shown[w] == (by[w].value, by[w].compared, by[w].commit) for w in shown)
+    assert figures.shown_rows("no table here\n") == {}
 
 
-def test_pages_are_not_written_when_figures_they_show_measured_have_no_result_here(results, tmp_path, monkeypatch,
-                                                                                  capsys):
-    rows, _ = figures.load(results)
+def test_a_figure_without_its_result_here_keeps_what_the_pages_show(results, tmp_path, monkeypatch, capsys):
     page, readme = tmp_path / "RESULTS.md", tmp_path / "README.md"
-    before = figures.readme_with(f"intro\n{figures.BEGIN}\n{figures.END}\n", rows)
-    readme.write_text(before)
+    readme.write_text(f"intro\n{figures.BEGIN}\n{figures.END}\nend\n")
     monkeypatch.setattr(figures, "PAGE", page)
     monkeypatch.setattr(figures, "README", readme)
-    (results / "long.json").unlink()  # another machine: this result file is not here
-    assert figures.main(["--render-only", "--results", str(results)]) == 2
-    err = capsys.readouterr().err
-    assert "long" in err and "--only long" in err and "--allow-tbd" in err
-    assert readme.read_text() == before and not page.exists()
-    assert figures.main(["--render-only", "--results", str(results), "--allow-tbd"]) == 0
-    assert page.exists() and readme.read_text() != before
+    assert figures.main(["--render-only", "--results", str(results)]) == 0
+    first_page, first_readme = page.read_text(), readme.read_text()
+    assert "## Report matrix, per cell" in first_page and "| report | `python bench/bench_matrix.py" in first_page
+    # a fresh machine: only the long run's result file is here, measured at another commit
+    other = tmp_path / "other"
+    other.mkdir()
+    long = json.loads((results / "long.json").read_text())
+    long["provenance"]["commit"] = "fedcba9876543210fedcba9876543210fedcba98"
+    long["long"]["ate_pct"] = 0.0123
+    (other / "long.json").write_text(json.dumps(long))
+    assert figures.main(["--render-only", "--results", str(other)]) == 0
+    assert "kept as the pages showed them: " in capsys.readouterr().out
+    rows = {r.figure.key: r for r in figures.load(other)[0]}
+    shown = figures.shown_rows(readme.read_text())
+    before = figures.shown_rows(first_readme)
+    for key, r in rows.items():
+        if r.figure.bench == "long" and r.commit:
+            assert shown[r.figure.what][2] == "fedcba9" and shown[r.figure.what] != before[r.figure.what]
+        elif r.figure.bench == "long":  # read from the file here and not in it: TBD, not kept
+            assert r.figure.what not in shown
+        else:  # the report, accuracy, ... rows as they were; the never-measured ones still TBD
+            assert shown.get(r.figure.what) == before.get(r.figure.what)
+    assert "0.0123 %" in page.read_text()
+    # the per-cell sections and the Results lines of the benchmarks not measured here stay as they were
+    new_sections, old_sections = figures._sections(page.read_text()), figures._sections(first_page)
+    assert new_sections["Report matrix, per cell"] == old_sections["Report matrix, per cell"]
+    assert new_sections["Default run and its ablation (driving loop, seed 0)"] == \
+        old_sections["Default run and its ablation (driving loop, seed 0)"]
+    results_lines = new_sections["Results"]
+    assert any(x.startswith("| report |") for x in results_lines)
+    assert any(x.startswith("| long |") and "fedcba98" in x for x in results_lines)
+    assert "Not measured yet (TBD)" in page.read_text() and "`python bench/bench_matrix.py --set heldout" in \
+        page.read_text().split("Not measured yet (TBD)")[1]
+    # rendering again from the same files changes nothing
+    again = page.read_text(), readme.read_text()
+    assert figures.main(["--render-only", "--results", str(other)]) == 0
+    assert (page.read_text(), readme.read_text()) == again
 
 
 def test_a_benchmark_run_twice_by_two_figures_is_measured_once(tmp_path, monkeypatch):

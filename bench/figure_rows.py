@@ -1,0 +1,141 @@
+"""The rows of the current figures (:mod:`bench.figures`): each function reads one benchmark's result file and returns
+the figure and what it is compared with, as the page and the README's Status table show them."""
+from __future__ import annotations
+
+import math
+import statistics
+from typing import Callable, Optional
+
+__all__ = ["matrix_summary", "matrix_scenario", "kitti", "default_run", "ablation", "long_run", "long_speed", "endless",
+           "throughput", "real_peers"]
+
+
+def _pct(x: Optional[float], digits: int = 3) -> str:
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}f}"
+
+
+def _cells(r: dict, synthetic_only: bool = False) -> list[dict]:
+    rows = [c for c in r["rows"] if "error" not in c and "error" not in c.get("pvslam", {})]
+    return [c for c in rows if c["seed"] is not None] if synthetic_only else rows
+
+
+def _ratio(c: dict) -> Optional[float]:
+    pv, vo = c["pvslam"].get("ate_pct"), (c.get("vo") or {}).get("ate_pct")
+    return vo / pv if pv and vo is not None and pv > 0 else None
+
+
+def _name(c: dict) -> str:
+    return c["scenario"] + ("" if c["seed"] is None else f"/{c['seed']}")
+
+
+def matrix_summary(r: dict, synthetic_only: bool = False) -> tuple[str, str]:
+    """Median / mean ATE, cells >= 3x below the textbook VO, initialisation; compared: the VO, the closest cell."""
+    cells, n_all = _cells(r, synthetic_only), len([c for c in r["rows"] if c["seed"] is not None or not synthetic_only])
+    pv = [c["pvslam"]["ate_pct"] for c in cells]
+    ok3 = [c for c in cells if (_ratio(c) or 0) >= 3.0]
+    init = [c for c in cells if c["pvslam"].get("init_s") is not None and c["pvslam"]["init_s"] <= 2.0
+            and c["pvslam"]["posed"] >= c["frames"]]
+    closest = min(cells, key=lambda c: _ratio(c) or 0.0)
+    vo = [c["vo"]["ate_pct"] for c in cells if (c.get("vo") or {}).get("ate_pct") is not None]
+    fig = (f"median {_pct(statistics.median(pv))} %, mean {_pct(statistics.fmean(pv))} %; **{len(ok3)} / {n_all}** "
+           f"cells >= 3x below the VO; {len(init)} / {n_all} initialised within 2 s, every frame posed")
+    return fig, (f"textbook VO median {_pct(statistics.median(vo), 2)} %; closest cell {_name(closest)} "
+                 f"({_pct(_ratio(closest), 1)}x)")
+
+
+def matrix_scenario(scenario: str) -> Callable[[dict], tuple[str, str]]:
+    def render(r: dict) -> tuple[str, str]:
+        cells = [c for c in _cells(r) if c["scenario"] == scenario]
+        pv = " / ".join(_pct(c["pvslam"]["ate_pct"]) for c in cells)
+        vo = " / ".join(_pct(c["vo"].get("ate_pct"), 2) for c in cells)
+        return f"{pv} %", f"textbook VO {vo} %"
+    return render
+
+
+def kitti(r: dict) -> tuple[str, str]:
+    cells = {c["scenario"]: c for c in _cells(r) if c["seed"] is None}
+    if not cells:
+        raise KeyError("no KITTI cells (excerpts not found when it ran)")
+    order = [k for k in ("kitti_06", "kitti_01") if k in cells]
+    fig = " / ".join(_pct(cells[k]["pvslam"]["ate_pct"]) for k in order)
+    vo = " / ".join(_pct(cells[k]["vo"].get("ate_pct"), 2) for k in order)
+    line = " / ".join(_pct(cells[k]["line"].get("ate_pct"), 2) for k in order)
+    return f"{fig} %", f"textbook VO {vo} %; constant-velocity line {line} %"
+
+
+def default_run(r: dict) -> tuple[str, str]:
+    m = r["accuracy"]["online_ba+loop"]
+    pan, lp = m.get("panoptic") or {}, m.get("loops") or {}
+    fig = (f"{_pct(m['ate']['rmse_percent_of_path'])} % of {m['ate']['path_length']:.0f} m; loops P "
+           f"{_pct(lp.get('precision'), 2)} R {_pct(lp.get('recall'), 2)}; PQ {_pct(pan.get('pq'), 3)} / VPQ "
+           f"{_pct(pan.get('vpq'), 3)} (oracle labels)")
+    return fig, f"textbook VO {_pct(r['peers']['textbook_vo']['ate_pct'], 2)} %"
+
+
+def ablation(r: dict) -> tuple[str, str]:
+    a = {k: v["ate"]["rmse_percent_of_path"] for k, v in r["accuracy"].items()}
+    fig = (f"loop closure off {_pct(a['online_ba, no loop'])} %; offline BA + loop {_pct(a['offline_ba+loop'])} %; "
+           f"offline, no loop {_pct(a['offline_ba, no loop'])} %")
+    return fig, f"the default (online BA + loop) {_pct(a['online_ba+loop'])} %, from frame 1 " \
+                f"{_pct(a['online_ba+loop (start 1)'])} %"
+
+
+def long_run(r: dict) -> tuple[str, str]:
+    d = r["long"]
+    maps = d["unmerged"]
+    fig = (f"{_pct(d['ate_pct'], 4)} % of {d['path_m'] / 1000:.1f} km; {maps} map{'s' if maps != 1 else ''}, "
+           f"{d['loops']} loops")
+    cut = (r.get("forced_loss") or {}).get("cut")
+    extra = f"; 30 frames cut from driving_block: {cut['separate_maps']} map after the re-initialisation" if cut else ""
+    return fig, f"target <= 0.5 %, one map{extra}"
+
+
+def long_speed(r: dict) -> tuple[str, str]:
+    d = r["long"]
+    return (f"CPU per frame last / first 500 frames {d['last_cpu'] / d['first_cpu']:.2f}; peak memory "
+            f"{d['peak_mb'] / 1024:.2f} GB", "targets <= 1.2 and < 2 GB")
+
+
+def endless(r: dict) -> Optional[tuple[str, str]]:
+    if "flat" not in r:
+        return None  # measured without the endless-input runs (--flat-frames 0)
+    base, d = r["flat"]["base"], r["flat"]["long"]
+    return (f"peak memory {base['peak_mb'] / 1024:.2f} / {d['peak_mb'] / 1024:.2f} GB at {base['frames']} / "
+            f"{d['frames']} frames ({d['peak_mb'] / base['peak_mb']:.2f}x); {base['keyframes']} / {d['keyframes']} "
+            f"keyframes; ATE {_pct(base['ate_pct'], 4)} / {_pct(d['ate_pct'], 4)} %", "target: within 1.10x")
+
+
+def throughput(r: dict) -> tuple[str, str]:
+    parts = []
+    for key, label in (("speed_driving_loop_320x240", "driving loop"), ("speed_indoor_handheld_320x240", "indoor"),
+                       ("speed_kitti_06", "KITTI 06"), ("speed_kitti_01", "KITTI 01")):
+        if key in r:
+            parts.append(f"{label} {r[key]['fps']:.1f} ({r[key]['cpu_ms']:.0f} ms CPU)")
+    return "frames/s: " + ", ".join(parts), "targets 30 frames/s at 320x240, 10 on KITTI, 2 cores"
+
+
+def _real_rows(r: dict) -> dict[tuple[str, str], list[dict]]:
+    return {(row["sequence"], row["method"]): row.get("runs") or [] for row in r["rows"]}
+
+
+def real_peers(r: dict) -> tuple[str, str]:
+    """The real excerpts beside ORB-SLAM3 (bench_real.py): ATE m per excerpt, over all frames and over ORB-SLAM3's."""
+    from bench.bench_real import SAME_FRAMES, SEQUENCES as seqs, span
+
+    runs = _real_rows(r)
+
+    def each(method: str, key: str, fmt: str) -> str:
+        return " / ".join(span([x.get(key) for x in runs.get((q, method), [])], fmt) for q in seqs)
+
+    sizes = f" (its processing size and {r['size_spread']:g} % per side either way)" if r.get("size_spread") else ""
+    first = " / ".join(str((runs.get((q, "pvslam")) or [{}])[0].get("first", 0)) for q in seqs)
+    value = (f"scored from frame {first} (the measured ground truth): pvslam {each('pvslam', 'ate_m', '.3f')} m"
+             f"{sizes}; on ORB-SLAM3's frames {each(SAME_FRAMES, 'ate_m', '.3f')} m; all frames "
+             f"{each('pvslam', 'ate_all_m', '.3f')} m; CPU {each('pvslam', 'cpu_ms_per_frame', '.0f')} ms per frame")
+    if not any(runs.get((q, "orbslam3")) for q in seqs):
+        orb = "ORB-SLAM3 not run (" + next((row.get("note") or "?" for row in r["rows"]
+                                            if row["method"] == "orbslam3"), "?") + ")"
+    else:
+        orb = (f"ORB-SLAM3, {r['orb_runs']} runs each: {each('orbslam3', 'ate_m', '.3f')} m on "
+               f"{each('orbslam3', 'posed', 'd')} frames, {each('orbslam3', 'cpu_ms_per_frame', '.0f')} ms")
+    return value, f"{orb}; textbook VO {each('textbook_vo', 'ate_m', '.2f')} m"
