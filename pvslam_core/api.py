@@ -141,10 +141,29 @@ def failed_result(run_dir: Optional[Union[str, Path]], exc: BaseException) -> Ru
                      metrics={"failed": True, "error": f"{type(exc).__name__}: {exc}"})
 
 
-def evaluate_run_dir(run_dir: Union[str, Path], registry=None) -> dict[str, Any]:
+def _evaluate_with(run_dir: Path, gt: Union[str, Path], registry) -> dict[str, Any]:
+    """:func:`evaluate_run_dir` with the ground truth in file ``gt`` written as the run's ``groundtruth.txt``."""
+    from .evaluation.user_gt import load_user_groundtruth
+    from .outputs.metrics import MetricsFile
+    from .outputs.trajectory_io import write_tum
+
+    if not (run_dir / "trajectory.txt").is_file():
+        raise FileNotFoundError(f"{run_dir / 'trajectory.txt'} not found: without the run's trajectory there is "
+                                "nothing to evaluate")
+    ts, poses, what = load_user_groundtruth(gt, run_dir)
+    write_tum(run_dir / "groundtruth.txt", ts, poses)
+    metrics = evaluate_run_dir(run_dir, registry=registry)
+    metrics.setdefault("evaluation_sources", {})["trajectory"] = f"{what}, written to groundtruth.txt"
+    MetricsFile(run_dir / "metrics.json").update({"evaluation_sources": metrics["evaluation_sources"]})
+    return metrics
+
+
+def evaluate_run_dir(run_dir: Union[str, Path], registry=None, gt: Union[str, Path, None] = None) -> dict[str, Any]:
     """Recompute the metrics of a run directory from its own files (``groundtruth.txt``,
     ``groundtruth_loops.json``); the dataset named in its ``config.json`` is opened only for panoptic labels, and
-    a dataset (or dataset plugin) that is gone is reported in ``evaluation_sources``, not an error."""
+    a dataset (or dataset plugin) that is gone is reported in ``evaluation_sources``, not an error.  ``gt``: a
+    ground-truth trajectory file (TUM or KITTI poses, :mod:`pvslam_core.evaluation.user_gt`) that becomes the run's
+    ``groundtruth.txt`` first (replacing one that is there)."""
     from .config import ConfigError, EvaluationSection, OutputsSection
     from .evaluation.run_eval import read_json_object
     from .run_outputs import evaluate_saved_run
@@ -152,6 +171,8 @@ def evaluate_run_dir(run_dir: Union[str, Path], registry=None) -> dict[str, Any]
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file():
         raise FileNotFoundError(f"{run_dir}: not a pvslam run directory (no config.json)")
+    if gt is not None:
+        return _evaluate_with(run_dir, gt, registry)
     timing = {}
     if (run_dir / "metrics.json").is_file():
         timing = read_json_object(run_dir / "metrics.json").get("timing", {})

@@ -334,7 +334,7 @@ def _cmd_export(args) -> int:
 def _cmd_eval(args) -> int:
     from .api import evaluate_run_dir
 
-    metrics = evaluate_run_dir(args.run_dir)
+    metrics = evaluate_run_dir(args.run_dir, gt=args.gt)
     for kind, src in metrics.get("evaluation_sources", {}).items():  # stderr: stdout stays pure JSON
         print(f"pvslam eval: {kind} ground truth: {src}" if kind != "dataset" else f"pvslam eval: dataset: {src}",
               file=sys.stderr)

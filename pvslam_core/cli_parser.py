@@ -80,6 +80,9 @@ def _add_synth(sub) -> None:
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="recompute the metrics of a run directory")
     p.add_argument("run_dir", help="a run directory written by `pvslam run`")
+    p.add_argument("--gt", metavar="FILE", help="ground-truth trajectory of the run's input: TUM (timestamp tx ty tz "
+                   "qx qy qz qw, matched by timestamp) or KITTI poses (3x4 per line, one per input frame); becomes the "
+                   "run's groundtruth.txt")
 
 
 def _add_view(sub) -> None:
