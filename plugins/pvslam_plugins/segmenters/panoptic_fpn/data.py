@@ -17,6 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from pvslam_core.outputs._atomic import atomic_open
 from pvslam_core.types import Segment
 
 from .categories import CategorySet
@@ -90,12 +91,11 @@ def load_samples(cache_dir: Path, scenario: str, seed: int, frames: int, width: 
         return [Sample(torch.from_numpy(img), torch.from_numpy(ids.astype(np.int64)),
                        _segments_of(ids, things), name) for img, ids, name in zip(z["images"], z["ids"], names)]
     samples = render_samples(scenario, seed, frames, width, height, domain)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez_compressed(tmp, images=np.stack([s.image.numpy() for s in samples]),
-                        ids=np.stack([s.ids.numpy().astype(np.int32) for s in samples]),
-                        names=json.dumps([s.name for s in samples]))
-    tmp.replace(path)
+    # a temporary file of this process's own: two trainings may share a cache and render the same sequence
+    with atomic_open(path, "wb") as f:
+        np.savez_compressed(f, images=np.stack([s.image.numpy() for s in samples]),
+                            ids=np.stack([s.ids.numpy().astype(np.int32) for s in samples]),
+                            names=json.dumps([s.name for s in samples]))
     return samples
 
 

@@ -17,6 +17,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from pvslam_core.outputs._atomic import atomic_open
 from pvslam_core.types import Segment
 
 __all__ = ["Pair", "render_pairs", "load_pairs"]
@@ -83,12 +84,12 @@ def load_pairs(cache_dir: Path, scenario: str, seed: int, pairs: int, width: int
                      _segments_of(i), torch.from_numpy(f), torch.from_numpy(d), nm)
                 for a, b, i, f, d, nm in zip(z["image0"], z["image1"], z["ids1"], z["flow"], z["depth0"], names)]
     out = render_pairs(scenario, seed, pairs, width, height, domain=domain)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez_compressed(tmp, image0=np.stack([p.image0.numpy() for p in out]),
-                        image1=np.stack([p.image1.numpy() for p in out]),
-                        ids1=np.stack([p.ids1.numpy().astype(np.int32) for p in out]),
-                        flow=np.stack([p.flow.numpy() for p in out]), depth0=np.stack([p.depth0.numpy() for p in out]),
-                        names=json.dumps([p.name for p in out]))
-    tmp.replace(path)
+    # a temporary file of this process's own: two trainings may share a cache and render the same sequence
+    with atomic_open(path, "wb") as f:
+        np.savez_compressed(f, image0=np.stack([p.image0.numpy() for p in out]),
+                            image1=np.stack([p.image1.numpy() for p in out]),
+                            ids1=np.stack([p.ids1.numpy().astype(np.int32) for p in out]),
+                            flow=np.stack([p.flow.numpy() for p in out]),
+                            depth0=np.stack([p.depth0.numpy() for p in out]),
+                            names=json.dumps([p.name for p in out]))
     return out

@@ -204,3 +204,28 @@ def test_trainer_runs_resumes_and_reports(tmp_path):
     names = {c["name"] for c in ev["pq"]["per_category"].values()}
     assert names == {c.name for c in synthetic_category_set().categories}
     assert 0.0 <= s2["pq"] <= 1.0
+
+
+def test_two_trainings_sharing_a_cache_do_not_collide(tmp_path, monkeypatch):
+    """Two runs that render the same sequence into one ``data_cache`` at once: the other run writes and replaces the
+    cached file between this run's write and its replace; this run must still finish (each writes a temporary file
+    of its own) and the cache hold one file, no temporary left."""
+    import numpy as np
+
+    from pvslam_plugins.segmenters.panoptic_fpn import data
+
+    real_save = np.savez_compressed
+    other_run_done = []
+
+    def save_then_the_other_run_caches_too(*args, **kwargs):
+        real_save(*args, **kwargs)
+        if not other_run_done:
+            other_run_done.append(True)
+            data.load_samples(tmp_path / "cache", "driving_loop", 3, 2, 64, 48)
+
+    monkeypatch.setattr(data.np, "savez_compressed", save_then_the_other_run_caches_too)
+    mine = data.load_samples(tmp_path / "cache", "driving_loop", 3, 2, 64, 48)
+    cached = data.load_samples(tmp_path / "cache", "driving_loop", 3, 2, 64, 48)
+    assert other_run_done and len(mine) == len(cached) == 2
+    assert all(torch.equal(a.image, b.image) and torch.equal(a.ids, b.ids) for a, b in zip(mine, cached))
+    assert [f.name for f in (tmp_path / "cache").iterdir()] == ["driving_loop-seed3-n2-64x48.npz"]

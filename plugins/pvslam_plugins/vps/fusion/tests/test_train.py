@@ -69,3 +69,19 @@ def test_restyled_pairs_are_the_same_scene_in_another_look(tmp_path):
     assert len(list(tmp_path.glob("*.npz"))) == 2 and styled[0].name.endswith("/train")
     assert not torch.equal(plain[0].image1, styled[0].image1)
     assert torch.equal(styled[0].image1, again[0].image1) and torch.equal(styled[0].ids1, again[0].ids1)
+
+
+def test_a_cache_written_by_another_run_meanwhile_is_no_collision(tmp_path, monkeypatch):
+    """Another training run caches the same pairs between this run's write and its replace (a shared cache)."""
+    real_save, other = np.savez_compressed, []
+
+    def save_then_the_other_run(*args, **kwargs):
+        real_save(*args, **kwargs)
+        if not other:
+            other.append(None)
+            other[0] = fusion_data.load_pairs(tmp_path, "moving_vehicles", 15, 1, 96, 72)
+
+    monkeypatch.setattr(fusion_data.np, "savez_compressed", save_then_the_other_run)
+    mine = fusion_data.load_pairs(tmp_path, "moving_vehicles", 15, 1, 96, 72)
+    assert torch.equal(mine[0].image1, other[0][0].image1)
+    assert [f.name for f in tmp_path.iterdir()] == ["pairs-moving_vehicles-seed15-n1-96x72.npz"]
