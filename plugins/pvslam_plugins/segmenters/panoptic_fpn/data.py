@@ -32,7 +32,9 @@ SYNTHETIC_MOVABLE = ("car", "truck")
 
 @dataclass
 class Sample:
-    """One labelled frame: RGB ``uint8 [3, H, W]``, panoptic ids ``int64 [H, W]`` (0 = void) and their segments."""
+    """One labelled frame: RGB ``uint8 [3, H, W]``, panoptic ids ``int32 [H, W]`` (0 = void) and their segments.
+    A training run holds every frame in memory: int32 ids take half of int64's (the generator's ids are below 2^24,
+    exact in the augmentation's float32 too)."""
 
     image: torch.Tensor
     ids: torch.Tensor
@@ -71,7 +73,7 @@ def render_samples(scenario: str, seed: int, frames: int, width: int = 320, heig
     tag = f"/{domain}" if domain else ""
     for i in idx:
         r = render(sc.scene, i, sc.poses[i], sc.camera)
-        ids = np.asarray(r.panoptic, np.int64)
+        ids = np.asarray(r.panoptic, np.int32)
         out.append(Sample(torch.from_numpy(np.ascontiguousarray(r.rgb.transpose(2, 0, 1))), torch.from_numpy(ids),
                           _segments_of(ids, things), f"{scenario}/seed{seed}/{i:06d}{tag}"))
     return out
@@ -88,7 +90,7 @@ def load_samples(cache_dir: Path, scenario: str, seed: int, frames: int, width: 
     if path.is_file():
         z = np.load(path)
         names = json.loads(str(z["names"]))
-        return [Sample(torch.from_numpy(img), torch.from_numpy(ids.astype(np.int64)),
+        return [Sample(torch.from_numpy(img), torch.from_numpy(ids.astype(np.int32, copy=False)),
                        _segments_of(ids, things), name) for img, ids, name in zip(z["images"], z["ids"], names)]
     samples = render_samples(scenario, seed, frames, width, height, domain)
     # a temporary file of this process's own: two trainings may share a cache and render the same sequence
@@ -162,7 +164,7 @@ class Augment:
 
     def __call__(self, image: torch.Tensor, ids: torch.Tensor, gen: torch.Generator
                  ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``uint8 [3, H, W]``, ``int64 [H, W]`` -> float ``[3, h, w]`` on 0..255 and ``int64 [h, w]``."""
+        """``uint8 [3, H, W]``, integer ids ``[H, W]`` -> float ``[3, h, w]`` on 0..255 and ``int64 [h, w]``."""
         def uniform(lo: float, hi: float) -> float:
             return lo + (hi - lo) * float(torch.rand((), generator=gen))
 

@@ -34,7 +34,7 @@ def predict(model: PanopticFPN, samples: Sequence[Sample]) -> tuple[list[Panopti
 
 def void_small_segments(sample: Sample, min_area: int) -> PanopticSegmentation:
     """The sample's ground truth with segments under ``min_area`` pixels set to void (id 0)."""
-    ids = sample.ids
+    ids = sample.ids.long()
     uniq, inv, counts = torch.unique(ids, return_inverse=True, return_counts=True)
     small = counts < min_area
     out = torch.where(small[inv], torch.zeros_like(ids), ids)
@@ -47,7 +47,7 @@ def evaluate(model: PanopticFPN, samples: Sequence[Sample], min_gt_area: int = 6
     segments under ``min_gt_area`` pixels as void."""
     preds, sec = predict(model, samples)
     cats = list(model.categories.categories)
-    gts = [PanopticSegmentation(s.ids, list(s.segments)) for s in samples]
+    gts = [PanopticSegmentation(s.ids.long(), list(s.segments)) for s in samples]
     out = {"pq": pq(preds, gts, cats), "seconds_per_frame": sec, "num_frames": len(samples)}
     if min_gt_area > 0:
         out["pq_min_area"] = pq(preds, [void_small_segments(s, min_gt_area) for s in samples], cats)

@@ -229,3 +229,18 @@ def test_two_trainings_sharing_a_cache_do_not_collide(tmp_path, monkeypatch):
     assert other_run_done and len(mine) == len(cached) == 2
     assert all(torch.equal(a.image, b.image) and torch.equal(a.ids, b.ids) for a, b in zip(mine, cached))
     assert [f.name for f in (tmp_path / "cache").iterdir()] == ["driving_loop-seed3-n2-64x48.npz"]
+
+
+def test_frames_hold_int32_ids_and_train_as_int64_ones_would(tmp_path):
+    """Every training frame stays in memory: ids are int32 (half of int64), rendered or cached, and the augmentation
+    gives the same labels from them as from int64 ids."""
+    from pvslam_plugins.segmenters.panoptic_fpn import data
+
+    fresh = data.load_samples(tmp_path, "moving_vehicles", 5, 2, 64, 48)
+    cached = data.load_samples(tmp_path, "moving_vehicles", 5, 2, 64, 48)
+    assert all(s.ids.dtype == torch.int32 for s in fresh + cached) and (fresh[0].ids // 1000 == 11).any()
+    aug = Augment(scale=(0.7, 1.3), crop=(32, 40))
+    for seed in range(4):
+        a = aug(fresh[0].image, fresh[0].ids, torch.Generator().manual_seed(seed))
+        b = aug(fresh[0].image, fresh[0].ids.long(), torch.Generator().manual_seed(seed))
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[1].dtype == torch.int64
