@@ -222,7 +222,7 @@ def test_fragment_after_a_loss_is_merged_at_the_revisit(tmp_path, loop):
     off.  First fragment 0.27 / 0.47 / 0.24 %.  Whole trajectory 6.1 / 0.64 / 0.72 % merged, 8.7 / 5.9 / 6.1 %
     apart: on seed 0 the second fragment is itself poor (12 % on frames 63-150: its two-view initialisation right
     after the jump), so the whole-trajectory bound is loose.  Fragment merging and re-initialisation are being
-    reworked (issue 13): tighten it then.
+    reworked: tighten it then.
     """
     import re
 

@@ -1,5 +1,5 @@
 """Calibration files a user brings: DROID-SLAM's values (up to 12), ORB-SLAM2/3 and OpenCV YAML/XML (read with
-cv2.FileStorage), and a clear error otherwise (issue 15, "One line on your own data")."""
+cv2.FileStorage), and a clear error otherwise."""
 from __future__ import annotations
 
 import cv2

@@ -1,5 +1,5 @@
 """Calibrations with inf/NaN, non-positive focal lengths or a principal point far outside the image are rejected
-with an error that names the file and the value (issue 15, item 4)."""
+with an error that names the file and the value."""
 from __future__ import annotations
 
 import math

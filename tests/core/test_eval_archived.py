@@ -1,4 +1,4 @@
-"""`pvslam eval RUN_DIR` on an archived/copied run whose dataset is gone (issue 15, item 5)."""
+"""`pvslam eval RUN_DIR` on an archived/copied run whose dataset is gone."""
 from __future__ import annotations
 
 import contextlib

@@ -1,4 +1,4 @@
-"""Bad input and faults found by probing (issue 15): names that escape the output directory, ablations with a
+"""Bad input and faults found by probing: names that escape the output directory, ablations with a
 failing variant, unclear messages, and the tomllib fallback on Python 3.10."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A run that never initialises (identical frames: no parallax) says so and exits non-zero (issue 15, item 3)."""
+"""A run that never initialises (identical frames: no parallax) says so and exits non-zero."""
 import json
 
 import cv2

@@ -1,4 +1,4 @@
-"""Result-file permissions and write errors (issue 15, items 6 and 7)."""
+"""Result-file permissions and write errors."""
 from __future__ import annotations
 
 import errno

@@ -1,6 +1,5 @@
 """`pvslam run PATH [--calib FILE]`: the reader is detected from the path, components that need labels are
-switched off on unlabelled data (or a ready learned segmenter is used), sources of unknown length run to their end
-(issue 15, "One line on your own data")."""
+switched off on unlabelled data (or a ready learned segmenter is used), sources of unknown length run to their end."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,4 @@
-"""A run's standard results (issue 15): COCO panoptic segments.json, clean point clouds, keyframe depth with
+"""A run's standard results: COCO panoptic segments.json, clean point clouds, keyframe depth with
 intrinsics, and `pvslam export` from the run directory."""
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""The streaming API: frames fed one at a time give the same run as the batch pipeline on the same images
-(issue 15, "A streaming Python API for live input")."""
+"""The streaming API: frames fed one at a time give the same run as the batch pipeline on the same images."""
 from __future__ import annotations
 
 import json

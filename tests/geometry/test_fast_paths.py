@@ -1,4 +1,4 @@
-"""The CPU fast paths of the geometry (issue 14) against the formulas they replaced, kept here as references, and
+"""The CPU fast paths of the geometry against the formulas they replaced, kept here as references, and
 the dense BA step against a brute-force Gauss-Newton step on the full (non-reduced) system.
 
 * ``quat_to_rotmat`` (one matmul with exact +-2 coefficients) is bit-identical to the element-wise formula;

@@ -1,4 +1,4 @@
-"""Two-view initialisation on dense, BA-resolution correspondences with little parallax (issue 13, item 1):
+"""Two-view initialisation on dense, BA-resolution correspondences with little parallax:
 the motion is chosen by cheirality and the Sampson cost of multi-start refined hypotheses, not by the H/E score
 ratio (which sits near 0.5 whenever dense, accurate flow fits both models).
 

@@ -92,6 +92,27 @@ def source_problems() -> list[str]:
     return out
 
 
+ISSUE = re.compile(r"\bissues?\s+#?\d", re.IGNORECASE)
+
+
+def issue_citations() -> list[str]:
+    """Comments and strings anywhere in the tree (tests and bench tools too) that cite an issue by number: the why
+    is said in words, the history lives in the issues and the changelog."""
+    out = []
+    for base in (ROOT / "pvslam_core", ROOT / "plugins", ROOT / "tests", ROOT / "bench", ROOT / "examples"):
+        for path in sorted(base.rglob("*.py")):
+            for n, line in _text_lines(path):
+                m = ISSUE.search(line)
+                if m and path != Path(__file__).resolve():
+                    out.append(f"{path.relative_to(ROOT).as_posix()}:{n}: {line.strip()[:100]}")
+    return out
+
+
+def test_no_code_cites_an_issue_number():
+    problems = issue_citations()
+    assert not problems, "\n".join(problems)
+
+
 def test_config_descriptions_are_short_and_quote_no_results():
     problems = description_problems()
     assert not problems, "\n".join(problems)
@@ -117,6 +138,6 @@ def test_the_checker_itself(text, bad):
 
 
 if __name__ == "__main__":
-    rows = description_problems() + source_problems()
+    rows = description_problems() + source_problems() + issue_citations()
     print("\n".join(rows))
     print(f"{len(rows)} problems", file=sys.stderr)

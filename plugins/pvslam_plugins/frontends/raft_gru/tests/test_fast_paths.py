@@ -1,4 +1,4 @@
-"""The frontend's faster formulations of the same network (issue 10, speed) against upstream's own computation: the
+"""The frontend's faster formulations of the same network against upstream's own computation: the
 golden fixtures and the plain module calls.
 
 * gate contexts (:class:`GateContext`): the constant input blocks of the ConvGRU gates convolved once;
