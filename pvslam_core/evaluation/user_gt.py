@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pvslam_core.evaluation.trajectory import _associate
 from pvslam_core.outputs.trajectory_io import TrajectoryFormatError, read_kitti_poses, read_tum
 
 __all__ = ["load_user_groundtruth", "sniff_format"]
@@ -66,7 +67,7 @@ def load_user_groundtruth(path: str | os.PathLike, run_dir: str | os.PathLike) -
     ``what`` a line saying how it was associated.  :class:`ValueError` naming the file when it cannot describe the
     run's frames (a KITTI file shorter than the frames read, TUM timestamps that meet none of the run's)."""
     run_dir = Path(run_dir)
-    est_ts, _ = read_tum(run_dir / "trajectory.txt")
+    est_ts, est = read_tum(run_dir / "trajectory.txt")
     kind = sniff_format(path)
     if kind == "kitti":
         poses = read_kitti_poses(path)
@@ -79,9 +80,10 @@ def load_user_groundtruth(path: str | os.PathLike, run_dir: str | os.PathLike) -
                 else f"{path} (KITTI poses: one line per frame)")
         return est_ts.copy(), poses[lines], what
     ts, poses = read_tum(path)
-    near = np.abs(ts[np.clip(np.searchsorted(ts, est_ts), 0, len(ts) - 1)] - est_ts)
-    left = np.abs(ts[np.clip(np.searchsorted(ts, est_ts) - 1, 0, len(ts) - 1)] - est_ts)
-    matched = int((np.minimum(near, left) <= MAX_DIFF).sum())
+    try:  # the evaluation's own association (evo's), so this check and the ATE agree on the pairs
+        matched = _associate(est_ts, est, ts, poses, MAX_DIFF)[2]["num_pairs"]
+    except ValueError:  # no pair at all (or no finite pose)
+        matched = 0
     if matched < 3:
         raise ValueError(f"{path}: {matched} of the run's {len(est_ts)} frames have a pose within {MAX_DIFF * 1000:g} "
                          f"ms (the run's timestamps {est_ts[0]:.3f}-{est_ts[-1]:.3f} s, the file's {ts[0]:.3f}-"
