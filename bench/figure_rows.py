@@ -1,5 +1,6 @@
-"""The rows of the current figures (:mod:`bench.figures`): each function reads one benchmark's result file and returns
-the figure and what it is compared with, as the page and the README's Status table show them."""
+"""The rows and sections of the current figures (:mod:`bench.figures`), read from one benchmark's result file each:
+a row function returns the figure and what it is compared with, as the page and the README's Status table show
+them; a section function the lines of a per-benchmark table of the page."""
 from __future__ import annotations
 
 import math
@@ -7,7 +8,7 @@ import statistics
 from typing import Callable, Optional
 
 __all__ = ["matrix_summary", "matrix_scenario", "kitti", "default_run", "ablation", "long_run", "long_speed", "endless",
-           "throughput", "real_peers"]
+           "throughput", "real_peers", "matrix_cells", "accuracy_section", "real_section"]
 
 
 def _pct(x: Optional[float], digits: int = 3) -> str:
@@ -139,3 +140,45 @@ def real_peers(r: dict) -> tuple[str, str]:
         orb = (f"ORB-SLAM3, {r['orb_runs']} runs each: {each('orbslam3', 'ate_m', '.3f')} m on "
                f"{each('orbslam3', 'posed', 'd')} frames, {each('orbslam3', 'cpu_ms_per_frame', '.0f')} ms")
     return value, f"{orb}; textbook VO {each('textbook_vo', 'ate_m', '.2f')} m"
+
+
+# ------------------------------------------------------------------------------ the page's sections
+def matrix_cells(r: dict) -> list[str]:
+    """The per-cell table of a matrix result."""
+    out = ["| cell | set | pvslam ATE % | textbook VO ATE % | VO / pvslam | line % | initialised (s of motion) | "
+           "frames posed |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for c in r["rows"]:
+        if "error" in c or "error" in c.get("pvslam", {}):
+            out.append(f"| {_name(c)} | {c.get('set')} | error: {c.get('error') or c['pvslam']['error']} | | | | | |")
+            continue
+        pv = c["pvslam"]
+        init = "never" if pv.get("init_s") is None else f"{pv['init_s']:.1f}"
+        out.append(f"| {_name(c)} | {c.get('set')} | {_pct(pv['ate_pct'])} | {_pct(c['vo'].get('ate_pct'), 2)} | "
+                   f"{_pct(_ratio(c), 1)}x | {_pct(c['line'].get('ate_pct'), 2)} | {init} | "
+                   f"{pv['posed']} / {c['frames']} |")
+    return out
+
+
+def real_section(real: dict) -> list[str]:
+    """The real excerpts' table and per-run lines, with what was run."""
+    table = [t for t in real.get("table", []) if t.startswith("|")]
+    details = [t for t in real.get("table", []) if not t.startswith("|")]
+    sizes = (f", and with the processing area {real['size_spread']:g} % per side smaller and larger "
+             "(`--size-spread`)") if real.get("size_spread") else ""
+    return [f"pvslam is run as `pvslam run SEQUENCE --calib SEQUENCE/calib.txt`{sizes}; ORB-SLAM3 with a vocabulary "
+            "trained on the other excerpts; ATE and RPE after Sim(3) alignment over the frames each posed "
+            "(ORB-SLAM3: its largest map) from the first frame with measured ground truth on (KITTI's poses "
+            "begin 00 and 06 with a constant-velocity extrapolation; "
+            "docs/decisions.md: MEASURED GROUND TRUTH), the ATE over every frame beside; CPU per frame with "
+            "start-up.", "", *table, "", *(f"- {t}" for t in details)]
+
+
+def accuracy_section(acc: dict) -> list[str]:
+    """The default run's variants (Table 7), one row each."""
+    lines = ["| variant | ATE % | loops detected | loop precision / recall | keyframes |", "|---|---:|---:|---:|---:|"]
+    for name, m in acc["accuracy"].items():
+        lp = m.get("loops") or {}
+        lines.append(f"| {name} | {_pct(m['ate']['rmse_percent_of_path'])} | {lp.get('num_detected', 0)} | "
+                     f"{_pct(lp.get('precision'), 2)} / {_pct(lp.get('recall'), 2)} | "
+                     f"{m['timing']['keyframes']} |")
+    return lines

@@ -32,8 +32,9 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 from bench import provenance, seeds  # noqa: E402
-from bench.figure_rows import (_name, _pct, _ratio, ablation, default_run, endless, kitti, long_run,  # noqa: E402
-                               long_speed, matrix_scenario, matrix_summary, real_peers, throughput)
+from bench.figure_rows import (ablation, accuracy_section, default_run, endless, kitti, long_run,  # noqa: E402
+                               long_speed, matrix_cells, matrix_scenario, matrix_summary, real_peers, real_section,
+                               throughput)
 
 PAGE = ROOT / "bench" / "RESULTS.md"
 README = ROOT / "README.md"
@@ -218,21 +219,6 @@ def status_table(rows: list[Row]) -> list[str]:
     return out
 
 
-def _matrix_cells(r: dict) -> list[str]:
-    out = ["| cell | set | pvslam ATE % | textbook VO ATE % | VO / pvslam | line % | initialised (s of motion) | "
-           "frames posed |", "|---|---|---:|---:|---:|---:|---:|---:|"]
-    for c in r["rows"]:
-        if "error" in c or "error" in c.get("pvslam", {}):
-            out.append(f"| {_name(c)} | {c.get('set')} | error: {c.get('error') or c['pvslam']['error']} | | | | | |")
-            continue
-        pv = c["pvslam"]
-        init = "never" if pv.get("init_s") is None else f"{pv['init_s']:.1f}"
-        out.append(f"| {_name(c)} | {c.get('set')} | {_pct(pv['ate_pct'])} | {_pct(c['vo'].get('ate_pct'), 2)} | "
-                   f"{_pct(_ratio(c), 1)}x | {_pct(c['line'].get('ate_pct'), 2)} | {init} | "
-                   f"{pv['posed']} / {c['frames']} |")
-    return out
-
-
 def _sections(text: str) -> dict[str, list[str]]:
     """The ``## `` sections of a page: title -> its lines between the heading and the next, blank lines around them
     dropped (a missing page has none)."""
@@ -243,34 +229,11 @@ def _sections(text: str) -> dict[str, list[str]]:
     return out
 
 
-def _real_section(real: dict) -> list[str]:
-    table = [t for t in real.get("table", []) if t.startswith("|")]
-    details = [t for t in real.get("table", []) if not t.startswith("|")]
-    sizes = (f", and with the processing area {real['size_spread']:g} % per side smaller and larger "
-             "(`--size-spread`)") if real.get("size_spread") else ""
-    return [f"pvslam is run as `pvslam run SEQUENCE --calib SEQUENCE/calib.txt`{sizes}; ORB-SLAM3 with a vocabulary "
-            "trained on the other excerpts; ATE and RPE after Sim(3) alignment over the frames each posed "
-            "(ORB-SLAM3: its largest map) from the first frame with measured ground truth on (KITTI's poses "
-            "begin 00 and 06 with a constant-velocity extrapolation; "
-            "docs/decisions.md: MEASURED GROUND TRUTH), the ATE over every frame beside; CPU per frame with "
-            "start-up.", "", *table, "", *(f"- {t}" for t in details)]
-
-
-def _accuracy_section(acc: dict) -> list[str]:
-    lines = ["| variant | ATE % | loops detected | loop precision / recall | keyframes |", "|---|---:|---:|---:|---:|"]
-    for name, m in acc["accuracy"].items():
-        lp = m.get("loops") or {}
-        lines.append(f"| {name} | {_pct(m['ate']['rmse_percent_of_path'])} | {lp.get('num_detected', 0)} | "
-                     f"{_pct(lp.get('precision'), 2)} / {_pct(lp.get('recall'), 2)} | "
-                     f"{m['timing']['keyframes']} |")
-    return lines
-
-
 #: the page's sections under the summary: result key, title, lines from the result
-SECTIONS = (("report", "Report matrix, per cell", _matrix_cells),
-            ("heldout", "Held-out matrix, per cell", _matrix_cells),
-            ("accuracy", "Default run and its ablation (driving loop, seed 0)", _accuracy_section),
-            ("real", "Real sequences beside ORB-SLAM3 and the textbook VO (`bench/bench_real.py`)", _real_section))
+SECTIONS = (("report", "Report matrix, per cell", matrix_cells),
+            ("heldout", "Held-out matrix, per cell", matrix_cells),
+            ("accuracy", "Default run and its ablation (driving loop, seed 0)", accuracy_section),
+            ("real", "Real sequences beside ORB-SLAM3 and the textbook VO (`bench/bench_real.py`)", real_section))
 
 
 def page(rows: list[Row], got: dict[str, dict], old_page: str = "") -> str:
