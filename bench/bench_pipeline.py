@@ -99,7 +99,7 @@ def speed(r) -> dict:
     idle = max(sum((t.get("stage_seconds") or {}).values()) - main, 0.0)
     return {"frames": n, "keyframes": t["keyframes"], "fps": t["fps"], "wall_ms": 1000 * t["seconds"] / n,
             "cpu_ms": 1000 * cpu / n, "main_ms": 1000 * main / n, "main_idle_ms": 1000 * idle / n, "est_fps": est,
-            "stage_cpu_ms": {k: round(1000 * v / n, 1) for k, v in stage_cpu.items()}}
+            "stage_cpu_ms": {k: round(1000 * v / n, 1) for k, v in stage_cpu.items()}, "steps": t.get("steps") or {}}
 
 
 def print_speed(name: str, sp: dict) -> None:
@@ -107,6 +107,12 @@ def print_speed(name: str, sp: dict) -> None:
           f"({sp['wall_ms']:.1f} ms/frame); CPU {sp['cpu_ms']:.1f} ms/frame (pipeline thread {sp['main_ms']:.1f}, "
           f"and {sp['main_idle_ms']:.1f} not computing), idle 2-core estimate {sp['est_fps']:.1f} frames/s")
     print(f"    CPU ms/frame per stage (pipeline thread): {json.dumps(sp['stage_cpu_ms'])}")
+    kf, other = (sp["steps"].get(k) or {} for k in ("keyframe", "other"))
+    if kf.get("count") and other.get("count"):
+        share = kf["count"] * kf["wall_ms"] / (kf["count"] * kf["wall_ms"] + other["count"] * other["wall_ms"])
+        print(f"    steps: {kf['count']} keyframe steps at {kf['wall_ms']:.1f} ms wall ({kf['cpu_ms']:.1f} CPU), "
+              f"{other['count']} others at {other['wall_ms']:.1f} ms ({other['cpu_ms']:.1f} CPU): the keyframe steps "
+              f"take {share:.0%} of the steps' wall time")
 
 
 def section_throughput(out: Path, quick: bool) -> None:

@@ -32,8 +32,8 @@ from typing import Optional, Sequence
 STAGES = (("track", "map:track"), ("new keyframe", "map:keyframe"), ("edges", "map:edges"), ("BA", "map:ba"),
           ("loops", "map:loops"), ("pose guess", "map:pose_guess"), ("fill", "map:fill"), ("map other", "map:"),
           ("segment", "segment"), ("VPS", "vps"), ("outputs", "outputs"), ("read", "read"), ("final BA", "finalize"))
-HEAD = ("group", "run", "frames", "kf/frame", "frames/s wall", "CPU ms/frame", *(s for s, _ in STAGES),
-        "other threads")
+HEAD = ("group", "run", "frames", "kf/frame", "frames/s wall", "ms/keyframe step", "ms/other step", "CPU ms/frame",
+        *(s for s, _ in STAGES), "other threads")
 
 
 def run_row(group: str, name: str, timing: dict) -> dict:
@@ -52,8 +52,10 @@ def run_row(group: str, name: str, timing: dict) -> dict:
     thread = sum(stage.values())
     cpu = float(timing.get("cpu_seconds") or thread)
     ms["other threads"] = 1000 * (cpu - thread) / n
+    steps = timing.get("steps") or {}
     return {"group": group, "run": name, "frames": int(timing.get("frames") or 0),
             "kf_per_frame": (timing.get("keyframes") or 0) / n, "fps": float(timing.get("fps") or math.nan),
+            "step_ms": {k: float(v["wall_ms"]) if v.get("count") else math.nan for k, v in steps.items()},
             "cpu_ms": 1000 * cpu / n, "stage_ms": ms}
 
 
@@ -61,7 +63,7 @@ def peer_row(group: str, name: str, frames: int, cpu_s: float, wall_s: Optional[
     """A peer's row: totals only (``wall_s`` None: not a meaningful wall time, e.g. a paced real-time run)."""
     n = max(int(frames), 1)
     return {"group": group, "run": name, "frames": int(frames), "kf_per_frame": math.nan,
-            "fps": n / wall_s if wall_s else math.nan, "cpu_ms": 1000 * cpu_s / n, "stage_ms": {}}
+            "fps": n / wall_s if wall_s else math.nan, "step_ms": {}, "cpu_ms": 1000 * cpu_s / n, "stage_ms": {}}
 
 
 def mean_row(rows: Sequence[dict], group: str, name: str) -> dict:
@@ -70,6 +72,8 @@ def mean_row(rows: Sequence[dict], group: str, name: str) -> dict:
     avg = lambda vals: sum(vals) / len(vals) if vals else math.nan  # noqa: E731
     return {"group": group, "run": name, "frames": sum(r["frames"] for r in rows),
             "kf_per_frame": avg([r["kf_per_frame"] for r in rows]), "fps": avg([r["fps"] for r in rows]),
+            "step_ms": {k: avg([r["step_ms"][k] for r in rows if k in r.get("step_ms", {})])
+                        for k in ("keyframe", "other") if any(k in r.get("step_ms", {}) for r in rows)},
             "cpu_ms": avg([r["cpu_ms"] for r in rows]),
             "stage_ms": {c: avg([r["stage_ms"][c] for r in rows if c in r["stage_ms"]]) for c in cols
                          if any(c in r["stage_ms"] for r in rows)}}
@@ -84,8 +88,9 @@ def table(rows: Sequence[dict]) -> list[str]:
     out = ["| " + " | ".join(HEAD) + " |", "|" + "---|" * len(HEAD)]
     for r in rows:
         st = r["stage_ms"]
+        steps = r.get("step_ms") or {}
         cells = [r["group"], r["run"], str(r["frames"]), _num(r["kf_per_frame"], ".2f"), _num(r["fps"], ".1f"),
-                 _num(r["cpu_ms"], ".1f"), *(_num(st.get(c), ".1f") for c, _ in STAGES),
+                 _num(steps.get("keyframe"), ".1f"), _num(steps.get("other"), ".1f"), _num(r["cpu_ms"], ".1f"), *(_num(st.get(c), ".1f") for c, _ in STAGES),
                  _num(st.get("other threads"), ".1f")]
         out.append("| " + " | ".join(cells) + " |")
     return out

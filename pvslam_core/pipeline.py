@@ -192,6 +192,8 @@ class Pipeline:
         # CPU seconds per stage of the calling thread (wall time means little on a shared machine), and of the
         # whole process over the run (includes helper threads)
         self.stage_cpu = dict.fromkeys(STAGES, 0.0)
+        # per kind of step (a frame that became a keyframe, any other): [steps, wall seconds, pipeline-thread CPU]
+        self.steps = {"keyframe": [0, 0.0, 0.0], "other": [0, 0.0, 0.0]}
         self.t_start = time.perf_counter()
         self.cpu_start = time.process_time()
         self.ever_initialized = False
@@ -244,6 +246,8 @@ class Pipeline:
             self.stage[name] += dt
         for name, dt in (("segment", c1 - c0), ("map", c2 - c1), ("vps", c3 - c2), ("outputs", cnow - c3)):
             self.stage_cpu[name] += dt
+        kind = self.steps["keyframe" if result.is_keyframe else "other"]
+        kind[0], kind[1], kind[2] = kind[0] + 1, kind[1] + now - t0, kind[2] + cnow - c0
         return result
 
     def _vps_step(self, frame: Frame, seg: PanopticSegmentation, last: Optional[FrameResult],
@@ -303,6 +307,10 @@ class Pipeline:
             "cpu_seconds": round(cpu, 3),  # process CPU time (all threads), start to end of the final BA
             "stage_cpu_seconds": {k: round(v, 3) for k, v in self.stage_cpu.items()},  # the pipeline thread's
             "map_cpu_seconds": {k: round(v, 3) for k, v in sorted(mapper.cpu.items())},  # parts of "map"
+            # mean wall and pipeline-thread CPU of a step (waiting for the next frame excluded), per kind of step:
+            # a frame that became a keyframe grows and optimises the map, any other frame is only tracked
+            "steps": {k: {"count": n, "wall_ms": round(1000 * w / max(n, 1), 2),
+                          "cpu_ms": round(1000 * c / max(n, 1), 2)} for k, (n, w, c) in self.steps.items()},
         }
         tracking = {"initialized": bool(self.ever_initialized), **mapper.stats()}
         if not self.ever_initialized:

@@ -108,3 +108,17 @@ def test_speed_reports_the_pipeline_threads_time_not_computing(capsys):
     assert "(pipeline thread 32.0, and 15.0 not computing)" in capsys.readouterr().out
     timing["stage_seconds"] = {"map": 0.1}  # a clock that disagrees: no negative idle time
     assert bench_pipeline.speed(SimpleNamespace(metrics={"timing": timing}))["main_idle_ms"] == 0.0
+
+
+def test_speed_prints_the_keyframe_steps_share_of_the_wall_time(capsys):
+    """With ``timing.steps``, the printout says how long a keyframe step and another step take and what share of
+    the steps' wall time the keyframe steps are (4 x 90 ms against 6 x 10 ms: 86 %)."""
+    from types import SimpleNamespace
+
+    timing = {"frames": 10, "keyframes": 4, "fps": 20.0, "seconds": 0.5, "cpu_seconds": 0.8,
+              "stage_seconds": {"map": 0.42}, "stage_cpu_seconds": {"map": 0.30},
+              "steps": {"keyframe": {"count": 4, "wall_ms": 90.0, "cpu_ms": 60.0},
+                        "other": {"count": 6, "wall_ms": 10.0, "cpu_ms": 10.0}}}
+    bench_pipeline.print_speed("x", bench_pipeline.speed(SimpleNamespace(metrics={"timing": timing})))
+    assert "4 keyframe steps at 90.0 ms wall (60.0 CPU), 6 others at 10.0 ms (10.0 CPU): the keyframe steps take " \
+           "86% of the steps' wall time" in capsys.readouterr().out

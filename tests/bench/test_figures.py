@@ -264,3 +264,17 @@ def test_the_real_figure_says_why_orb_slam3_is_missing_and_refuses_too_few_runs(
     (results / "real.json").write_text(json.dumps({**_real(), "overrides": ["frontend.road.enabled=false"]}))
     with pytest.raises(ValueError, match="measured with overrides"):  # a screened variant is not the figures
         figures.load(results)
+
+
+def test_the_throughput_row_says_where_the_driving_loops_wall_time_goes():
+    """With the run's step split in its result, the throughput row adds the keyframe steps' and the other frames'
+    wall time; an older result without it renders as before."""
+    from bench import figure_rows
+
+    speed = {"fps": 16.1, "cpu_ms": 85.9}
+    old, _ = figure_rows.throughput({"speed_driving_loop_320x240": speed})
+    assert old == "frames/s: driving loop 16.1 (86 ms CPU)"
+    steps = {"keyframe": {"count": 222, "wall_ms": 110.5, "cpu_ms": 81.3},
+             "other": {"count": 266, "wall_ms": 25.2, "cpu_ms": 16.0}}
+    new, _ = figure_rows.throughput({"speed_driving_loop_320x240": {**speed, "steps": steps}})
+    assert new == old + "; driving loop steps: 222 keyframes at 110 ms wall, 266 other frames at 25 ms"

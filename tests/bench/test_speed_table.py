@@ -21,7 +21,9 @@ def _timing(frames=100, keyframes=40, fps=20.0, cpu=9.0, track=1.0, ba=2.0, mapp
             "stage_cpu_seconds": {"read": 0.1, "segment": 0.2, "map": mapped, "vps": 0.0, "outputs": 0.3,
                                   "finalize": 0.4},
             "map_cpu_seconds": {"track": track, "keyframe": 0.25, "edges": 0.5, "ba": ba, "loops": 0.1,
-                                "pose_guess": 0.2, "fill": 0.05}}
+                                "pose_guess": 0.2, "fill": 0.05},
+            "steps": {"keyframe": {"count": keyframes, "wall_ms": 80.0, "cpu_ms": 60.0},
+                      "other": {"count": frames - keyframes, "wall_ms": 20.0, "cpu_ms": 12.0}}}
 
 
 def test_a_run_row_is_per_frame_milliseconds_of_each_stage():
@@ -35,6 +37,9 @@ def test_a_run_row_is_per_frame_milliseconds_of_each_stage():
     assert st["map other"] == pytest.approx(1000 * (4.2 - 4.1) / 100)
     assert st["other threads"] == pytest.approx(1000 * (9.0 - 5.2) / 100)
     assert st["final BA"] == pytest.approx(4.0) and st["read"] == pytest.approx(1.0)
+    assert r["step_ms"] == {"keyframe": 80.0, "other": 20.0}
+    no_kf = S.run_row("default", "pvslam run", {**_timing(), "steps": {"keyframe": {"count": 0, "wall_ms": 0.0}}})
+    assert no_kf["step_ms"]["keyframe"] != no_kf["step_ms"]["keyframe"]  # nan: no such step, not 0 ms
 
 
 def test_the_table_has_one_line_per_row_and_dashes_for_what_a_peer_lacks():
@@ -44,12 +49,15 @@ def test_the_table_has_one_line_per_row_and_dashes_for_what_a_peer_lacks():
     lines = S.table(rows)
     assert len(lines) == 2 + 3
     head = [c.strip() for c in lines[0].strip("|").split("|")]
-    assert head[:6] == ["group", "run", "frames", "kf/frame", "frames/s wall", "CPU ms/frame"]
+    assert head[:8] == ["group", "run", "frames", "kf/frame", "frames/s wall", "ms/keyframe step", "ms/other step",
+                        "CPU ms/frame"]
+    mine = [c.strip() for c in lines[2].strip("|").split("|")]
+    assert mine[5:7] == ["80.0", "20.0"]
     assert {"track", "edges", "BA", "loops", "pose guess", "fill", "outputs", "segment", "read"} <= set(head)
     vo = [c.strip() for c in lines[3].strip("|").split("|")]
-    assert vo[:6] == ["KITTI 00", "textbook VO", "160", "-", "80.0", "5.0"] and set(vo[6:]) == {"-"}
+    assert vo[:8] == ["KITTI 00", "textbook VO", "160", "-", "80.0", "-", "-", "5.0"] and set(vo[8:]) == {"-"}
     orb = [c.strip() for c in lines[4].strip("|").split("|")]
-    assert orb[4:6] == ["-", "20.0"]  # a paced run has no wall frames/s
+    assert orb[4] == "-" and orb[7] == "20.0"  # a paced run has no wall frames/s
     ratios = S.cpu_ratios(rows, "KITTI 00")
     assert len(ratios) == 2 and "20.0x textbook VO" in ratios[0] and "5.0x ORB-SLAM3" in ratios[1]
 
@@ -57,9 +65,11 @@ def test_the_table_has_one_line_per_row_and_dashes_for_what_a_peer_lacks():
 def test_a_scenario_mean_averages_its_seeds():
     a = S.run_row("busy_street", "seed 3", _timing(fps=20.0, cpu=9.0, track=1.0))
     b = S.run_row("busy_street", "seed 4", _timing(fps=40.0, cpu=5.0, track=3.0))
+    b["step_ms"]["keyframe"] = 100.0
     m = S.mean_row([a, b], "busy_street", "mean")
     assert m["frames"] == 200 and m["fps"] == pytest.approx(30.0) and m["cpu_ms"] == pytest.approx(70.0)
     assert m["stage_ms"]["track"] == pytest.approx(20.0)
+    assert m["step_ms"] == {"keyframe": pytest.approx(90.0), "other": pytest.approx(20.0)}
 
 
 def test_targets_take_the_default_run_each_scenario_mean_and_the_real_excerpts():
@@ -119,7 +129,7 @@ def test_the_section_runs_the_default_every_scenario_seed_and_the_real_sequences
     assert results["speed"] == rows
     out = capsys.readouterr().out
     assert "| KITTI 06 | textbook VO | 51 |" in out and "pvslam's CPU per frame is 20.0x textbook VO's" in out
-    assert "| KITTI 06 | ORB-SLAM3 (less vocabulary load) | 51 | - | - | 40.0 |" in out  # (4.04 - 2.0) s / 51
+    assert "| KITTI 06 | ORB-SLAM3 (less vocabulary load) | 51 | - | - | - | - | 40.0 |" in out  # (4.04 - 2.0) s / 51
     rows = S.section(fake_run, tmp_path, quick=True)  # quick: one seed per scenario, few frames, no ORB-SLAM3
     assert pv_calls[-1] == ("06", ["--set", "run.max_frames=20"])
     assert [r["run"] for r in rows if r["group"] == "busy_street"] == ["seed 3", "mean"]

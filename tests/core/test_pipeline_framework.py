@@ -146,6 +146,19 @@ def test_the_map_stage_accounts_a_new_keyframes_setup(fake_registry, fake_config
     assert sum(parts.values()) <= t["stage_cpu_seconds"]["map"] + 1e-3
 
 
+def test_the_timing_splits_the_steps_into_keyframe_steps_and_others(fake_registry, fake_config_file):
+    """``timing.steps``: every frame's step counted once, as a keyframe step when the frame became a keyframe; their
+    mean wall and pipeline-thread CPU add up to the stages' totals (the wait for the next frame is in neither)."""
+    res = run_config(fake_config_file, overrides=["run.name=steps"], registry=fake_registry)
+    t = res.metrics["timing"]
+    kf, other = t["steps"]["keyframe"], t["steps"]["other"]
+    assert kf["count"] + other["count"] == t["frames"] and kf["count"] >= t["keyframes"] > 1 and other["count"] > 0
+    stages = ("segment", "map", "vps", "outputs")
+    for key, total in (("wall_ms", sum(t["stage_seconds"][s] for s in stages)),
+                       ("cpu_ms", sum(t["stage_cpu_seconds"][s] for s in stages))):
+        assert (kf[key] * kf["count"] + other[key] * other["count"]) / 1000 == pytest.approx(total, abs=2e-3)
+
+
 @pytest.mark.parametrize("source", ["built-in", "live", "third-party"])
 def test_the_frontend_gets_the_next_frame_after_tracking_one_when_the_source_is_read_ahead(
         tmp_path, fake_registry, fake_config_file, monkeypatch, source):
