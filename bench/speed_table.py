@@ -90,7 +90,8 @@ def table(rows: Sequence[dict]) -> list[str]:
         st = r["stage_ms"]
         steps = r.get("step_ms") or {}
         cells = [r["group"], r["run"], str(r["frames"]), _num(r["kf_per_frame"], ".2f"), _num(r["fps"], ".1f"),
-                 _num(steps.get("keyframe"), ".1f"), _num(steps.get("other"), ".1f"), _num(r["cpu_ms"], ".1f"), *(_num(st.get(c), ".1f") for c, _ in STAGES),
+                 _num(steps.get("keyframe"), ".1f"), _num(steps.get("other"), ".1f"), _num(r["cpu_ms"], ".1f"),
+                 *(_num(st.get(c), ".1f") for c, _ in STAGES),
                  _num(st.get("other threads"), ".1f")]
         out.append("| " + " | ".join(cells) + " |")
     return out
