@@ -116,8 +116,8 @@ def throughput(r: dict) -> tuple[str, str]:
     steps = (r.get("speed_driving_loop_320x240") or {}).get("steps") or {}
     kf, other = steps.get("keyframe"), steps.get("other")
     if kf and other and kf["count"] and other["count"]:  # where the driving loop's wall time goes
-        text += (f"; driving loop steps: {kf['count']} keyframes at {kf['wall_ms']:.0f} ms wall, {other['count']} "
-                 f"other frames at {other['wall_ms']:.0f} ms")
+        text += (f"; driving loop: {kf['count']} keyframe steps at {kf['wall_ms']:.0f} ms wall, {other['count']} "
+                 f"other steps at {other['wall_ms']:.0f} ms")
     return text, "targets 30 frames/s at 320x240, 10 on KITTI, 2 cores"
 
 

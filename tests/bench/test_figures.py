@@ -277,4 +277,4 @@ def test_the_throughput_row_says_where_the_driving_loops_wall_time_goes():
     steps = {"keyframe": {"count": 222, "wall_ms": 110.5, "cpu_ms": 81.3},
              "other": {"count": 266, "wall_ms": 25.2, "cpu_ms": 16.0}}
     new, _ = figure_rows.throughput({"speed_driving_loop_320x240": {**speed, "steps": steps}})
-    assert new == old + "; driving loop steps: 222 keyframes at 110 ms wall, 266 other frames at 25 ms"
+    assert new == old + "; driving loop: 222 keyframe steps at 110 ms wall, 266 other steps at 25 ms"
