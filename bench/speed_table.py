@@ -10,8 +10,9 @@
   (:func:`bench.bench_real.run_vo`, :func:`bench.bench_real.run_orb`; ORB-SLAM3 only with ``--orb-python`` and a
   vocabulary), with pvslam's CPU per frame as a multiple of each peer's.
 
-pvslam's figures come from its ``metrics.json`` timing (evaluation and start-up excluded): wall frames/s, the
-process's CPU per frame (every thread), and per stage the pipeline thread's CPU per frame -- the mapping's parts
+pvslam's figures come from its ``metrics.json`` timing (evaluation and start-up excluded): wall frames/s, the mean
+wall time of a keyframe step and of any other step (``timing.steps``), the process's CPU per frame (every thread), and
+per stage the pipeline thread's CPU per frame -- the mapping's parts
 (track, a new keyframe's setup, edges, BA, loops, pose guess, fill, the rest of the map stage), then segment, VPS,
 outputs and read -- and ``other threads`` (the process less the pipeline thread: reading ahead, writing behind, the
 flow lanes).  The final
