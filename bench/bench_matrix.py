@@ -289,7 +289,7 @@ def targets(rows: list[dict]) -> list[dict]:
 
 
 # ------------------------------------------------------------------------------------------------ main
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--set", choices=[*SEED_SETS, "all"], default="report",
                     help="seed set of bench/seeds.toml (default: report; all = default + tune + report)")
@@ -318,23 +318,69 @@ def main(argv=None) -> int:
     ap.add_argument("--markdown", action="store_true", help="with --reprint: the table as Markdown")
     ap.add_argument("--compare", metavar="JSON", help="with --reprint: per scenario, this earlier run (before) "
                     "beside the reprinted one (after), Markdown")
+    return ap
+
+
+def _reprint(args) -> int:
+    """``--reprint``: the table, summary and targets of a saved run (``--markdown``, ``--compare``)."""
+    saved = json.loads(Path(args.reprint).read_text())
+    prov = saved.get("provenance") or {"commit": saved.get("commit")}
+    dirty = {True: " (dirty)", False: "", None: ""}[prov.get("dirty")]
+    print(f"seed set: {saved['set'].upper()} -- seeds {', '.join(map(str, saved['seeds']))}; commit "
+          f"{prov.get('commit') or 'not recorded'}{dirty}; jobs {saved['jobs']}; frames "
+          f"{saved['frames'] or 'default lengths'}")
+    rows = saved["rows"]
+    labels, colmap = any("labels" in r for r in rows), any("colmap" in r for r in rows)
+    if args.markdown:
+        print("\n".join(table_md(rows, labels, colmap)))
+    report(rows, labels, colmap)
+    if args.compare:
+        print("\n".join(compare_md(json.loads(Path(args.compare).read_text())["rows"], rows)))
+    return 0
+
+
+def _camera(ap: argparse.ArgumentParser, args) -> tuple[int, int]:
+    """The synthetic sequences' image size from ``--size`` (and ``--hfov`` checked), said on the console."""
+    wh = re.fullmatch(r"(\d+)x(\d+)", args.size.lower())
+    if wh is None or min(int(wh[1]), int(wh[2])) < 16:
+        ap.error(f"--size must be WIDTHxHEIGHT (each >= 16), got {args.size!r}")
+    size = (int(wh[1]), int(wh[2]))
+    if size != (320, 240):
+        print(f"synthetic image size {size[0]}x{size[1]}")
+    if args.hfov is not None:
+        from pvslam_plugins.datasets.synthetic.render import check_hfov
+
+        try:
+            check_hfov(args.hfov)
+        except ValueError as e:
+            ap.error(f"--hfov: {e}")
+        print(f"synthetic camera: {args.hfov:g} deg horizontal field of view")
+    return size
+
+
+def _run_cells(cells: list, jobs: int, t0: float) -> list[dict]:
+    """Every cell's row, in ``jobs`` spawned processes when more than one (progress printed as they finish)."""
+    rows = []
+    if jobs > 1:
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as ex:
+            futs = [ex.submit(run_cell, c) for c in cells]
+            for f in as_completed(futs):
+                rows.append(f.result())
+                _progress(rows[-1], len(rows), len(cells), t0)
+    else:
+        for c in cells:
+            rows.append(run_cell(c))
+            _progress(rows[-1], len(rows), len(cells), t0)
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = _parser()
     args = ap.parse_args(argv)
     if args.reprint:
-        saved = json.loads(Path(args.reprint).read_text())
-        prov = saved.get("provenance") or {"commit": saved.get("commit")}
-        dirty = {True: " (dirty)", False: "", None: ""}[prov.get("dirty")]
-        print(f"seed set: {saved['set'].upper()} -- seeds {', '.join(map(str, saved['seeds']))}; commit "
-              f"{prov.get('commit') or 'not recorded'}{dirty}; jobs {saved['jobs']}; frames "
-              f"{saved['frames'] or 'default lengths'}")
-        rows = saved["rows"]
-        labels, colmap = any("labels" in r for r in rows), any("colmap" in r for r in rows)
-        if args.markdown:
-            print("\n".join(table_md(rows, labels, colmap)))
-        report(rows, labels, colmap)
-        if args.compare:
-            print("\n".join(compare_md(json.loads(Path(args.compare).read_text())["rows"], rows)))
-        return 0
-
+        return _reprint(args)
     synth = synthetic_scenarios()
     names = args.scenarios or synth + list(KITTI_SEQS)
     names = [k for n in names for k in (KITTI_SEQS if n == "kitti" else (n,))]
@@ -369,38 +415,13 @@ def main(argv=None) -> int:
 
         load_config(None, overrides=args.override)  # a typo fails here, not in every cell
         print(f"overrides for every pvslam run: {' '.join(args.override)}")
-    wh = re.fullmatch(r"(\d+)x(\d+)", args.size.lower())
-    if wh is None or min(int(wh[1]), int(wh[2])) < 16:
-        ap.error(f"--size must be WIDTHxHEIGHT (each >= 16), got {args.size!r}")
-    size = (int(wh[1]), int(wh[2]))
-    if size != (320, 240):
-        print(f"synthetic image size {size[0]}x{size[1]}")
-    if args.hfov is not None:
-        from pvslam_plugins.datasets.synthetic.render import check_hfov
-
-        try:
-            check_hfov(args.hfov)
-        except ValueError as e:
-            ap.error(f"--hfov: {e}")
-        print(f"synthetic camera: {args.hfov:g} deg horizontal field of view")
+    size = _camera(ap, args)
     if args.exposure:
         print("auto-exposure changes on every synthetic sequence (exposure.auto_exposure_gain)")
     cells = plan(names, seeds, args.frames, out, args.labels, args.colmap, args.jobs, tuple(args.override), size,
                  args.exposure, args.hfov)
     t0 = time.perf_counter()
-    rows = []
-    if args.jobs > 1:
-        import multiprocessing as mp
-
-        with ProcessPoolExecutor(args.jobs, mp_context=mp.get_context("spawn")) as ex:
-            futs = [ex.submit(run_cell, c) for c in cells]
-            for f in as_completed(futs):
-                rows.append(f.result())
-                _progress(rows[-1], len(rows), len(cells), t0)
-    else:
-        for c in cells:
-            rows.append(run_cell(c))
-            _progress(rows[-1], len(rows), len(cells), t0)
+    rows = _run_cells(cells, args.jobs, t0)
     order = {n: k for k, n in enumerate(names)}
     rows.sort(key=lambda r: (order[r["scenario"]], -1 if r["seed"] is None else r["seed"]))
     summ, tg = report(rows, args.labels, args.colmap)
