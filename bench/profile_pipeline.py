@@ -82,7 +82,23 @@ def main() -> None:
 
             cfg.pipeline.evaluation.enabled = True
             metrics = evaluate_run_dir(run_dir)
-    t = res.metrics["timing"]
+    figures = _figures(res.metrics, imports_cpu, cpu, wall, run_dir, metrics, getattr(pipe, "frontend", None))
+    print(json.dumps(figures, indent=1))
+    if prof is not None:
+        s = io.StringIO()
+        st = pstats.Stats(prof, stream=s)
+        st.sort_stats("cumulative").print_stats(args.top)
+        st.sort_stats("tottime").print_stats(args.top)
+        print(s.getvalue())
+    if args.json:
+        provenance.write_json(args.json, figures, prov)
+
+
+def _figures(run_metrics: dict, imports_cpu: float, cpu: float, wall: float, run_dir: Path, metrics: dict,
+             frontend) -> dict:
+    """The printed figures: the run's timing per frame and per stage, its tracking counters and, when evaluated,
+    its accuracy; the frontend's own counters when it has them."""
+    t = run_metrics["timing"]
     n = t["frames"]
     figures = {
         "frames": n, "keyframes": t["keyframes"], "imports_cpu_s": round(imports_cpu, 2),
@@ -90,8 +106,8 @@ def main() -> None:
         "cpu_ms_per_frame": round(1000 * cpu / max(n, 1), 1), "cpu_fps": round(n / cpu, 2) if cpu else None,
         "wall_fps": round(n / wall, 2) if wall else None,
         "stage_seconds": t.get("stage_seconds"), "stage_cpu_seconds": t.get("stage_cpu_seconds"),
-        "map_cpu_seconds": t.get("map_cpu_seconds"),
-        "process_cpu_s": t.get("cpu_seconds"), "tracking": res.metrics.get("tracking"),
+        "map_cpu_seconds": t.get("map_cpu_seconds"), "steps": t.get("steps"),
+        "process_cpu_s": t.get("cpu_seconds"), "tracking": run_metrics.get("tracking"),
         "peak_rss_mb": round(peak_rss_mb()),
         "run_dir": str(run_dir),
     }
@@ -102,18 +118,10 @@ def main() -> None:
         figures.update({"ate_pct": ate.get("rmse_percent_of_path"), "ate_m": ate.get("rmse"),
                         "loops": lp.get("num_detected"), "loop_precision": lp.get("precision"),
                         "loop_recall": lp.get("recall"), "pq": pan.get("pq"), "vpq": pan.get("vpq")})
-    fe = getattr(pipe, "frontend", None)
-    if fe is not None and hasattr(fe, "stats"):
-        figures["frontend_stats"] = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in fe.stats.items()}
-    print(json.dumps(figures, indent=1))
-    if prof is not None:
-        s = io.StringIO()
-        st = pstats.Stats(prof, stream=s)
-        st.sort_stats("cumulative").print_stats(args.top)
-        st.sort_stats("tottime").print_stats(args.top)
-        print(s.getvalue())
-    if args.json:
-        provenance.write_json(args.json, figures, prov)
+    if frontend is not None and hasattr(frontend, "stats"):
+        figures["frontend_stats"] = {k: (round(v, 3) if isinstance(v, float) else v)
+                                     for k, v in frontend.stats.items()}
+    return figures
 
 
 if __name__ == "__main__":
