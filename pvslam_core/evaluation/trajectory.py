@@ -25,7 +25,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-__all__ = ["to_evo", "from_evo", "ate", "rpe", "aligned_positions", "ate_from_files"]
+__all__ = ["to_evo", "from_evo", "associate", "ate", "rpe", "aligned_positions", "ate_from_files"]
 
 _ALIGN_MODES = ("sim3", "se3", "none")
 
@@ -65,8 +65,9 @@ def _finite_rows(ts: np.ndarray, poses: np.ndarray) -> np.ndarray:
     return np.isfinite(ts) & np.all(np.isfinite(poses), axis=1) & (np.linalg.norm(poses[:, 3:], axis=1) > 1e-9)
 
 
-def _associate(est_ts, est_poses, gt_ts, gt_poses, max_diff: float):
-    """Build evo trajectories (dropping invalid rows) and associate them in time, as ``evo_ape`` does."""
+def associate(est_ts, est_poses, gt_ts, gt_poses, max_diff: float):
+    """Build evo trajectories (dropping invalid rows) and associate them in time, as ``evo_ape`` does: ``(traj_gt,
+    traj_est, info)``, ``info["num_pairs"]`` the pairs matched within ``max_diff`` seconds (ValueError: none)."""
     from evo.core import sync
 
     ets, eps = _np(est_ts).reshape(-1), _np(est_poses)
@@ -163,7 +164,7 @@ def aligned_positions(
     ``gt_xyz [M, 3]``, ``errors [M]`` (per-pose translation error, metres), ``scale`` and ``alignment``
     (4x4 similarity applied to the estimate).
     """
-    traj_gt, traj_est, info = _associate(est_ts, est_poses, gt_ts, gt_poses, max_diff)
+    traj_gt, traj_est, info = associate(est_ts, est_poses, gt_ts, gt_poses, max_diff)
     traj_est = copy.deepcopy(traj_est)
     scale, m = _align(traj_est, traj_gt, align)
     ape = _ape_translation(traj_gt, traj_est)
@@ -277,7 +278,7 @@ def rpe(
     }
     if delta_unit not in units:
         raise ValueError(f"delta_unit must be one of {sorted(units)}, got {delta_unit!r}")
-    traj_gt, traj_est, info = _associate(est_ts, est_poses, gt_ts, gt_poses, max_diff)
+    traj_gt, traj_est, info = associate(est_ts, est_poses, gt_ts, gt_poses, max_diff)
     traj_est = copy.deepcopy(traj_est)
     scale, _ = _align(traj_est, traj_gt, align)
     out: dict = {}

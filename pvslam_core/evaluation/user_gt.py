@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pvslam_core.evaluation.trajectory import _associate
+from pvslam_core.evaluation.trajectory import associate
 from pvslam_core.outputs.trajectory_io import TrajectoryFormatError, read_kitti_poses, read_tum
 
 __all__ = ["load_user_groundtruth", "sniff_format"]
@@ -81,7 +81,7 @@ def load_user_groundtruth(path: str | os.PathLike, run_dir: str | os.PathLike) -
         return est_ts.copy(), poses[lines], what
     ts, poses = read_tum(path)
     try:  # the evaluation's own association (evo's), so this check and the ATE agree on the pairs
-        matched = _associate(est_ts, est, ts, poses, MAX_DIFF)[2]["num_pairs"]
+        matched = associate(est_ts, est, ts, poses, MAX_DIFF)[2]["num_pairs"]
     except ValueError:  # no pair at all (or no finite pose)
         matched = 0
     if matched < 3:
