@@ -16,7 +16,9 @@ road, whose inverse depth at BA row ``y`` is ``(y - cy) / (fy h)`` for a camera 
 a car camera does not change, so one ``h`` in map units gives every keyframe an inverse-depth prior
 (:meth:`RoadPrior.depth_prior`, DROID-SLAM's sensor-depth term) at one scale: on a straight road, where the flow
 hardly constrains the scale, it cannot drift.  ``h`` is measured once, when the map's road depth and the map's motion
-over the road's (in camera heights) tell the same height; until then there is no prior.  The prior's weight is
+over the road's (in camera heights) tell the same height; until then there is no prior.  When the distance prior below
+already holds the map at its own height, the depth prior takes that one (its gate still decides when it starts): two
+priors at two heights would hold the map's first stretch and the rest at two scales.  The prior's weight is
 relative, ``alpha0 (d - d_prior)^2 / d_prior^2``: the flow's depth curvature grows with the squared baseline, so an
 absolute weight would be strong or negligible by the map's scale.  The plane's normal is taken as the camera's y
 axis, as the search does.
@@ -319,7 +321,8 @@ class RoadPrior:
         ``ROAD_H_SETTLE`` keyframes older than the newest, measured twice - from their road pixels' inverse depth
         (``(y - cy) / (fy d)``) and from the map's translation over the road's (in camera heights) between them -
         and accepted only when the two agree within ``ROAD_H_AGREE``: where DIS misjudges the near road, the map's
-        road depth and its motion disagree, and a prior at either height would pull the map apart."""
+        road depth and its motion disagree, and a prior at either height would pull the map apart.  Accepted, the
+        height is their geometric mean, or the distance prior's height when that one was measured first."""
         got = self._road_motion(graph, ids, road_pixels=True)
         if got is None:
             return None
@@ -339,7 +342,8 @@ class RoadPrior:
         self._height_n += 1
         if not abs(np.log(h_motion / h_depth)) <= np.log(ROAD_H_AGREE):
             return None
-        hgt = float(np.sqrt(h_motion * h_depth))
+        # one camera height per map: the distance prior's when it was measured first (module docstring)
+        hgt = float(np.sqrt(h_motion * h_depth)) if self.height_motion is None else self.height_motion
         LOG.info("road plane: camera height %.4g map units (keyframes %s: %.4g from the motion, %.4g from the road "
                  "depth; %d tries)", hgt, ks, h_motion, h_depth, self._height_n)
         return hgt

@@ -100,6 +100,29 @@ def test_height_and_prior_where_they_agree(drive):
     assert fe.road.height == h
 
 
+def test_one_camera_height_per_map(drive):
+    """A distance prior measured first gives the depth prior its camera height: two priors at two heights would hold
+    the map at two scales.  The depth prior's own agreement gate still decides when it starts."""
+    fe, zs = drive
+    scale = 0.05
+    h_distance = CAM_H * scale * 1.08  # the map's motion read 8 % more when the distance prior measured it
+    try:
+        fe.road.height_motion = h_distance
+        fe.road.height = None
+        assert _observe(fe, _graph(zs, scale=scale, depth_factor=8.0)) is None  # the gate: still closed
+        assert fe.road.height is None
+        prior, alpha = _observe(fe, _graph(zs, scale=scale, depth_factor=1.0))
+        (_, by_motion, by_depth), = list(fe.road.height_tries)[-1:]
+        assert by_depth == pytest.approx(CAM_H * scale, rel=0.05)  # its own readings: the map's scale
+        assert fe.road.height == h_distance  # ... but the distance prior's height
+        ray = ((torch.arange(30, dtype=torch.float32) - 14.5) / 36.0)[:, None].expand(30, 40)
+        on = alpha[3] > 0
+        torch.testing.assert_close(prior[3][on], (ray / h_distance)[on])
+    finally:
+        fe.road.height_motion = None
+        fe.road.height = None
+
+
 def test_prior_without_the_verified_plane_does_nothing(monkeypatch):
     """road.depth_weight only acts on verified plane pixels: with the verification off (ROAD_VERIFY: no verification
     weights) or road.enabled off the frontend gives the BA no prior, and such a config loads."""
