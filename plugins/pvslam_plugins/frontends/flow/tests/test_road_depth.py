@@ -112,7 +112,7 @@ def test_one_camera_height_per_map(drive):
         assert _observe(fe, _graph(zs, scale=scale, depth_factor=8.0)) is None  # the gate: still closed
         assert fe.road.height is None
         prior, alpha = _observe(fe, _graph(zs, scale=scale, depth_factor=1.0))
-        (_, by_motion, by_depth), = list(fe.road.height_tries)[-1:]
+        (_, _, by_depth), = list(fe.road.height_tries)[-1:]
         assert by_depth == pytest.approx(CAM_H * scale, rel=0.05)  # its own readings: the map's scale
         assert fe.road.height == h_distance  # ... but the distance prior's height
         ray = ((torch.arange(30, dtype=torch.float32) - 14.5) / 36.0)[:, None].expand(30, 40)
