@@ -344,8 +344,9 @@ class RoadPrior:
             return None
         # one camera height per map: the distance prior's when it was measured first (module docstring)
         hgt = float(np.sqrt(h_motion * h_depth)) if self.height_motion is None else self.height_motion
-        LOG.info("road plane: camera height %.4g map units (keyframes %s: %.4g from the motion, %.4g from the road "
-                 "depth; %d tries)", hgt, ks, h_motion, h_depth, self._height_n)
+        LOG.info("road plane: camera height %.4g map units (%s; keyframes %s: %.4g from the motion, %.4g from the "
+                 "road depth; %d tries)", hgt, "the mean" if self.height_motion is None else "the distance prior's",
+                 ks, h_motion, h_depth, self._height_n)
         return hgt
 
     def _road_motion(self, graph, ids: list[int], road_pixels: bool,
