@@ -1,5 +1,11 @@
 """Atomic file replacement shared by the output writers.
 
+Per-frame files (a panoptic PNG a frame, a depth file a keyframe, an export's images: thousands in a run) are
+written with ``durable=False``: renamed into place whole but not flushed to the disk one by one (an fsync a frame
+costs the output thread more than the PNG's encoding, and far more on a network or spinning disk); a crash of
+pvslam still leaves each of them whole, a crash of the OS may lose the last seconds of them. The run's own record
+(trajectories, checkpoints, metrics, the resolved config, point clouds) is fsynced before it replaces the old file.
+
 Two details matter to users: ``tempfile.mkstemp`` creates files with mode 0600 whatever the umask, so the
 temporary file is given the mode an ordinary ``open()`` would (``0666 & ~umask``) before it replaces the target;
 and an OS error is re-raised naming the *target* file (a full disk reports no file name at all, and a failed
@@ -41,8 +47,9 @@ def _named(exc: OSError, path: str) -> OSError:
 
 
 @contextlib.contextmanager
-def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator:
-    """Open a temporary file next to ``path``; on a clean exit fsync it and ``os.replace`` it onto ``path``.
+def atomic_open(path: str | os.PathLike, mode: str = "w", durable: bool = True, **kwargs) -> Iterator:
+    """Open a temporary file next to ``path``; on a clean exit fsync it (``durable``) and ``os.replace`` it onto
+    ``path``.
 
     On an exception the temporary file is removed and ``path`` keeps its previous content; an ``OSError`` is
     re-raised with ``path`` as its file name.
@@ -57,7 +64,8 @@ def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator:
         with os.fdopen(fd, mode, **kwargs) as f:
             yield f
             f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException as exc:
         if tmp is not None:
@@ -68,8 +76,8 @@ def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator:
         raise
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    with atomic_open(path, "wb") as f:
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, durable: bool = True) -> None:
+    with atomic_open(path, "wb", durable) as f:
         f.write(data)
 
 

@@ -149,7 +149,7 @@ def write_images(run_dir: Path, out_dir: Path, frame_indices: np.ndarray, regist
             ok, buf = cv2.imencode(".png", np.ascontiguousarray(frame.image_hwc()[..., ::-1]))  # RGB -> OpenCV's BGR
             if not ok:
                 raise OSError(f"PNG encoding of frame {frame.index} failed")
-            atomic_write_bytes(out_dir / "images" / _image_name(frame.index), buf.tobytes())
+            atomic_write_bytes(out_dir / "images" / _image_name(frame.index), buf.tobytes(), durable=False)
             want.discard(frame.index)
         if not want:
             break

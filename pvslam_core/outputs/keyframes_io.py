@@ -79,7 +79,7 @@ def write_keyframes(run_dir: str | os.PathLike, frame_index: Any, timestamps: An
         fname = f"{int(fi[n]):06d}_depth.npy"
         buf = io.BytesIO()
         np.save(buf, depth[n])
-        atomic_write_bytes(out / fname, buf.getvalue())
+        atomic_write_bytes(out / fname, buf.getvalue(), durable=False)
         entries.append({"frame_index": int(fi[n]), "timestamp": float(ts[n]),
                         "name": (names[n] if names is not None else "") or "",
                         "pose": [float(v) for v in poses[n]], "depth_file": fname})

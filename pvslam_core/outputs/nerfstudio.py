@@ -71,7 +71,7 @@ def _write_depth_png(path: Path, depth: np.ndarray, scale: float) -> int:
     ok, buf = cv2.imencode(".png", counts.astype(np.uint16))
     if not ok:
         raise OSError(f"PNG encoding of {path.name} failed")
-    atomic_write_bytes(path, buf.tobytes())
+    atomic_write_bytes(path, buf.tobytes(), durable=False)
     return int(beyond.sum())
 
 

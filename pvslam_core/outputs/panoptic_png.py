@@ -186,7 +186,7 @@ def save_panoptic(path: str | os.PathLike, seg) -> list[dict]:
     """Write ``seg.ids`` as a COCO panoptic PNG (atomically; ids without a segment as void); returns its COCO
     ``segments_info``."""
     ids, keys, lab = _coco(seg)
-    atomic_write_bytes(path, _png_bytes(encode_ids(ids, bgr=True), bgr=True))
+    atomic_write_bytes(path, _png_bytes(encode_ids(ids, bgr=True), bgr=True), durable=False)
     return _info(seg, keys, lab)
 
 
@@ -314,7 +314,7 @@ class PanopticWriter:
                 self._seen_cats[int(s.category_id)] = new_cats[str(int(s.category_id))] = bool(s.isthing)
         if self.vis:  # (after the new categories are declared: without `categories` they are the colours)
             cats = self.categories if self.categories is not None else self._categories_json()
-            atomic_write_bytes(os.path.join(self.vis_dir, name), _png_bytes(colorize(seg, cats)))
+            atomic_write_bytes(os.path.join(self.vis_dir, name), _png_bytes(colorize(seg, cats)), durable=False)
         if self._journal is not None:
             self._journal_line({"image": self.images[i], "annotation": self.annotations[i], "scores": self.scores[i],
                                 **({"seen_categories": new_cats} if new_cats else {})})
