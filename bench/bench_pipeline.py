@@ -445,15 +445,19 @@ def main() -> None:
     ap.add_argument("--long-frames", type=int, default=3000, help="frames of the long run (the target is 3000)")
     ap.add_argument("--flat-frames", type=int, default=10000,
                     help="frames of the second long run whose peak memory is compared (0: skip it; not with --quick)")
-    ap.add_argument("--orb-python", help="speed: python of the venv with pyorbslam3 (ORB-SLAM3 skipped without it)")
+    ap.add_argument("--orb-python", help="speed: python of the venv with pyorbslam3 (default: $PVSLAM_ORB_PYTHON; "
+                    "ORB-SLAM3 skipped without it)")
     ap.add_argument("--orb-vocab", action="append", default=[], metavar="[SEQ=]PATH",
-                    help="speed: ORB vocabulary trained on other images, as bench/bench_real.py takes it")
+                    help="speed: ORB vocabulary trained on other images, as bench/bench_real.py takes it (default: "
+                    "$PVSLAM_ORB_VOCAB, as there)")
     ap.add_argument("--long-child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--out", help="folder for the run directories (default: a temporary folder)")
     ap.add_argument("--json", help="result file (default: runs/bench/results_pipeline_<sections>.json; not into bench/)")
     ap.add_argument("--set", action="append", default=[], dest="overrides", metavar="KEY=VALUE",
                     help="config override applied to every run (repeatable), e.g. --set optimizer.iters=5")
     args = ap.parse_args()
+    args.orb_python = args.orb_python or os.environ.get("PVSLAM_ORB_PYTHON") or None
+    args.orb_vocab = args.orb_vocab or [v for v in os.environ.get("PVSLAM_ORB_VOCAB", "").split(os.pathsep) if v]
     EXTRA[:] = args.overrides
     if EXTRA:
         RESULTS["overrides"] = list(EXTRA)

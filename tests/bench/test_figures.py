@@ -81,7 +81,7 @@ def test_every_figure_is_read_or_tbd_with_its_command(results):
     assert by["busy_street"].value == "0.100 / 0.100 / 0.100 %"
     assert by["default"].value.startswith("0.044 % of 325 m") and "textbook VO 2.60 %" == by["default"].compared
     assert by["long"].value == "0.0077 % of 2.0 km; 1 map, 118 loops" and by["long"].commit == SHA[:7]
-    for key in ("heldout", "throughput", "long_speed", "endless", "segmenter", "segmenter_pq",
+    for key in ("heldout", "speed", "long_speed", "endless", "segmenter", "segmenter_pq",
                 "loops_real"):  # endless: no "flat"
         assert by[key].value == figures.TBD and not by[key].commit
     table = figures.status_table(rows)
@@ -215,7 +215,7 @@ def test_a_benchmark_run_twice_by_two_figures_is_measured_once(tmp_path, monkeyp
 
 
 def test_the_speed_benchmarks_are_the_ones_skipped():
-    assert {k for k, b in figures.BENCHES.items() if b.speed} == {"long_speed", "throughput"}
+    assert {k for k, b in figures.BENCHES.items() if b.speed} == {"long_speed", "speed"}
     assert all(f.bench in figures.BENCHES for f in figures.FIGURES)
 
 
@@ -266,15 +266,31 @@ def test_the_real_figure_says_why_orb_slam3_is_missing_and_refuses_too_few_runs(
         figures.load(results)
 
 
-def test_the_throughput_row_says_where_the_driving_loops_wall_time_goes():
-    """With the run's step split in its result, the throughput row adds the keyframe steps' and the other frames'
-    wall time; an older result without it renders as before."""
-    from bench import figure_rows
+def _speed(orb=True):
+    def row(group, run, fps, cpu, kf=0.45):
+        return {"group": group, "run": run, "frames": 100, "kf_per_frame": kf, "fps": fps, "step_ms": {},
+                "cpu_ms": cpu, "stage_ms": {}}
+    rows = [row("default", "pvslam run", 16.5, 85.8), row("driving_loop", "seed 3", 17.9, 76.5),
+            row("driving_loop", "mean", 16.6, 82.6), row("indoor_handheld", "mean", 31.3, 44.3, 0.19)]
+    for seq, fps, cpu, orb_cpu in (("00", 10.3, 137.8, 106.1), ("06", 8.1, 177.1, 114.1)):
+        rows += [row(f"KITTI {seq}", "pvslam run FOLDER --calib", fps, cpu),
+                 row(f"KITTI {seq}", "textbook VO", 57.5, 25.9)]
+        if orb:
+            rows.append(row(f"KITTI {seq}", "ORB-SLAM3 (less vocabulary load)", float("nan"), orb_cpu))
+    return {"provenance": _prov(), "sections": ["speed"], "speed": rows}
 
-    speed = {"fps": 16.1, "cpu_ms": 85.9}
-    old, _ = figure_rows.throughput({"speed_driving_loop_320x240": speed})
-    assert old == "frames/s: driving loop 16.1 (86 ms CPU)"
-    steps = {"keyframe": {"count": 222, "wall_ms": 110.5, "cpu_ms": 81.3},
-             "other": {"count": 266, "wall_ms": 25.2, "cpu_ms": 16.0}}
-    new, _ = figure_rows.throughput({"speed_driving_loop_320x240": {**speed, "steps": steps}})
-    assert new == old + "; driving loop: 222 keyframe steps at 110 ms wall, 266 other steps at 25 ms"
+
+def test_the_speed_row_gives_each_scenario_mean_and_the_real_excerpts_beside_orb_slam3(results):
+    (results / "speed.json").write_text(json.dumps(_speed()))
+    rows, _ = figures.load(results)
+    row = {r.figure.key: r for r in rows}["speed"]
+    assert row.value == ("frames/s wall: default run 16.5 (0.45 keyframes a frame); scenario means driving_loop "
+                         "16.6, indoor_handheld 31.3 (1 of 2 at 30 or more); 00 / 06 as a user runs them (native "
+                         "size) 10.3 / 8.1, CPU 138 / 177 ms a frame, 1.3 / 1.6x ORB-SLAM3's")
+    assert row.compared.startswith("targets 30 frames/s at 320x240")
+    (results / "speed.json").write_text(json.dumps(_speed(orb=False)))
+    with pytest.raises(ValueError, match="ORB-SLAM3 not measured on KITTI 00, KITTI 06"):
+        figures.load(results)
+    (results / "speed.json").write_text(json.dumps({**_speed(), "overrides": ["optimizer.iters=2"]}))
+    with pytest.raises(ValueError, match="measured with overrides"):
+        figures.load(results)
