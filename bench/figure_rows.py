@@ -8,7 +8,7 @@ import statistics
 from typing import Callable, Optional
 
 __all__ = ["matrix_summary", "matrix_scenario", "kitti", "default_run", "ablation", "long_run", "long_speed", "endless",
-           "speed", "real_peers", "matrix_cells", "accuracy_section", "real_section"]
+           "speed", "real_peers", "matrix_cells", "accuracy_section", "real_section", "speed_section"]
 
 
 def _pct(x: Optional[float], digits: int = 3) -> str:
@@ -131,6 +131,16 @@ def speed(r: dict) -> tuple[str, str]:
     return ("frames/s wall: " + "; ".join(parts),
             "targets 30 frames/s at 320x240 (default run, each scenario), 15 on KITTI-size frames, CPU within 3x "
             "ORB-SLAM3's; 2 cores")
+
+
+def speed_section(r: dict) -> list[str]:
+    """The speed table, one line per run and scenario mean (bench/speed_table.py), with its per-stage CPU."""
+    from bench import speed_table
+
+    return ["Frames/s wall, mean wall time of a keyframe step and of any other step, CPU per frame of the whole process "
+            "and, per stage, of the pipeline thread (`other threads`: the process less the pipeline thread: reading "
+            "ahead, writing behind, the flow lanes); evaluation and start-up excluded. The peers have totals only "
+            "(ORB-SLAM3: one run, paced, less its vocabulary load).", "", *speed_table.table(r["speed"])]
 
 
 def _real_rows(r: dict) -> dict[tuple[str, str], list[dict]]:

@@ -34,7 +34,7 @@ if str(ROOT) not in sys.path:
 from bench import provenance, seeds  # noqa: E402
 from bench.figure_rows import (ablation, accuracy_section, default_run, endless, kitti, long_run,  # noqa: E402
                                long_speed, matrix_cells, matrix_scenario, matrix_summary, real_peers, real_section,
-                               speed)
+                               speed, speed_section)
 
 PAGE = ROOT / "bench" / "RESULTS.md"
 README = ROOT / "README.md"
@@ -244,7 +244,8 @@ def _sections(text: str) -> dict[str, list[str]]:
 SECTIONS = (("report", "Report matrix, per cell", matrix_cells),
             ("heldout", "Held-out matrix, per cell", matrix_cells),
             ("accuracy", "Default run and its ablation (driving loop, seed 0)", accuracy_section),
-            ("real", "Real sequences beside ORB-SLAM3 and the textbook VO (`bench/bench_real.py`)", real_section))
+            ("real", "Real sequences beside ORB-SLAM3 and the textbook VO (`bench/bench_real.py`)", real_section),
+            ("speed", "Speed per run and stage (`bench/bench_pipeline.py --only speed`)", speed_section))
 
 
 def page(rows: list[Row], got: dict[str, dict], old_page: str = "") -> str:

@@ -282,12 +282,14 @@ def _speed(orb=True):
 
 def test_the_speed_row_gives_each_scenario_mean_and_the_real_excerpts_beside_orb_slam3(results):
     (results / "speed.json").write_text(json.dumps(_speed()))
-    rows, _ = figures.load(results)
+    rows, got = figures.load(results)
     row = {r.figure.key: r for r in rows}["speed"]
     assert row.value == ("frames/s wall: default run 16.5 (0.45 keyframes a frame); scenario means driving_loop "
                          "16.6, indoor_handheld 31.3 (1 of 2 at 30 or more); 00 / 06 as a user runs them (native "
                          "size) 10.3 / 8.1, CPU 138 / 177 ms a frame, 1.3 / 1.6x ORB-SLAM3's")
     assert row.compared.startswith("targets 30 frames/s at 320x240")
+    page = figures.page(rows, got)
+    assert "## Speed per run and stage" in page and "| KITTI 06 | textbook VO | 100 | 0.45 | 57.5 |" in page
     (results / "speed.json").write_text(json.dumps(_speed(orb=False)))
     with pytest.raises(ValueError, match="ORB-SLAM3 not measured on KITTI 00, KITTI 06"):
         figures.load(results)
