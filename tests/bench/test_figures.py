@@ -235,10 +235,15 @@ def _real(orb=True, orb_runs=3):
             "table": ["| sequence | method |", "|---|---|", "| 00 | pvslam |", "00 orbslam3, each run: ..."]}
 
 
-def test_the_real_excerpts_beside_orb_slam3_are_a_figure_with_the_full_table(results):
-    (results / "real.json").write_text(json.dumps(_real()))
+def _figure(results, key, payload):
+    """The row of figure ``key`` read from ``payload`` as its result file, with the rows and results read."""
+    (results / f"{key}.json").write_text(json.dumps(payload))
     rows, got = figures.load(results)
-    row = {r.figure.key: r for r in rows}["real"]
+    return {r.figure.key: r for r in rows}[key], rows, got
+
+
+def test_the_real_excerpts_beside_orb_slam3_are_a_figure_with_the_full_table(results):
+    row, rows, got = _figure(results, "real", _real())
     assert row.value == ("scored from frame 14 / 12 / 0 (the measured ground truth): pvslam 0.436 / 0.024 / 0.173 m; "
                          "on ORB-SLAM3's frames 0.416 / 0.023 / 0.019-0.159 m; all frames 0.654 / 0.036 / 0.259 m; "
                          "CPU 190 / 190 / 190 ms per frame")
@@ -281,9 +286,7 @@ def _speed(orb=True):
 
 
 def test_the_speed_row_gives_each_scenario_mean_and_the_real_excerpts_beside_orb_slam3(results):
-    (results / "speed.json").write_text(json.dumps(_speed()))
-    rows, got = figures.load(results)
-    row = {r.figure.key: r for r in rows}["speed"]
+    row, rows, got = _figure(results, "speed", _speed())
     assert row.value == ("frames/s wall: default run 16.5 (0.45 keyframes a frame); scenario means driving_loop "
                          "16.6, indoor_handheld 31.3 (1 of 2 at 30 or more); 00 / 06 as a user runs them (native "
                          "size) 10.3 / 8.1, CPU 138 / 177 ms a frame, 1.3 / 1.6x ORB-SLAM3's")
