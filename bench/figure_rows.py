@@ -107,7 +107,7 @@ def endless(r: dict) -> Optional[tuple[str, str]]:
 
 
 def speed(r: dict) -> tuple[str, str]:
-    """The issue's speed table in one row (bench/speed_table.py): the default run, each scenario's mean over its
+    """The speed table in one row (bench/speed_table.py): the default run, each scenario's mean over its
     report seeds, and the real excerpts as a user runs them beside ORB-SLAM3's CPU per frame."""
     rows = r["speed"]
     default = next((x for x in rows if x["group"] == "default"), None)
