@@ -125,9 +125,11 @@ def speed(r: dict) -> tuple[str, str]:
         orb = [next((x for x in rows if x["group"] == g and x["run"].startswith("ORB-SLAM3")), None) for g in kitti]
         ratios = " / ".join(f"{m['cpu_ms'] / o['cpu_ms']:.1f}" if o and o["cpu_ms"] > 0 else "-"
                             for m, o in zip(mine, orb))
+        missing = "" if all(orb) else " (ORB-SLAM3 not run: no $PVSLAM_ORB_PYTHON / $PVSLAM_ORB_VOCAB)"
         parts.append(f"{' / '.join(g.split()[-1] for g in kitti)} as a user runs them (native size) "
                      + " / ".join(f"{m['fps']:.1f}" for m in mine) + ", CPU "
-                     + " / ".join(f"{m['cpu_ms']:.0f}" for m in mine) + f" ms a frame, {ratios}x ORB-SLAM3's")
+                     + " / ".join(f"{m['cpu_ms']:.0f}" for m in mine) + f" ms a frame, {ratios}x ORB-SLAM3's"
+                     + missing)
     return ("frames/s wall: " + "; ".join(parts),
             "targets 30 frames/s at 320x240 (default run, each scenario), 15 on KITTI-size frames, CPU within 3x "
             "ORB-SLAM3's; 2 cores")

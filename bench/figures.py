@@ -89,17 +89,6 @@ def _real_check(r: dict) -> Optional[str]:
     return "fewer than 3 ORB-SLAM3 runs per excerpt" if r.get("orb_runs", 0) < 3 else None
 
 
-def _speed_check(r: dict) -> Optional[str]:
-    bad = _pipeline_check("speed")(r)
-    if bad:
-        return bad
-    groups = {x["group"] for x in r.get("speed") or []}
-    orb = {x["group"] for x in r.get("speed") or [] if x["run"].startswith("ORB-SLAM3")}
-    missing = sorted(g for g in groups if g.startswith("KITTI") and g not in orb)
-    return (f"ORB-SLAM3 not measured on {', '.join(missing)} ($PVSLAM_ORB_PYTHON and $PVSLAM_ORB_VOCAB, as for the "
-            "real figure)") if missing else None
-
-
 BENCHES = {b.key: b for b in (
     Bench("report", ("bench/bench_matrix.py", "--set", "report", "--jobs", "{jobs}", "--json", "{json}"),
           check=_matrix_check("report")),
@@ -111,7 +100,7 @@ BENCHES = {b.key: b for b in (
     Bench("long_speed", ("bench/bench_pipeline.py", "--only", "long", "--json", "{json}"), speed=True,
           same_as="long", check=_pipeline_check("long")),
     Bench("speed", ("bench/bench_pipeline.py", "--only", "speed", "--json", "{json}"), speed=True,
-          check=_speed_check),
+          check=_pipeline_check("speed")),
     Bench("real", ("bench/bench_real.py", "--json", "{json}"), check=_real_check),
     Bench("segmenter", ("bench/bench_dynamic_masks.py", "--report", "--jobs", "{jobs}", "--json", "{json}"),
           check=lambda r: _tool("bench_dynamic_masks").report_problem(r)),
