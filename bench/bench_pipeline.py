@@ -456,8 +456,9 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], dest="overrides", metavar="KEY=VALUE",
                     help="config override applied to every run (repeatable), e.g. --set optimizer.iters=5")
     args = ap.parse_args()
-    args.orb_python = args.orb_python or os.environ.get("PVSLAM_ORB_PYTHON") or None
-    args.orb_vocab = args.orb_vocab or [v for v in os.environ.get("PVSLAM_ORB_VOCAB", "").split(os.pathsep) if v]
+    from bench.bench_real import peers_from_environment
+
+    peers_from_environment(args)
     EXTRA[:] = args.overrides
     if EXTRA:
         RESULTS["overrides"] = list(EXTRA)

@@ -7,6 +7,8 @@ import math
 import statistics
 from typing import Callable, Optional
 
+from bench import speed_table
+
 __all__ = ["matrix_summary", "matrix_scenario", "kitti", "default_run", "ablation", "long_run", "long_speed", "endless",
            "speed", "real_peers", "matrix_cells", "accuracy_section", "real_section", "speed_section"]
 
@@ -119,10 +121,9 @@ def speed(r: dict) -> tuple[str, str]:
         fast = [x["group"] for x in means if x["fps"] >= 30]
         parts.append("scenario means " + ", ".join(f"{x['group']} {x['fps']:.1f}" for x in means)
                      + f" ({len(fast)} of {len(means)} at 30 or more)")
-    kitti = list(dict.fromkeys(x["group"] for x in rows if x["group"].startswith("KITTI")))
-    if kitti:
-        mine = [next(x for x in rows if x["group"] == g) for g in kitti]
-        orb = [next((x for x in rows if x["group"] == g and x["run"].startswith("ORB-SLAM3")), None) for g in kitti]
+    real = speed_table.real_groups(rows)
+    if real:
+        kitti, mine, orb = zip(*real)
         ratios = " / ".join(f"{m['cpu_ms'] / o['cpu_ms']:.1f}" if o and o["cpu_ms"] > 0 else "-"
                             for m, o in zip(mine, orb))
         missing = "" if all(orb) else " (ORB-SLAM3 not run: no $PVSLAM_ORB_PYTHON / $PVSLAM_ORB_VOCAB)"
@@ -137,8 +138,6 @@ def speed(r: dict) -> tuple[str, str]:
 
 def speed_section(r: dict) -> list[str]:
     """The speed table, one line per run and scenario mean (bench/speed_table.py), with its per-stage CPU."""
-    from bench import speed_table
-
     return ["Frames/s wall, mean wall time of a keyframe step and of any other step, CPU per frame of the whole process "
             "and, per stage, of the pipeline thread (`other threads`: the process less the pipeline thread: reading "
             "ahead, writing behind, the flow lanes); evaluation and start-up excluded. The peers have totals only "
